@@ -1,0 +1,91 @@
+"""Per-frame accumulation buffers: what the renderer adds to and every later step reads."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class FrameBuffer:
+    """Running sums for one frame, persistent across render calls.
+
+    Radiance is kept as sum and sum of squares in float64 so that the variance of the mean
+    stays accurate after many passes. First-hit AOVs are sums too (divided by `spp` on read),
+    so they average over the pixel footprint like the radiance does.
+    """
+
+    radiance_sum: np.ndarray  # (H, W, 3) float64
+    radiance_sq_sum: np.ndarray  # (H, W, 3) float64
+    spp: np.ndarray  # (H, W) int64, samples taken so far
+    albedo_sum: np.ndarray  # (H, W, 3) float64
+    normal_sum: np.ndarray  # (H, W, 3) float64, world-space shading normal
+    depth_sum: np.ndarray  # (H, W) float64, first-hit distance (0 on a miss)
+    motion: np.ndarray | None = None  # (H, W, 2) float32, pixels to the previous frame
+    passes: int = 0  # render calls accumulated (seeds are derived from it)
+    meta: dict = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls, height: int, width: int) -> "FrameBuffer":
+        return cls(
+            radiance_sum=np.zeros((height, width, 3)),
+            radiance_sq_sum=np.zeros((height, width, 3)),
+            spp=np.zeros((height, width), dtype=np.int64),
+            albedo_sum=np.zeros((height, width, 3)),
+            normal_sum=np.zeros((height, width, 3)),
+            depth_sum=np.zeros((height, width)),
+        )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.spp.shape
+
+    def _per_sample(self, total: np.ndarray) -> np.ndarray:
+        n = self.spp.reshape(self.spp.shape + (1,) * (total.ndim - 2)).astype(np.float64)
+        return np.divide(total, n, out=np.zeros_like(total), where=n > 0)
+
+    @property
+    def mean(self) -> np.ndarray:
+        """Monte Carlo estimate of pixel radiance; 0 where no sample was taken."""
+        return self._per_sample(self.radiance_sum).astype(np.float32)
+
+    @property
+    def variance(self) -> np.ndarray:
+        """Variance of the mean: unbiased sample variance / n (0 where n < 2)."""
+        n = self.spp[..., None].astype(np.float64)
+        mean = self._per_sample(self.radiance_sum)
+        sample_var = np.divide(
+            self.radiance_sq_sum - n * mean**2, n - 1, out=np.zeros_like(mean), where=n > 1
+        )
+        var_of_mean = np.divide(np.maximum(sample_var, 0.0), n, out=np.zeros_like(mean), where=n > 1)
+        return var_of_mean.astype(np.float32)
+
+    def relative_variance(self, eps: float = 1e-2) -> np.ndarray:
+        """Variance of the mean over squared luminance-ish magnitude (Rousselle et al. style)."""
+        mean = self.mean.astype(np.float64)
+        return (self.variance / (mean**2 + eps)).astype(np.float32)
+
+    @property
+    def albedo(self) -> np.ndarray:
+        return self._per_sample(self.albedo_sum).astype(np.float32)
+
+    @property
+    def normal(self) -> np.ndarray:
+        return self._per_sample(self.normal_sum).astype(np.float32)
+
+    @property
+    def depth(self) -> np.ndarray:
+        return self._per_sample(self.depth_sum).astype(np.float32)
+
+    def copy(self) -> "FrameBuffer":
+        return FrameBuffer(
+            radiance_sum=self.radiance_sum.copy(),
+            radiance_sq_sum=self.radiance_sq_sum.copy(),
+            spp=self.spp.copy(),
+            albedo_sum=self.albedo_sum.copy(),
+            normal_sum=self.normal_sum.copy(),
+            depth_sum=self.depth_sum.copy(),
+            motion=None if self.motion is None else self.motion.copy(),
+            passes=self.passes,
+            meta=dict(self.meta),
+        )
