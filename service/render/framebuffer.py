@@ -21,7 +21,7 @@ class FrameBuffer:
     albedo_sum: np.ndarray  # (H, W, 3) float64
     normal_sum: np.ndarray  # (H, W, 3) float64, world-space shading normal
     depth_sum: np.ndarray  # (H, W) float64, first-hit distance (0 on a miss)
-    motion: np.ndarray | None = None  # (H, W, 2) float32, pixels to the previous frame
+    motion_sum: np.ndarray | None = None  # (H, W, 2) float64, pixels to the previous frame
     passes: int = 0  # render calls accumulated (seeds are derived from it)
     meta: dict = field(default_factory=dict)
 
@@ -77,6 +77,11 @@ class FrameBuffer:
     def depth(self) -> np.ndarray:
         return self._per_sample(self.depth_sum).astype(np.float32)
 
+    @property
+    def motion(self) -> np.ndarray | None:
+        """Screen-space motion in pixels: pixel (x, y) was at (x + mx, y + my) one frame earlier."""
+        return None if self.motion_sum is None else self._per_sample(self.motion_sum).astype(np.float32)
+
     def copy(self) -> "FrameBuffer":
         return FrameBuffer(
             radiance_sum=self.radiance_sum.copy(),
@@ -85,7 +90,7 @@ class FrameBuffer:
             albedo_sum=self.albedo_sum.copy(),
             normal_sum=self.normal_sum.copy(),
             depth_sum=self.depth_sum.copy(),
-            motion=None if self.motion is None else self.motion.copy(),
+            motion_sum=None if self.motion_sum is None else self.motion_sum.copy(),
             passes=self.passes,
             meta=dict(self.meta),
         )

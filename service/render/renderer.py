@@ -1,0 +1,167 @@
+"""Render exactly n[y, x] new samples per pixel and accumulate them into a FrameBuffer.
+
+Reads like Mitsuba 3's own Python render loop (prepare → sample rays → sample → develop);
+the one difference is the per-pixel sample count: pixel indices are expanded by their counts
+into one flat wavefront (DESIGN.md, runtime facts), split into chunks of at most
+`max_wavefront` lanes so memory stays bounded.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from service.render.framebuffer import FrameBuffer
+from service.render.runtime import mitsuba
+
+# 2^22 lanes ≈ a few hundred MB of Dr.Jit state on the LLVM backend: a 1024² × 64 spp pass
+# (67 M samples) runs in 16 chunks instead of one 10+ GB wavefront.
+DEFAULT_MAX_WAVEFRONT = 1 << 22
+# A miss has no first-hit point; motion of the background is taken at this distance.
+BACKGROUND_DISTANCE = 1e4
+
+
+@dataclass
+class RenderPass:
+    """Statistics of one render call, for progress and benchmarks."""
+
+    samples: int
+    chunks: int
+    seconds: float
+
+
+def expand_counts(counts: np.ndarray) -> np.ndarray:
+    """Flat pixel indices, each repeated by its count: the wavefront's lane → pixel map."""
+    flat = np.asarray(counts, dtype=np.int64).ravel()
+    if flat.size and flat.min() < 0:
+        raise ValueError("sample counts must be >= 0")
+    return np.repeat(np.arange(flat.size, dtype=np.uint32), flat)
+
+
+def pass_seed(user_seed: int, pass_index: int, chunk_index: int) -> int:
+    """Distinct 32-bit sampler seed per (job seed, pass, chunk) so passes are independent."""
+    mask = (1 << 64) - 1
+    mixed = ((user_seed * 0x9E3779B97F4A7C15) & mask) ^ ((pass_index << 20) | chunk_index)
+    mixed = (mixed ^ (mixed >> 29)) * 0xBF58476D1CE4E5B9 & mask
+    return (mixed ^ (mixed >> 32)) & 0xFFFFFFFF
+
+
+def _trace_chunk(mi, scene, integrator, sensor, prev_sensor, pixels: np.ndarray, width: int, seed: int,
+                 diff_scale: float):
+    """Sample rays for `pixels` (flat indices), integrate, and return per-lane arrays."""
+    import drjit as dr
+
+    n = len(pixels)
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, n)
+    idx = mi.UInt32(pixels)
+    film_size = mi.ScalarVector2f(sensor.film().crop_size())
+    pixel = mi.Vector2f(mi.Float(idx % width), mi.Float(idx // width))
+    position = pixel + sampler.next_2d()
+
+    # Sample rays: same arguments as Mitsuba's own sample_rays (time, wavelength, film
+    # position normalised to [0, 1]², aperture sample for thin-lens cameras).
+    time = sensor.shutter_open() + sampler.next_1d() * sensor.shutter_open_time()
+    wavelength_sample = sampler.next_1d()
+    aperture_sample = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+    ray, ray_weight = sensor.sample_ray_differential(time, wavelength_sample, position / film_size, aperture_sample)
+    ray.scale_differential(float(diff_scale))
+
+    radiance, valid, _ = integrator.sample(scene, sampler, ray, None, True)
+    radiance = dr.select(valid, radiance * ray_weight, 0.0)
+
+    # First-hit AOVs (~27% extra, DESIGN.md) from a separate primary intersection.
+    si = scene.ray_intersect(mi.Ray3f(ray))
+    hit = si.is_valid()
+    bsdf = si.bsdf(mi.RayDifferential3f(ray))
+    albedo = dr.select(hit, bsdf.eval_diffuse_reflectance(si, hit), 0.0)
+    normal = dr.select(hit, si.sh_frame.n, 0.0)
+    depth = dr.select(hit, si.t, 0.0)
+
+    motion = None
+    if prev_sensor is not None:
+        world = dr.select(hit, si.p, ray.o + ray.d * BACKGROUND_DISTANCE)
+        it = dr.zeros(mi.Interaction3f)
+        it.p = world
+        ds, _ = prev_sensor.sample_direction(it, mi.Point2f(0.5), True)
+        seen = ds.pdf > 0
+        # ds.uv is the film position (pixels) of `world` in the previous frame.
+        motion = dr.select(seen, ds.uv - position, 0.0)
+
+    dr.eval(radiance, albedo, normal, depth, motion)
+    to_np = lambda v: np.asarray(v, dtype=np.float64).reshape(-1, n).T if v is not None else None
+    return to_np(mi.Vector3f(radiance)), to_np(albedo), to_np(normal), np.asarray(depth, dtype=np.float64), to_np(motion)
+
+
+def _accumulate(target: np.ndarray, pixels: np.ndarray, values: np.ndarray) -> None:
+    """target[pixel] += sum of values for that pixel (per channel), via bincount."""
+    flat = target.reshape(target.shape[0] * target.shape[1], -1)
+    size = flat.shape[0]
+    if values.ndim == 1:
+        values = values[:, None]
+    for c in range(values.shape[1]):
+        flat[:, c] += np.bincount(pixels, weights=values[:, c], minlength=size)
+
+
+def render_samples(
+    scene,
+    counts: np.ndarray,
+    buffer: FrameBuffer,
+    *,
+    integrator=None,
+    seed: int = 0,
+    prev_sensor=None,
+    max_wavefront: int = DEFAULT_MAX_WAVEFRONT,
+    progress: Callable[[int], None] | None = None,
+) -> RenderPass:
+    """Trace exactly `counts[y, x]` new samples per pixel and add them to `buffer`.
+
+    `integrator`: the one the effects report chose (default: the scene's). `prev_sensor`:
+    the previous frame's sensor when the scene moves — then motion vectors are accumulated
+    too. `progress(n)` is called with the samples finished after each chunk.
+    """
+    import time as _time
+
+    mi = mitsuba()
+    start = _time.perf_counter()
+    counts = np.asarray(counts)
+    height, width = buffer.shape
+    if counts.shape != (height, width):
+        raise ValueError(f"count map {counts.shape} does not match the frame {(height, width)}")
+    sensor = scene.sensors()[0]
+    film_w, film_h = sensor.film().crop_size()
+    if (film_h, film_w) != (height, width):
+        raise ValueError(f"scene film is {film_w}x{film_h}, frame buffer is {width}x{height}")
+    integrator = integrator or scene.integrator()
+    lanes = expand_counts(counts)
+    total = len(lanes)
+    if prev_sensor is not None and buffer.motion_sum is None:
+        buffer.motion_sum = np.zeros((height, width, 2))
+    # Ray differentials describe the footprint of one sample: shrink them with the mean
+    # per-pixel rate as mi.render does with 1/sqrt(spp).
+    diff_scale = 1.0 / np.sqrt(max(buffer.spp.mean() + counts.mean(), 1.0))
+    chunks = max(1, -(-total // max_wavefront))
+    for chunk in range(chunks if total else 0):
+        pixels = lanes[chunk * max_wavefront:(chunk + 1) * max_wavefront]
+        radiance, albedo, normal, depth, motion = _trace_chunk(
+            mi, scene, integrator, sensor, prev_sensor, pixels, width,
+            pass_seed(seed, buffer.passes, chunk), diff_scale,
+        )
+        # Sanitise per sample: one NaN/Inf lane must not poison a pixel's running sums.
+        bad = ~np.isfinite(radiance).all(axis=1)
+        if bad.any():
+            radiance[bad] = 0.0
+            buffer.meta["nonfinite_samples"] = int(buffer.meta.get("nonfinite_samples", 0) + bad.sum())
+        _accumulate(buffer.radiance_sum, pixels, radiance)
+        _accumulate(buffer.radiance_sq_sum, pixels, radiance**2)
+        _accumulate(buffer.albedo_sum, pixels, np.nan_to_num(albedo))
+        _accumulate(buffer.normal_sum, pixels, np.nan_to_num(normal))
+        _accumulate(buffer.depth_sum[..., None], pixels, np.nan_to_num(depth))
+        if motion is not None:
+            _accumulate(buffer.motion_sum, pixels, np.nan_to_num(motion))
+        if progress is not None:
+            progress(len(pixels))
+    buffer.spp += counts.astype(np.int64)
+    buffer.passes += 1
+    return RenderPass(samples=total, chunks=chunks if total else 0, seconds=_time.perf_counter() - start)
