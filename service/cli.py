@@ -1,0 +1,184 @@
+"""`renderloop render|denoise|serve|bench|dataset|train` (DESIGN.md, CLI contract).
+
+Every user error ends as one `renderloop: error: …` line and exit status 2; tracebacks are
+for bugs only.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+EXIT_USAGE = 2
+
+
+class CliError(Exception):
+    """A user-facing error: printed as one line, exit status 2."""
+
+
+def frame_path(out: Path, frame: int, frames: int) -> Path:
+    """OUT.exr for one frame; OUT_0000.exr, OUT_0001.exr, … for a sequence."""
+    return out if frames == 1 else out.with_name(f"{out.stem}_{frame:04d}{out.suffix}")
+
+
+# -- render -----------------------------------------------------------------------------------
+
+def add_render_parser(sub) -> None:
+    p = sub.add_parser("render", help="render a scene with the adaptive loop (or one uniform pass)")
+    p.add_argument("scene", nargs="?", help="Mitsuba 3 XML file or built-in scene name (see --list)")
+    p.add_argument("--list", action="store_true", help="print the built-in scenes and exit")
+    p.add_argument("--width", type=int)
+    p.add_argument("--height", type=int)
+    p.add_argument("--frames", type=int, default=1, help="frames of the scene's animation (default 1)")
+    p.add_argument("--spp", type=int, help="one uniform pass of N samples per pixel, no adaptive iterations")
+    p.add_argument("--spp-first", type=int, default=16, help="samples per pixel of iteration 0 (default 16)")
+    stop = p.add_argument_group("stopping rules (whichever comes first; default --iterations 4)")
+    stop.add_argument("--iterations", type=int, help="maximum iterations")
+    stop.add_argument("--spp-budget", type=float, help="mean samples per pixel, all iterations together")
+    stop.add_argument("--time-limit", type=float, help="seconds")
+    stop.add_argument("--target-error", type=float, help="stop when the mean predicted SMAPE is at most this")
+    p.add_argument("--allocator", default="error", help="error (default) | variance | uniform")
+    p.add_argument("--no-denoise", action="store_true", help="write the plain Monte Carlo estimate")
+    p.add_argument("--lambda", dest="lam", type=float, default=1.0, help="λ in [1, 10] (default 1)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--png", action="store_true", help="also write a tonemapped PNG beside each EXR")
+    p.add_argument("-o", "--output", type=Path, help="output EXR path")
+    p.set_defaults(handler=run_render)
+
+
+def render_spec(args):
+    from service.loop.spec import LoopSpec
+
+    if args.spp is not None:
+        if args.spp < 1:
+            raise CliError(f"--spp must be >= 1 (got {args.spp})")
+        first, iterations = args.spp, 1
+    else:
+        if args.spp_first < 1:
+            raise CliError(f"--spp-first must be >= 1 (got {args.spp_first})")
+        first = args.spp_first
+        no_rule = all(v is None for v in (args.iterations, args.spp_budget, args.time_limit, args.target_error))
+        iterations = 4 if no_rule else args.iterations
+    for name in ("width", "height"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise CliError(f"--{name} must be >= 1 (got {value})")
+    return LoopSpec(
+        scene=args.scene, width=args.width, height=args.height, frames=args.frames, spp_first=first,
+        max_iterations=iterations, spp_budget=args.spp_budget, time_limit=args.time_limit,
+        target_error=args.target_error, allocator=args.allocator, denoise=not args.no_denoise,
+        lam=args.lam, seed=args.seed,
+    )
+
+
+def run_render(args) -> int:
+    from service.render.scenes import describe_builtin_scenes
+
+    if args.list:
+        for name, description in describe_builtin_scenes():
+            print(f"{name:20s} {description}")
+        return 0
+    if not args.scene:
+        raise CliError("render needs a SCENE (an XML file or a built-in name; see --list)")
+    if args.output is None:
+        raise CliError("render needs -o OUT.exr")
+    spec = render_spec(args)
+
+    from tqdm import tqdm
+
+    from service.exr import write_exr
+    from service.images import tonemap, write_png
+    from service.loop.loop import RenderLoop
+
+    loop = RenderLoop(spec)
+    bar = tqdm(total=spec.max_iterations, unit="it", desc=Path(spec.scene).stem, file=sys.stderr)
+    record = None
+    for record in loop.run():
+        err = "-" if record.predicted_error is None else f"{record.predicted_error:.4f}"
+        bar.set_postfix(spp=f"{record.spp_mean:.1f}", error=err, refresh=False)
+        bar.update(1)
+    bar.close()
+    for f, frame in enumerate(loop.result_frames()):
+        path = write_exr(frame_path(args.output, f, spec.frames), frame)
+        print(f"wrote {path}")
+        if args.png:
+            print(f"wrote {write_png(path.with_suffix('.png'), tonemap(frame.color))}")
+    if record is not None:
+        print(f"{record.iteration + 1} iterations, {record.spp_mean:.1f} spp mean, stop: {record.stop_reason}")
+    return 0
+
+
+# -- serve ------------------------------------------------------------------------------------
+
+def add_serve_parser(sub) -> None:
+    p = sub.add_parser("serve", help="run the HTTP service")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--data-dir", type=Path, default=Path(os.environ.get("RENDERLOOP_DATA_DIR", "data")))
+    p.add_argument("--concurrency", type=int, default=1, help="jobs rendered at once (default 1)")
+    p.set_defaults(handler=run_serve)
+
+
+def run_serve(args) -> int:
+    from service.api.serve import serve
+
+    if not 0 < args.port < 65536:
+        raise CliError(f"--port must be in 1..65535 (got {args.port})")
+    if args.concurrency < 1:
+        raise CliError("--concurrency must be >= 1")
+    print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir})")
+    print(f"try: curl -X POST http://{args.host}:{args.port}/jobs -H 'content-type: application/json' "
+          "-d '{\"scene\": \"cornell-box\", \"width\": 64, \"height\": 64, \"max_iterations\": 3}'")
+    serve(args.host, args.port, args.data_dir, args.concurrency)
+    return 0
+
+
+# -- main -------------------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="renderloop", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_render_parser(sub)
+    add_serve_parser(sub)
+    for module in ("service.dataset.command", "service.train_command", "service.denoise_command", "service.bench"):
+        try:
+            mod = __import__(module, fromlist=["add_parser"])
+        except ModuleNotFoundError as exc:
+            if exc.name != module:
+                raise
+            continue
+        mod.add_parser(sub)
+    return parser
+
+
+def user_errors() -> tuple[type[BaseException], ...]:
+    """Exception types that describe bad input rather than a bug."""
+    from service.exr import ExrError
+    from service.render.runtime import RuntimeSetupError
+
+    errors: list[type[BaseException]] = [CliError, ExrError, RuntimeSetupError, FileNotFoundError]
+    for module, name in (("service.render.scenes", "SceneError"), ("service.loop.loop", "LoopSpecError"),
+                         ("models.checkpoint", "CheckpointError")):
+        try:
+            errors.append(getattr(__import__(module, fromlist=[name]), name))
+        except (ImportError, AttributeError):
+            pass
+    return tuple(errors)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.handler(args)
+    except KeyboardInterrupt:
+        print("renderloop: interrupted", file=sys.stderr)
+        return 130
+    except user_errors() as exc:
+        print(f"renderloop: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,42 @@
+"""Bridge from frame buffers (numpy, HWC) to the networks (torch, NCHW) and back."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from models.frames import FrameTensors
+from service.render.framebuffer import FrameBuffer
+
+
+def _nchw(array: np.ndarray) -> torch.Tensor:
+    if array.ndim == 2:
+        array = array[..., None]
+    return torch.from_numpy(np.ascontiguousarray(array.transpose(2, 0, 1), dtype=np.float32))[None]
+
+
+def frame_tensors(buffer: FrameBuffer) -> FrameTensors:
+    motion = buffer.motion
+    return FrameTensors(
+        color=_nchw(buffer.mean),
+        variance=_nchw(buffer.variance),
+        albedo=_nchw(buffer.albedo),
+        normal=_nchw(buffer.normal),
+        depth=_nchw(buffer.depth),
+        motion=None if motion is None else _nchw(motion),
+    )
+
+
+def to_image(tensor: torch.Tensor) -> np.ndarray:
+    """(1, C, H, W) tensor → (H, W, C) float32 array (C = 1 squeezed)."""
+    image = tensor[0].detach().float().permute(1, 2, 0).cpu().numpy()
+    return np.ascontiguousarray(image[..., 0] if image.shape[-1] == 1 else image)
+
+
+def temporal_window(frame: int, frames: int, radius: int) -> tuple[list[int], int]:
+    """Indices of the 2M+1 window around `frame`, clipped to the sequence, and the centre's position."""
+    lo, hi = max(0, frame - radius), min(frames - 1, frame + radius)
+    return list(range(lo, hi + 1)), frame - lo
+
+
+def lam_tensor(lam_map: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(lam_map, dtype=np.float32))[None, None]
