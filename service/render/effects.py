@@ -1,0 +1,172 @@
+"""What a scene calls for: the effects report, and the integrator built from it.
+
+The renderer simulates only what the scene needs: `volpath` exactly when some shape, sensor or
+emitter carries a participating medium, `path` otherwise; motion vectors only when frames > 1
+and the camera or a shape actually moves between frames.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from service.render.runtime import mitsuba
+from service.render.scenes import LoadedScene, SceneError, load_scene_info
+
+# Used when the scene declares no integrator (or one without max_depth). Mitsuba's own default
+# is -1 (unbounded, Russian roulette only); a bound keeps the cost of one wavefront predictable
+# and matches the depth of mi.cornell_box().
+DEFAULT_MAX_DEPTH = 8
+INTEGRATORS = ("path", "volpath")
+# Canonical order of emitter kinds in the report.
+EMITTER_KINDS = ("area", "point", "spot", "directional", "environment", "constant")
+# Frame-to-frame differences below this are float noise from re-evaluating the same transform.
+MOTION_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class SceneEffects:
+    media: bool
+    integrator: str  # "volpath" if media else "path"
+    max_depth: int  # -1 means unbounded (Mitsuba's convention)
+    depth_of_field: bool  # thin lens camera with a finite aperture
+    emitters: tuple[str, ...]  # kinds among EMITTER_KINDS, in that order
+    glossy: bool  # some BSDF has a glossy (rough specular) lobe
+    delta_bsdf: bool  # some BSDF has a perfectly specular reflection/transmission lobe
+    frames: int
+    animated_camera: bool
+    animated_shapes: bool
+
+    @property
+    def temporal(self) -> bool:
+        return self.frames > 1
+
+    @property
+    def motion_vectors(self) -> bool:
+        return self.frames > 1 and (self.animated_camera or self.animated_shapes)
+
+
+def inspect_scene(
+    source: str | Path,
+    *,
+    frames: int = 1,
+    width: int | None = None,
+    height: int | None = None,
+) -> SceneEffects:
+    """Load frame 0 (and frames 1 and last when animated) and report what the scene needs."""
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+        raise SceneError(f"frames must be an integer >= 1, got {frames!r}")
+    mi = mitsuba()
+    first = load_scene_info(source, width=width, height=height, frame=0)
+    scene = first.scene
+    media = _has_media(scene)
+    bsdf_flags = _bsdf_flags(mi, scene)
+    animated_camera, animated_shapes = _motion(source, first, frames, width, height)
+    return SceneEffects(
+        media=media,
+        integrator="volpath" if media else "path",
+        max_depth=DEFAULT_MAX_DEPTH if first.max_depth is None else first.max_depth,
+        depth_of_field=_depth_of_field(mi, scene.sensors()[0]),
+        emitters=_emitter_kinds(mi, scene),
+        glossy=mi.has_flag(bsdf_flags, mi.BSDFFlags.Glossy),
+        # Delta alone would also count Null (the invisible boundary of a medium), which is no
+        # specular surface; only real mirror/glass lobes matter here.
+        delta_bsdf=mi.has_flag(bsdf_flags, mi.BSDFFlags.DeltaReflection)
+        or mi.has_flag(bsdf_flags, mi.BSDFFlags.DeltaTransmission),
+        frames=frames,
+        animated_camera=animated_camera,
+        animated_shapes=animated_shapes,
+    )
+
+
+def make_integrator(effects: SceneEffects):
+    """The `mi.Integrator` the report calls for: path or volpath with the scene's max_depth."""
+    if effects.integrator not in INTEGRATORS:
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {effects.integrator!r}")
+    return mitsuba().load_dict({"type": effects.integrator, "max_depth": int(effects.max_depth)})
+
+
+def _has_media(scene) -> bool:
+    holders = [*scene.sensors(), *scene.emitters()]
+    if any(holder.get_medium() is not None for holder in holders):
+        return True
+    return any(
+        shape.interior_medium() is not None or shape.exterior_medium() is not None for shape in scene.shapes()
+    )
+
+
+def _bsdf_flags(mi, scene) -> int:
+    """The union of every shape's BSDF lobe flags (nested BSDFs report their children's)."""
+    flags = 0
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if bsdf is not None:
+            flags |= int(bsdf.flags())
+    return flags
+
+
+def _depth_of_field(mi, sensor) -> bool:
+    if not sensor.needs_aperture_sample():
+        return False
+    # thinlens accepts aperture_radius 0 (with a warning) and still asks for aperture samples.
+    params = mi.traverse(sensor)
+    if "aperture_radius" in params:
+        return float(np.asarray(params["aperture_radius"]).ravel()[0]) > 0.0
+    return True
+
+
+def _emitter_kind(mi, emitter) -> str:
+    flags = int(emitter.flags())
+    name = emitter.class_name()
+    if mi.has_flag(flags, mi.EmitterFlags.Surface):
+        return "area"
+    if mi.has_flag(flags, mi.EmitterFlags.DeltaDirection):
+        return "directional"
+    if mi.has_flag(flags, mi.EmitterFlags.Infinite):
+        return "constant" if "Constant" in name else "environment"
+    # DeltaPosition: spot lights and projectors shine a cone, point lights a sphere.
+    return "spot" if ("Spot" in name or "Projector" in name) else "point"
+
+
+def _emitter_kinds(mi, scene) -> tuple[str, ...]:
+    kinds = {_emitter_kind(mi, emitter) for emitter in scene.emitters()}
+    return tuple(kind for kind in EMITTER_KINDS if kind in kinds)
+
+
+def _camera_pose(mi, sensor) -> np.ndarray:
+    """The sensor's world transform plus its field of view, flattened for comparison."""
+    pose = [np.asarray(sensor.world_transform().matrix, dtype=np.float64).ravel()]
+    params = mi.traverse(sensor)
+    if "x_fov" in params:
+        pose.append(np.asarray(params["x_fov"], dtype=np.float64).ravel())
+    return np.concatenate(pose)
+
+
+def _shape_boxes(scene) -> np.ndarray:
+    """Every shape's bounding box as (min, max), sorted so load order does not matter."""
+    boxes = [[*shape.bbox().min, *shape.bbox().max] for shape in scene.shapes()]
+    boxes.sort()
+    return np.asarray(boxes, dtype=np.float64).reshape(-1, 6)
+
+
+def _differs(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.shape != b.shape or not np.allclose(a, b, rtol=0.0, atol=MOTION_TOLERANCE)
+
+
+def _motion(
+    source: str | Path, first: LoadedScene, frames: int, width: int | None, height: int | None
+) -> tuple[bool, bool]:
+    """(camera moves, shapes move) between frame 0 and frames 1 and last."""
+    # An XML file without a $frame parameter is the same scene for every frame.
+    if frames == 1 or not first.declares_frame:
+        return False, False
+    mi = mitsuba()
+    pose0 = _camera_pose(mi, first.scene.sensors()[0])
+    boxes0 = _shape_boxes(first.scene)
+    camera = shapes = False
+    for frame in sorted({1, frames - 1}):
+        scene = load_scene_info(source, width=width, height=height, frame=frame).scene
+        camera = camera or _differs(pose0, _camera_pose(mi, scene.sensors()[0]))
+        shapes = shapes or _differs(boxes0, _shape_boxes(scene))
+    return camera, shapes

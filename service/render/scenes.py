@@ -1,0 +1,248 @@
+"""Scene loading: a built-in name or a Mitsuba 3 XML file → an `mi.Scene` the renderer can use.
+
+Both kinds go through Mitsuba's staged parser (parse → transform → edit → instantiate), so the
+edits the renderer needs are made on the parsed description *before* any plugin exists:
+
+- resolution override: the film's width/height are rewritten in the parsed film node. Changing
+  `film.size` through `mi.traverse` after loading resizes the film but leaves the camera's
+  projection computed for the old aspect ratio, so rays no longer match the pixels.
+- sampler: always `independent`, because the renderer hands out a different sample count to
+  every pixel and stratified/low-discrepancy samplers assume one fixed spp.
+- the declared integrator's `max_depth` is read here and kept; the integrator itself is
+  rebuilt by `effects.make_integrator`.
+"""
+from __future__ import annotations
+
+import numbers
+import re
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+from service.render.builtin import BUILTIN_BY_NAME, BUILTIN_SCENES
+from service.render.runtime import mitsuba
+
+MAX_RESOLUTION = 8192
+MAX_PIXELS = 16_777_216
+# What hdrfilm uses when a sensor declares no film (or a film without a size).
+MITSUBA_DEFAULT_FILM = (768, 576)
+INDEPENDENT_SAMPLER_PROPS = ("sample_count", "seed")
+# A film's crop window is in pixels of the declared size; it is dropped when the size changes.
+CROP_PROPS = ("crop_offset_x", "crop_offset_y", "crop_width", "crop_height")
+FRAME_PARAMETER = "frame"
+RESOLUTION_PARAMETERS = ("width", "height")
+
+# Relative asset paths are resolved through Mitsuba's process-wide file resolver, which we
+# swap while instantiating an XML scene; the lock keeps concurrent loads from seeing each
+# other's asset roots.
+_RESOLVER_LOCK = threading.Lock()
+
+
+class SceneError(ValueError):
+    """A scene cannot be loaded; the message is one line saying why."""
+
+
+@dataclass(frozen=True)
+class LoadedScene:
+    """A loaded scene plus what the source declared that the instantiated scene hides."""
+
+    scene: object  # mi.Scene
+    max_depth: int | None  # the source integrator's max_depth; None when it declares none
+    declares_frame: bool  # whether frames can differ at all (built-ins always may)
+
+
+def builtin_scene_names() -> list[str]:
+    return [scene.name for scene in BUILTIN_SCENES]
+
+
+def describe_builtin_scenes() -> list[tuple[str, str]]:
+    return [(scene.name, scene.description) for scene in BUILTIN_SCENES]
+
+
+def load_scene(
+    source: str | Path,
+    *,
+    width: int | None = None,
+    height: int | None = None,
+    frame: int = 0,
+) -> object:
+    """The `mi.Scene` for a built-in name or XML path at `frame`, optionally resized."""
+    return load_scene_info(source, width=width, height=height, frame=frame).scene
+
+
+def load_scene_info(
+    source: str | Path,
+    *,
+    width: int | None = None,
+    height: int | None = None,
+    frame: int = 0,
+) -> LoadedScene:
+    """Like `load_scene`, also returning the declared max_depth (used by the effects report)."""
+    width, height = _check_override(width, height)
+    if isinstance(frame, bool) or not isinstance(frame, numbers.Integral) or frame < 0:
+        raise SceneError(f"frame must be an integer >= 0, got {frame!r}")
+    frame = int(frame)
+    mi = mitsuba()
+    config = mi.parser.ParserConfig(mi.variant())
+    builtin = BUILTIN_BY_NAME.get(str(source)) if not isinstance(source, Path) else None
+    if builtin is not None:
+        state = _parse(lambda: mi.parser.parse_dict(config, builtin.build(frame)), builtin.name)
+        asset_root = None
+        declares_frame = True
+    else:
+        path = _scene_path(source)
+        declared = _declared_parameters(path)
+        params = {FRAME_PARAMETER: str(frame)} if FRAME_PARAMETER in declared else {}
+        # A file that sizes its film from $width/$height gets the override through them too,
+        # so anything else it derives from them stays consistent.
+        for name, value in zip(RESOLUTION_PARAMETERS, (width, height)):
+            if value is not None and name in declared:
+                params[name] = str(value)
+        state = _parse(lambda: mi.parser.parse_file(config, str(path), **params), path.name)
+        asset_root = path.parent
+        declares_frame = FRAME_PARAMETER in declared
+    label = builtin.name if builtin is not None else Path(source).name
+    _parse(lambda: mi.parser.transform_all(config, state), label)
+    max_depth = _conform(mi, state, width, height, label)
+    scene = _instantiate(mi, config, state, asset_root, label)
+    if not isinstance(scene, mi.Scene):
+        raise SceneError(f"{label}: the file describes a {type(scene).__name__}, not a <scene>")
+    if not scene.sensors():
+        raise SceneError(f"{label}: the scene declares no <sensor> (camera) to render from")
+    return LoadedScene(scene=scene, max_depth=max_depth, declares_frame=declares_frame)
+
+
+def _check_override(width: int | None, height: int | None) -> tuple[int | None, int | None]:
+    """Validate a requested size early (before any parsing); numpy integers become ints."""
+    checked = []
+    for name, value in (("width", width), ("height", height)):
+        if value is not None:
+            # bool is an Integral too, but `width=True` is a caller bug, not a size.
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise SceneError(f"{name} must be an integer, got {value!r}")
+            value = int(value)
+            if not 0 < value <= MAX_RESOLUTION:
+                raise SceneError(f"{name} must be between 1 and {MAX_RESOLUTION}, got {value}")
+        checked.append(value)
+    return checked[0], checked[1]
+
+
+def _check_size(label: str, width: int, height: int) -> None:
+    if not (0 < width <= MAX_RESOLUTION and 0 < height <= MAX_RESOLUTION):
+        raise SceneError(
+            f"{label}: film is {width}x{height}; each side must be between 1 and {MAX_RESOLUTION}"
+        )
+    if width * height > MAX_PIXELS:
+        raise SceneError(f"{label}: film is {width}x{height} = {width * height} pixels, above the cap of {MAX_PIXELS}")
+
+
+def _scene_path(source: str | Path) -> Path:
+    path = Path(source).expanduser()
+    looks_like_path = isinstance(source, Path) or path.suffix != "" or "/" in str(source) or "\\" in str(source)
+    if not looks_like_path:
+        known = ", ".join(builtin_scene_names())
+        raise SceneError(f"unknown built-in scene {str(source)!r}; known: {known} (or give a Mitsuba XML file path)")
+    if not path.is_file():
+        raise SceneError(f"scene file not found: {path}")
+    return path.resolve()
+
+
+def _declared_parameters(path: Path) -> set[str]:
+    """Names declared with `<default name=...>` in the file (Mitsuba rejects unknown `$params`).
+
+    A file that is not well-formed XML declares nothing here; Mitsuba's parser then reports the
+    actual syntax error with its line and column.
+    """
+    from defusedxml import ElementTree
+
+    try:
+        root = ElementTree.parse(str(path)).getroot()
+    except Exception:
+        return set()
+    return {element.get("name") for element in root.iter("default") if element.get("name")}
+
+
+def _one_line(exc: BaseException) -> str:
+    """Mitsuba's message without its `[file.cpp:123]` source tags, folded onto one line."""
+    text = re.sub(r"\[[\w.]+\.(?:cpp|h):\d+\]\s*", "", str(exc))
+    return " ".join(text.split())
+
+
+def _parse(step, label: str):
+    try:
+        return step()
+    except SceneError:
+        raise
+    except Exception as exc:  # Mitsuba raises RuntimeError for every parse problem
+        raise SceneError(f"{label}: {_one_line(exc)}") from exc
+
+
+def _conform(mi, state, width: int | None, height: int | None, label: str) -> int | None:
+    """Edit the parsed nodes: film size, independent sampler; return the declared max_depth."""
+    nodes = state.nodes
+    max_depth = None
+    for node in nodes:
+        if node.type == mi.ObjectType.Integrator and max_depth is None and node.props.has_property("max_depth"):
+            max_depth = int(node.props["max_depth"])
+        elif node.type == mi.ObjectType.Sampler:
+            _make_independent(node.props)
+        elif node.type == mi.ObjectType.Film:
+            _resize_film(node.props, width, height, label)
+    if width is not None or height is not None:
+        # A sensor with no <film> would get Mitsuba's default one at its default size; give it
+        # an explicit film so the override applies there too.
+        for index in range(len(nodes)):
+            if nodes[index].type == mi.ObjectType.Sensor and not _child_of_type(mi, state, index, mi.ObjectType.Film):
+                film = mi.parser.SceneNode()
+                film.type = mi.ObjectType.Film
+                film.props = mi.Properties("hdrfilm")
+                _resize_film(film.props, width, height, label)
+                nodes.append(film)
+                nodes[index].props["film"] = mi.Properties.ResolvedReference(len(nodes) - 1)
+    elif not any(node.type == mi.ObjectType.Film for node in nodes):
+        _check_size(label, *MITSUBA_DEFAULT_FILM)
+    return max_depth
+
+
+def _child_of_type(mi, state, index: int, object_type) -> bool:
+    props = state.nodes[index].props
+    for key in props.keys():
+        value = props[key]
+        if isinstance(value, mi.Properties.ResolvedReference) and state.nodes[value.index()].type == object_type:
+            return True
+    return False
+
+
+def _make_independent(props) -> None:
+    props.set_plugin_name("independent")
+    for key in list(props.keys()):
+        if key not in INDEPENDENT_SAMPLER_PROPS:
+            props.remove_property(key)
+
+
+def _resize_film(props, width: int | None, height: int | None, label: str) -> None:
+    declared_w = int(props["width"]) if props.has_property("width") else MITSUBA_DEFAULT_FILM[0]
+    declared_h = int(props["height"]) if props.has_property("height") else MITSUBA_DEFAULT_FILM[1]
+    new_w = declared_w if width is None else width
+    new_h = declared_h if height is None else height
+    _check_size(label, new_w, new_h)
+    if (new_w, new_h) != (declared_w, declared_h):
+        props["width"] = new_w
+        props["height"] = new_h
+        for key in CROP_PROPS:
+            if props.has_property(key):
+                props.remove_property(key)
+
+
+def _instantiate(mi, config, state, asset_root: Path | None, label: str):
+    if asset_root is None:
+        return _parse(lambda: mi.parser.instantiate(config, state), label)
+    with _RESOLVER_LOCK:
+        previous = mi.file_resolver()
+        resolver = mi.FileResolver(previous)
+        resolver.prepend(str(asset_root))
+        mi.set_file_resolver(resolver)
+        try:
+            return _parse(lambda: mi.parser.instantiate(config, state), label)
+        finally:
+            mi.set_file_resolver(previous)
