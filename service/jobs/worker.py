@@ -1,0 +1,309 @@
+"""Runs render loops off the event loop and keeps each job's record, checkpoint and previews
+current.
+
+One thread pool (`concurrency` threads, default 1) runs jobs in submission order. After every
+iteration the worker checkpoints the loop state, writes the preview layers and bumps the
+preview version, then updates the record, in that order, so the record never claims an
+iteration a restart could not resume from. λ changes go through a per-job latest-wins
+mailbox and re-denoise from the loop's cached features (`RenderLoop.set_lambda`).
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from service.jobs.artifacts import JobFiles, Preview
+from service.jobs.errors import JobConflict, JobNotFound
+from service.jobs.latest import LatestWins
+from service.jobs.store import CANCELED, COMPLETED, FAILED, QUEUED, JobRecord, JobStore
+
+if TYPE_CHECKING:  # the loop pulls in Mitsuba and torch: import it only where a job runs
+    from service.loop.loop import RenderLoop
+    from service.loop.spec import IterationRecord, LoopSpec
+
+log = logging.getLogger(__name__)
+
+IDLE_LOOPS_KEPT = 2  # finished loops kept in memory so λ changes after the run stay cheap
+LAMBDA_WAIT_SECONDS = 300.0
+
+
+def loop_spec(spec: dict[str, Any], files: JobFiles) -> "LoopSpec":
+    """The stored job spec as the loop's LoopSpec; bundle scenes resolve inside the job folder."""
+    from service.loop.spec import LoopSpec
+
+    bundle_scene = spec.get("bundle_scene")
+    scene = str(files.bundle_dir / bundle_scene) if bundle_scene else spec["scene"]
+    return LoopSpec(
+        scene=scene,
+        width=spec.get("width"),
+        height=spec.get("height"),
+        frames=spec.get("frames", 1),
+        spp_first=spec.get("spp_first", 16),
+        max_iterations=spec.get("max_iterations"),
+        spp_budget=spec.get("spp_budget"),
+        time_limit=spec.get("time_limit"),
+        target_error=spec.get("target_error"),
+        allocator=spec.get("allocator", "error"),
+        denoise=spec.get("denoise", True),
+        lam=spec.get("lambda", 1.0),
+        seed=spec.get("seed", 0),
+    )
+
+
+def _failure_message(exc: BaseException) -> str:
+    text = str(exc).strip() or exc.__class__.__name__
+    return f"{exc.__class__.__name__}: {text}" if not isinstance(exc, ValueError) else text
+
+
+def _add_timings(total: dict[str, float], more: dict[str, float]) -> dict[str, float]:
+    merged = dict(total)
+    for stage, seconds in more.items():
+        merged[stage] = merged.get(stage, 0.0) + float(seconds)
+    return merged
+
+
+class JobWorker:
+    def __init__(self, store: JobStore, concurrency: int = 1) -> None:
+        if concurrency < 1:
+            raise ValueError("concurrency must be >= 1")
+        self.store = store
+        self._pool = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="render")
+        self._lock = threading.Lock()
+        self._cancel: dict[str, threading.Event] = {}
+        self._live: dict[str, "RenderLoop"] = {}  # jobs rendering right now
+        self._idle: OrderedDict[str, "RenderLoop"] = OrderedDict()  # finished, kept for λ
+        self._publish_locks: dict[str, threading.Lock] = {}
+        self._lambda: dict[str, LatestWins[np.ndarray]] = {}
+        self._stopping = threading.Event()
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Jobs that were running when the last server died resume; queued ones run."""
+        for job_id in self.store.requeue_running():
+            log.info("job %s was running at shutdown: resuming from its checkpoint", job_id)
+        for job_id in self.store.ids_in_state(QUEUED):
+            self.submit(job_id)
+
+    def stop(self) -> None:
+        """Ask running loops to stop after their current iteration; they stay resumable."""
+        self._stopping.set()
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+    def submit(self, job_id: str) -> None:
+        self._pool.submit(self._run_guarded, job_id)
+
+    def files(self, job_id: str) -> JobFiles:
+        return JobFiles(self.store.job_dir(job_id))
+
+    # -- cancel ---------------------------------------------------------------------------------
+
+    def _cancel_event(self, job_id: str) -> threading.Event:
+        with self._lock:
+            return self._cancel.setdefault(job_id, threading.Event())
+
+    def cancel(self, job_id: str) -> JobRecord:
+        record = self._require(job_id)
+        if record.finished:
+            raise JobConflict(f"job {job_id} is already {record.state}")
+        if not self.store.cancel_if_queued(job_id):
+            # Running: the loop checks the flag after each iteration and stops with "canceled".
+            self._cancel_event(job_id).set()
+        return self._require(job_id)
+
+    def _require(self, job_id: str) -> JobRecord:
+        record = self.store.get(job_id)
+        if record is None:
+            raise JobNotFound(f"no job with id {job_id!r}")
+        return record
+
+    # -- running a job ------------------------------------------------------------------------
+
+    def _run_guarded(self, job_id: str) -> None:
+        # Whatever goes wrong inside a job ends that job, never the worker thread or server.
+        try:
+            self._run(job_id)
+        except Exception as exc:
+            log.exception("job %s failed", job_id)
+            self.store.finish(job_id, FAILED, error=_failure_message(exc))
+        finally:
+            with self._lock:
+                self._live.pop(job_id, None)
+                self._cancel.pop(job_id, None)
+
+    def _run(self, job_id: str) -> None:
+        if self._stopping.is_set() or not self.store.claim(job_id):
+            return  # canceled while queued, or the server is going down
+        record = self._require(job_id)
+        files = self.files(job_id)
+        cancel = self._cancel_event(job_id)
+        loop = self._open_loop(job_id, record, files)
+        should_stop = lambda: cancel.is_set() or self._stopping.is_set()  # noqa: E731
+        timings = dict(record.timings)
+        last: IterationRecord | None = None
+        for last in loop.run(should_stop=should_stop):
+            timings = self._finish_iteration(job_id, loop, files, last, timings)
+        if not cancel.is_set() and self._stopping.is_set():
+            self.store.requeue(job_id)  # server shutdown, not a user cancel: resume next start
+            return
+        self._complete(job_id, loop, files, last, canceled=cancel.is_set())
+
+    def _open_loop(self, job_id: str, record: JobRecord, files: JobFiles) -> "RenderLoop":
+        from service.loop.loop import RenderLoop
+        from service.loop.state import LoopState
+
+        state = LoopState.load(files.state_dir) if files.has_checkpoint() else None
+        loop = RenderLoop(loop_spec(record.spec, files), state=state)
+        with self._lock:
+            self._live[job_id] = loop
+        # Registered first, then read: a λ request that missed the live loop saved its map
+        # before we read it here (see set_lambda), so no λ change is lost on the way in.
+        lam = files.load_lambda()
+        if lam is not None and lam.shape == loop.state.lam_map.shape:
+            loop.state.lam_map = lam  # newer than the checkpoint's copy
+        return loop
+
+    def _finish_iteration(
+        self, job_id: str, loop: "RenderLoop", files: JobFiles, record: "IterationRecord", timings: dict[str, float]
+    ) -> dict[str, float]:
+        started = time.perf_counter()
+        loop.state.save(files.state_dir)
+        self._publish(job_id, files, self._preview_layers(loop, record))
+        io_seconds = {"io": time.perf_counter() - started}
+        timings = _add_timings(_add_timings(timings, record.timings), io_seconds)
+        self.store.record_iteration(
+            job_id, record.iteration + 1, record.spp_mean, record.predicted_error, timings, record.stop_reason
+        )
+        return timings
+
+    @staticmethod
+    def _preview_layers(loop: "RenderLoop", record: "IterationRecord") -> list[dict[str, np.ndarray | None]]:
+        lam = loop.state.lam_map
+        return [
+            {
+                "denoised": record.denoised[f] if record.denoised else buf.mean,
+                "noisy": buf.mean,
+                "error": record.error[f] if f < len(record.error) else None,
+                "spp": buf.spp.astype(np.float32),
+                "lambda": lam,
+            }
+            for f, buf in enumerate(record.buffers)
+        ]
+
+    def _publish(self, job_id: str, files: JobFiles, frames: list[dict[str, np.ndarray | None]]) -> int:
+        """Write all frames' previews under one new version; returns it."""
+        with self._publish_lock(job_id):
+            version = self.store.bump_preview_version(job_id)
+            for f, layers in enumerate(frames):
+                files.save_preview(f, Preview(version=version, layers=layers))
+            return version
+
+    def _publish_lock(self, job_id: str) -> threading.Lock:
+        with self._lock:
+            return self._publish_locks.setdefault(job_id, threading.Lock())
+
+    def _complete(
+        self, job_id: str, loop: "RenderLoop", files: JobFiles, last: "IterationRecord | None", canceled: bool
+    ) -> None:
+        stop_reason = last.stop_reason if last is not None else ("canceled" if canceled else None)
+        if loop.state.iteration > 0:
+            files.save_results(loop.result_frames())
+        if canceled or stop_reason == "canceled":
+            self.store.finish(job_id, CANCELED, stop_reason="canceled")
+            return
+        self._keep_idle(job_id, loop)
+        self.store.finish(job_id, COMPLETED, stop_reason=stop_reason)
+
+    def _keep_idle(self, job_id: str, loop: "RenderLoop") -> None:
+        with self._lock:
+            self._idle[job_id] = loop
+            self._idle.move_to_end(job_id)
+            while len(self._idle) > IDLE_LOOPS_KEPT:
+                self._idle.popitem(last=False)
+
+    # -- λ --------------------------------------------------------------------------------------
+
+    def image_size(self, job_id: str) -> tuple[int, int] | None:
+        """(H, W) of the job's images, once known (spec, or the first preview)."""
+        record = self._require(job_id)
+        width, height = record.spec.get("width"), record.spec.get("height")
+        if width and height:
+            return int(height), int(width)
+        preview = self.files(job_id).load_preview(0)
+        if preview is not None and preview.layers.get("noisy") is not None:
+            return preview.layers["noisy"].shape[:2]
+        return None
+
+    def current_lambda(self, job_id: str, shape: tuple[int, int]) -> np.ndarray:
+        record = self._require(job_id)
+        lam = self.files(job_id).load_lambda()
+        if lam is not None and lam.shape == shape:
+            return lam
+        return np.full(shape, float(record.spec.get("lambda", 1.0)), dtype=np.float32)
+
+    def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None) -> int:
+        """Keep `lam` with the job and re-denoise from cached features; returns the preview
+        version that shows the newest λ (which may be a later request's under a burst)."""
+        record = self._require(job_id)
+        if record.state in (FAILED, CANCELED):
+            raise JobConflict(f"job {job_id} is {record.state}: there is nothing left to re-denoise")
+        files = self.files(job_id)
+        files.save_lambda(lam)  # persisted first: later iterations and restarts use it
+        self.store.set_lambda_value(job_id, value)
+        mailbox = self._lambda_mailbox(job_id)
+        return mailbox.wait(mailbox.submit(lam), timeout=LAMBDA_WAIT_SECONDS)
+
+    def _lambda_mailbox(self, job_id: str) -> LatestWins[np.ndarray]:
+        with self._lock:
+            if job_id not in self._lambda:
+                self._lambda[job_id] = LatestWins(
+                    lambda lam: self._apply_lambda(job_id, lam), name=f"lambda-{job_id[:8]}"
+                )
+            return self._lambda[job_id]
+
+    def _apply_lambda(self, job_id: str, lam: np.ndarray) -> int:
+        record = self._require(job_id)
+        loop = self._loop_for_lambda(job_id, record)
+        if loop is None:
+            return record.preview_version  # nothing rendered yet: the map waits for iteration 1
+        images = loop.set_lambda(lam)
+        if not images:
+            return record.preview_version
+        files = self.files(job_id)
+        frames = []
+        for f, image in enumerate(images):
+            previous = files.load_preview(f)
+            layers = dict(previous.layers) if previous else {"noisy": None, "error": None, "spp": None}
+            frames.append({**layers, "denoised": image, "lambda": lam})
+        version = self._publish(job_id, files, frames)
+        if self._require(job_id).state == COMPLETED:
+            files.save_results(loop.result_frames())  # the result follows λ after the run too
+        return version
+
+    def _loop_for_lambda(self, job_id: str, record: JobRecord) -> "RenderLoop | None":
+        with self._lock:
+            loop = self._live.get(job_id) or self._idle.get(job_id)
+        if loop is not None or record.state != COMPLETED:
+            return loop  # queued or starting: the loop reads the saved map when it opens
+        files = self.files(job_id)
+        if not files.has_checkpoint():
+            return None
+        # After a restart: rebuild from the checkpoint; set_lambda recomputes the cache once.
+        from service.loop.loop import RenderLoop
+        from service.loop.state import LoopState
+
+        loop = RenderLoop(loop_spec(record.spec, files), state=LoopState.load(files.state_dir))
+        self._keep_idle(job_id, loop)
+        return loop
+
+    @property
+    def live_loops(self) -> dict[str, "RenderLoop"]:
+        """Loops in memory by job id (running or kept after the run), for diagnostics and tests."""
+        with self._lock:
+            return {**self._idle, **self._live}

@@ -1,0 +1,141 @@
+"""Hostile scene bundles: every check names the path at fault."""
+from __future__ import annotations
+
+import io
+import stat
+import zipfile
+
+import pytest
+
+from service.jobs.bundle import BundleError, BundleLimits, extract_zip, prepare_bundle, save_files
+
+SCENE = """<scene version="3.0.0">
+  <include filename="parts/lights.xml"/>
+  <shape type="obj"><string name="filename" value="meshes/box.obj"/></shape>
+  <texture type="bitmap" id="t"><string name="filename" value="textures/wood.png"/></texture>
+</scene>"""
+LIGHTS = '<scene version="3.0.0"><emitter type="constant"/></scene>'
+BOMB = """<?xml version="1.0"?>
+<!DOCTYPE scene [<!ENTITY a "aaaaaaaaaa"><!ENTITY b "&a;&a;&a;&a;&a;&a;&a;&a;&a;&a;">]>
+<scene version="3.0.0"><string name="x" value="&b;"/></scene>"""
+
+
+def make_zip(members: dict[str, bytes | str], symlinks: dict[str, str] = {}) -> io.BytesIO:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as zf:
+        for name, data in members.items():
+            zf.writestr(name, data)
+        for name, target in symlinks.items():
+            info = zipfile.ZipInfo(name)
+            info.external_attr = (stat.S_IFLNK | 0o777) << 16
+            zf.writestr(info, target)
+    buffer.seek(0)
+    return buffer
+
+
+def good_members(**overrides: str) -> dict[str, str]:
+    members = {
+        "scene.xml": SCENE,
+        "parts/lights.xml": LIGHTS,
+        "meshes/box.obj": "v 0 0 0\n",
+        "textures/wood.png": "png",
+    }
+    members.update(overrides)
+    return members
+
+
+def unpack(tmp_path, members, symlinks={}, scene=None):
+    root = tmp_path / "bundle"
+    extract_zip(make_zip(members, symlinks), root)
+    return prepare_bundle(root, scene)
+
+
+def test_good_bundle_passes(tmp_path):
+    entry = unpack(tmp_path, good_members())
+    assert entry.name == "scene.xml"
+
+
+@pytest.mark.parametrize("name", ["/etc/passwd", "../evil.xml", "a/../../evil.xml", "C:/x.xml", "..\\evil.xml"])
+def test_zip_member_names_rejected(tmp_path, name):
+    with pytest.raises(BundleError) as err:
+        extract_zip(make_zip({**good_members(), name: "x"}), tmp_path / "bundle")
+    assert name in str(err.value)
+    assert not (tmp_path / "bundle").exists() or not any((tmp_path / "bundle").iterdir())
+
+
+def test_zip_symlink_entry_rejected(tmp_path):
+    with pytest.raises(BundleError, match="textures/link.png: symbolic links"):
+        extract_zip(make_zip(good_members(), {"textures/link.png": "/etc/passwd"}), tmp_path / "bundle")
+
+
+@pytest.mark.parametrize(
+    "reference",
+    ["/etc/passwd", "../../secret.png", "textures/../../x.png", "~/x.png"],
+)
+def test_scene_references_outside_rejected(tmp_path, reference):
+    scene = SCENE.replace("textures/wood.png", reference)
+    with pytest.raises(BundleError) as err:
+        unpack(tmp_path, good_members(**{"scene.xml": scene}))
+    assert reference in str(err.value)
+
+
+def test_include_outside_rejected(tmp_path):
+    scene = SCENE.replace("parts/lights.xml", "../outside.xml")
+    with pytest.raises(BundleError, match=r"\.\./outside\.xml"):
+        unpack(tmp_path, good_members(**{"scene.xml": scene}))
+
+
+def test_nested_include_checked(tmp_path):
+    lights = '<scene version="3.0.0"><include filename="/etc/hosts"/></scene>'
+    with pytest.raises(BundleError, match="/etc/hosts"):
+        unpack(tmp_path, good_members(**{"parts/lights.xml": lights}))
+
+
+def test_default_substitution_cannot_smuggle_paths(tmp_path):
+    scene = SCENE.replace("textures/wood.png", "$tex").replace(
+        '<scene version="3.0.0">', '<scene version="3.0.0"><default name="tex" value="/etc/passwd"/>'
+    )
+    with pytest.raises(BundleError, match="/etc/passwd"):
+        unpack(tmp_path, good_members(**{"scene.xml": scene}))
+
+
+def test_entity_bomb_rejected(tmp_path):
+    with pytest.raises(BundleError, match="scene.xml: DTDs are not allowed"):
+        unpack(tmp_path, {"scene.xml": BOMB})
+
+
+def test_missing_reference_named(tmp_path):
+    members = good_members()
+    del members["meshes/box.obj"]
+    with pytest.raises(BundleError, match="meshes/box.obj: referenced by scene.xml but not in the bundle"):
+        unpack(tmp_path, members)
+
+
+def test_symlink_on_disk_out_of_bundle_rejected(tmp_path):
+    root = tmp_path / "bundle"
+    extract_zip(make_zip(good_members()), root)
+    (root / "textures" / "wood.png").unlink()
+    (root / "textures" / "wood.png").symlink_to("/etc/passwd")
+    with pytest.raises(BundleError, match="textures/wood.png"):
+        prepare_bundle(root, None)
+
+
+def test_caps_on_size_and_count(tmp_path):
+    with pytest.raises(BundleError, match="more than 3 files"):
+        extract_zip(make_zip(good_members(extra="x")), tmp_path / "a", BundleLimits(max_files=3))
+    with pytest.raises(BundleError, match="exceeds"):
+        extract_zip(make_zip({"big.bin": "x" * 5000}), tmp_path / "b", BundleLimits(max_bytes=4096))
+
+
+def test_entry_must_be_named_when_ambiguous(tmp_path):
+    with pytest.raises(BundleError, match="name the scene XML"):
+        unpack(tmp_path, good_members(**{"other.xml": LIGHTS}))
+    assert unpack(tmp_path / "x", good_members(**{"other.xml": LIGHTS}), scene="scene.xml").name == "scene.xml"
+
+
+def test_loose_files_upload(tmp_path):
+    root = tmp_path / "bundle"
+    save_files(((name, io.BytesIO(data.encode())) for name, data in good_members().items()), root)
+    assert prepare_bundle(root, "scene.xml").name == "scene.xml"
+    with pytest.raises(BundleError, match=r"\.\./x.png: '\.\.'"):
+        save_files([("../x.png", io.BytesIO(b"x"))], tmp_path / "other")
