@@ -182,7 +182,7 @@ def _conform(mi, state, width: int | None, height: int | None, label: str) -> in
     nodes = state.nodes
     max_depth = None
     for node in nodes:
-        if node.type == mi.ObjectType.Integrator and max_depth is None and node.props.has_property("max_depth"):
+        if node.type == mi.ObjectType.Integrator and max_depth is None and "max_depth" in node.props:
             max_depth = int(node.props["max_depth"])
         elif node.type == mi.ObjectType.Sampler:
             _make_independent(node.props)
@@ -217,12 +217,12 @@ def _make_independent(props) -> None:
     props.set_plugin_name("independent")
     for key in list(props.keys()):
         if key not in INDEPENDENT_SAMPLER_PROPS:
-            props.remove_property(key)
+            del props[key]
 
 
 def _resize_film(props, width: int | None, height: int | None, label: str) -> None:
-    declared_w = int(props["width"]) if props.has_property("width") else MITSUBA_DEFAULT_FILM[0]
-    declared_h = int(props["height"]) if props.has_property("height") else MITSUBA_DEFAULT_FILM[1]
+    declared_w = int(props["width"]) if "width" in props else MITSUBA_DEFAULT_FILM[0]
+    declared_h = int(props["height"]) if "height" in props else MITSUBA_DEFAULT_FILM[1]
     new_w = declared_w if width is None else width
     new_h = declared_h if height is None else height
     _check_size(label, new_w, new_h)
@@ -230,8 +230,8 @@ def _resize_film(props, width: int | None, height: int | None, label: str) -> No
         props["width"] = new_w
         props["height"] = new_h
         for key in CROP_PROPS:
-            if props.has_property(key):
-                props.remove_property(key)
+            if key in props:
+                del props[key]
 
 
 def _instantiate(mi, config, state, asset_root: Path | None, label: str):
