@@ -402,7 +402,9 @@ def camera_origin(camera: CameraSpec, frame: int) -> Vec3:
     return tuple(float(v) for v in origin)
 
 
-def _sensor(mi, camera: CameraSpec, size: int, frame: int) -> dict:
+def sensor_dict(camera: CameraSpec, *, size: int, frame: int) -> dict:
+    """The sensor of `camera` at `frame` (also loadable on its own, e.g. as a previous camera)."""
+    mi = mitsuba()
     origin = camera_origin(camera, frame)
     sensor = {
         "type": "thinlens" if camera.aperture > 0 else "perspective",
@@ -428,7 +430,7 @@ def scene_dict(spec: SceneSpec, *, size: int, frame: int = 0) -> dict:
     mi = mitsuba()
     scene = {"type": "scene",
              "integrator": {"type": "volpath" if spec.has_media else "path", "max_depth": MAX_DEPTH},
-             "sensor": _sensor(mi, spec.camera, size, frame)}
+             "sensor": sensor_dict(spec.camera, size=size, frame=frame)}
     scene.update(_surfaces(mi, spec))
     for i, o in enumerate(spec.objects):
         scene.update(_object_shapes(mi, i, o))
