@@ -84,6 +84,9 @@ def load_scene_info(
     frame = int(frame)
     mi = mitsuba()
     config = mi.parser.ParserConfig(mi.variant())
+    # Mitsuba rejects a passed parameter that the file declares but never uses as `$name`
+    # (e.g. a leftover <default name="frame">); that is no reason to refuse the scene.
+    config.unused_parameters = mi.LogLevel.Debug
     builtin = BUILTIN_BY_NAME.get(str(source)) if not isinstance(source, Path) else None
     if builtin is not None:
         state = _parse(lambda: mi.parser.parse_dict(config, builtin.build(frame)), builtin.name)
@@ -142,6 +145,8 @@ def _scene_path(source: str | Path) -> Path:
     if not looks_like_path:
         known = ", ".join(builtin_scene_names())
         raise SceneError(f"unknown built-in scene {str(source)!r}; known: {known} (or give a Mitsuba XML file path)")
+    if path.is_dir():
+        raise SceneError(f"{path} is a folder; give the scene's XML file inside it")
     if not path.is_file():
         raise SceneError(f"scene file not found: {path}")
     return path.resolve()

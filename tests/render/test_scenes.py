@@ -165,6 +165,8 @@ def test_missing_file(tmp_path):
         load_scene(tmp_path / "nope.xml")
     with pytest.raises(SceneError, match="not found"):
         load_scene(str(tmp_path / "nope.xml"))
+    with pytest.raises(SceneError, match="folder"):
+        load_scene(tmp_path)
 
 
 def test_malformed_xml_is_one_line_with_mitsubas_reason(tmp_path):
