@@ -1,0 +1,87 @@
+"""CPU speed and memory of the default denoiser: `python -m models.bench`.
+
+Timing: median wall time of `repeats` runs after one warm-up, under torch.inference_mode.
+Memory: torch's CPU allocator is invisible to tracemalloc, so each case runs in a fresh
+spawned process and reports the growth of the process's peak resident set size
+(resource.getrusage ru_maxrss) caused by the timed runs, on top of the model and inputs
+already built. This counts every allocation (tensors, oneDNN scratch, allocator slack) but
+is only as fine as the OS page accounting: treat it as ±a few MB.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import resource
+import statistics
+import sys
+import time
+from dataclasses import replace
+
+import torch
+
+from models.denoiser import Denoiser, DenoiserConfig
+from models.frames import FrameTensors
+
+CASES = ("single-frame", "multi-scale", "temporal-3", "lambda-tail")
+
+
+def _frame(h: int, w: int, gen: torch.Generator) -> FrameTensors:
+    r = lambda c: torch.rand(1, c, h, w, generator=gen)
+    return FrameTensors(color=r(3) * 4, variance=r(3), albedo=r(3), normal=r(3) * 2 - 1,
+                        depth=r(1), motion=(r(2) - 0.5) * 4)
+
+
+def _case(name: str, size: int, repeats: int, threads: int, queue) -> None:
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    gen = torch.Generator().manual_seed(0)
+    base = DenoiserConfig()
+    cfg = {"single-frame": replace(base, temporal=False, multiscale=False),
+           "multi-scale": replace(base, temporal=False)}.get(name, base)
+    model = Denoiser(cfg).eval()
+    window = [_frame(size, size, gen) for _ in range(3)] if name in ("temporal-3", "lambda-tail") else [_frame(size, size, gen)]
+    center = len(window) // 2
+    with torch.inference_mode():
+        if name == "lambda-tail":
+            cache = model.prepare(window, center)
+            lam = torch.full((1, 1, size, size), 4.0)      # per-pixel map: the costlier path
+            run = lambda: model.apply(cache, lam)
+        else:
+            run = lambda: model(window, center, 1.0)
+        run()                                               # warm-up (oneDNN primitive caches)
+        rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            run()
+            times.append(time.perf_counter() - t0)
+        rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    queue.put({"model": name, "size": size, "threads": threads, "ms_median": 1e3 * statistics.median(times),
+               "ms_min": 1e3 * min(times), "peak_rss_growth_mb": (rss1 - rss0) / 1024,
+               "peak_rss_mb": rss1 / 1024})
+
+
+def benchmark_models(sizes=(256, 512), repeats: int = 3, threads: int = 2, cases=CASES) -> list[dict]:
+    """One dict per (case, size): model, size, threads, ms_median, ms_min, peak_rss_growth_mb, peak_rss_mb."""
+    ctx = mp.get_context("spawn")
+    rows = []
+    for size in sizes:
+        for name in cases:
+            queue = ctx.Queue()
+            proc = ctx.Process(target=_case, args=(name, size, repeats, threads, queue))
+            proc.start()
+            rows.append(queue.get())
+            proc.join()
+    return rows
+
+
+def main() -> None:
+    sizes = tuple(int(s) for s in sys.argv[1:]) or (256, 512)
+    print(f"default config: {DenoiserConfig()}")
+    print("| model | size | threads | median ms | min ms | peak RSS growth MB |")
+    print("|---|---|---|---|---|---|")
+    for r in benchmark_models(sizes):
+        print(f"| {r['model']} | {r['size']}² | {r['threads']} | {r['ms_median']:.0f} | {r['ms_min']:.0f} | {r['peak_rss_growth_mb']:.0f} |")
+
+
+if __name__ == "__main__":
+    main()

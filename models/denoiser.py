@@ -1,0 +1,265 @@
+"""Temporal multi-scale kernel-predicting denoiser (Vogels et al. 2018), in one module.
+
+Per pyramid level, every frame of the window goes through
+
+    source encoder (2 conv3x3)  →  spatial feature extractor (residual blocks)
+    neighbours only: warp to the center frame → temporal feature extractor (3 residual blocks)
+    pre-λ kernel head (conv1x1)                                     ── prepare() stops here
+    λ-module: FiLM by log λ → conv1x1 → k² logits per frame         ── apply() starts here
+    joint softmax over all frames' logits, filter demodulated radiance (eqs. 3–4)
+
+and the levels are merged coarse → fine by the scale compositor (eq. 5), then the albedo is
+multiplied back in. Everything λ-independent is computed once by `prepare`; `apply` is the
+cheap tail a user's λ edit re-runs.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from torch import Tensor
+
+from models.features import demodulate, feature_set, log_transform, remodulate, sanitize_frame
+from models.frames import FrameTensors
+from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
+from models.layers import Pointwise, conv3x3, res_blocks
+from models.warp import flow_to_center, warp
+
+LAMBDA_MIN, LAMBDA_MAX = 1.0, 10.0   # range of the asymmetric loss weight λ (eq. 6, Vogels §6)
+
+
+@dataclass
+class DenoiserConfig:
+    source: str = "mitsuba-path"   # render source → encoder input (models.features.FEATURE_SETS)
+    width: int = 32                # feature channels everywhere between encoder and kernel head
+    spatial_blocks: int = 2        # residual blocks of the spatial feature extractor
+    temporal_blocks: int = 3       # residual blocks of the temporal feature extractor (paper: 3)
+    kernel_size: int = 5           # k; per level, so the 3-level pyramid reaches 5·4 = 20 px
+    levels: int = 3                # pyramid levels (paper: 3)
+    temporal_radius: int = 1       # M: window of 2M+1 frames the model is trained for
+    lambda_width: int = 16         # channels of the λ loss-specialisation module
+    composite_width: int = 8       # channels of the per-pixel α CNN (eq. 5)
+    temporal: bool = True          # False: single-frame model, neighbours ignored
+    multiscale: bool = True        # False: finest level only, no compositing
+
+    @property
+    def n_levels(self) -> int:
+        return self.levels if self.multiscale else 1
+
+    @property
+    def alignment(self) -> int:
+        """Sizes must divide by 2^(levels-1) for the 2×2 pyramid; inputs are padded to it."""
+        return 2 ** (self.n_levels - 1)
+
+
+# --- tiny verbs ---------------------------------------------------------------------------
+
+def down(x: Tensor) -> Tensor:
+    """D: 2×2 average pooling (eq. 5)."""
+    return F.avg_pool2d(x, 2)
+
+
+def up(x: Tensor) -> Tensor:
+    """U: bilinear 2× upsampling (eq. 5); smoother than nearest, no block seams."""
+    return F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+
+
+def pad_to(x: Tensor, multiple: int) -> Tensor:
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % multiple, (-w) % multiple
+    return F.pad(x, (0, pw, 0, ph), mode="replicate") if (ph or pw) else x
+
+
+def down_frame(frame: FrameTensors) -> FrameTensors:
+    """One pyramid step: average buffers; variance of a 4-pixel mean is the mean variance ÷ 4,
+    motion in pixels halves with the resolution."""
+    scale = {"variance": 0.25, "motion": 0.5}
+    return frame.map(lambda name, t: down(t) * scale.get(name, 1.0))
+
+
+def lambda_code(lam: Tensor) -> Tensor:
+    """log λ / log 10 ∈ [0, 1]: the paper samples log λ uniformly, so this is the natural axis."""
+    return torch.log(lam.clamp(LAMBDA_MIN, LAMBDA_MAX)) / math.log(LAMBDA_MAX)
+
+
+# --- modules ------------------------------------------------------------------------------
+
+class Encoder(nn.Module):
+    """Source-specific: two 3×3 convs from that source's features to the shared width."""
+
+    def __init__(self, cin: int, width: int):
+        super().__init__()
+        self.conv1, self.conv2 = conv3x3(cin, width), conv3x3(width, width)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.relu_(self.conv2(F.relu_(self.conv1(x))))
+
+
+class TemporalExtractor(nn.Module):
+    """Fuses a neighbour's warped features with the center's; residual on the warped
+    features, so a window of one frame (no temporal work) sees the same feature space."""
+
+    def __init__(self, width: int, blocks: int):
+        super().__init__()
+        self.fuse = Pointwise(2 * width + 1, width)
+        self.blocks = res_blocks(width, blocks)
+
+    def forward(self, warped: Tensor, center: Tensor, valid: Tensor) -> Tensor:
+        return warped + self.blocks(F.relu_(self.fuse(torch.cat([warped, center, valid], 1))))
+
+
+class LambdaModule(nn.Module):
+    """Loss specialisation (Vogels §6): log λ scales and shifts the kernel head's hidden
+    features (FiLM), then one pointwise layer emits each frame's k² logits. Pointwise only:
+    this is the part a λ edit re-runs. Shared across frames and levels."""
+
+    def __init__(self, width: int, k: int):
+        super().__init__()
+        self.film = nn.Sequential(Pointwise(1, width), nn.ReLU(), Pointwise(width, 2 * width))
+        self.logits = Pointwise(width, k * k)
+        nn.init.zeros_(self.film[-1].weight)   # start as "no specialisation"
+        nn.init.zeros_(self.film[-1].bias)
+
+    def forward(self, hidden: Tensor, code: Tensor) -> Tensor:
+        """hidden (N,F,C,H,W) all frames, code (N,1,H,W) or (N,1,1,1) → logits (N,F·k²,H,W)."""
+        gamma, beta = self.film(code).unsqueeze(1).chunk(2, dim=2)
+        z = torch.addcmul(beta, hidden, 1 + gamma).relu_()
+        logits = self.logits(z)
+        return logits.view(logits.shape[0], -1, *logits.shape[-2:])
+
+
+class ScaleCompositor(nn.Module):
+    """Eq. 5: o = i_f − α·U(D(i_f)) + α·U(i_c): swap the fine result's low frequencies for the
+    coarse result's where α (a small CNN on both, per pixel) says so."""
+
+    def __init__(self, width: int):
+        super().__init__()
+        self.alpha = nn.Sequential(conv3x3(6, width), nn.ReLU(), conv3x3(width, 1))
+
+    def forward(self, fine: Tensor, coarse: Tensor) -> Tensor:
+        coarse_up = up(coarse)
+        a = torch.sigmoid(self.alpha(torch.cat([log_transform(fine), log_transform(coarse_up)], 1)))
+        return fine - a * up(down(fine)) + a * coarse_up
+
+
+# --- the λ-independent state ---------------------------------------------------------------
+
+@dataclass
+class LevelCache:
+    padded: list[Tensor]   # demodulated radiance per frame, warped to the center (center first), kernel-padded
+    hidden: Tensor         # (N,F,C,H,W) pre-λ kernel-head features of all frames
+
+
+@dataclass
+class DenoiserCache:
+    levels: list[LevelCache]       # finest first
+    albedo: Tensor                 # padded center albedo for remodulation
+    size: tuple[int, int]          # original (H, W) to crop back to
+    n_bad: int = 0                 # NaN/Inf values replaced while sanitising the window
+    extra: dict = field(default_factory=dict)
+
+
+class Denoiser(nn.Module):
+    kind: ClassVar[str] = "denoiser"
+
+    def __init__(self, config: DenoiserConfig | None = None):
+        super().__init__()
+        self.config = cfg = config or DenoiserConfig()
+        self.features = feature_set(cfg.source)              # unknown source fails here
+        self.encoder = Encoder(self.features.channels, cfg.width)
+        self.spatial = res_blocks(cfg.width, cfg.spatial_blocks)
+        self.temporal = TemporalExtractor(cfg.width, cfg.temporal_blocks) if cfg.temporal else None
+        self.kernel_head = Pointwise(cfg.width, cfg.lambda_width)
+        self.specialise = LambdaModule(cfg.lambda_width, cfg.kernel_size)
+        self.composite = ScaleCompositor(cfg.composite_width) if cfg.multiscale else None
+
+    # -- prepare: everything before λ -----------------------------------------------------
+
+    def prepare(self, window: list[FrameTensors], center: int) -> DenoiserCache:
+        if not window:
+            raise ValueError("empty window")
+        if not -len(window) <= center < len(window):
+            raise IndexError(f"center {center} outside a window of {len(window)} frames")
+        center %= len(window)
+        if self.temporal is None:
+            window, center = [window[center]], 0
+        cleaned = [sanitize_frame(f) for f in window]
+        frames, n_bad = [f for f, _ in cleaned], sum(n for _, n in cleaned)
+        size = frames[center].size
+        align = self.config.alignment
+        frames = [f.map(lambda _, t: pad_to(t, align)) for f in frames]
+        albedo = frames[center].albedo
+
+        levels = []
+        for level in range(self.config.n_levels):
+            if level:
+                frames = [down_frame(f) for f in frames]
+            levels.append(self._prepare_level(frames, center))
+        return DenoiserCache(levels, albedo, size, n_bad)
+
+    def _prepare_level(self, frames: list[FrameTensors], center: int) -> LevelCache:
+        n = frames[0].color.shape[0]
+        inputs = torch.cat([self.features.build(f) for f in frames], 0)    # all frames, one batch
+        feats = self.spatial(self.encoder(inputs)).split(n, 0)
+        images = [demodulate(f.color, f.albedo) for f in frames]
+        motions = [f.motion for f in frames]
+        c_feat, c_img = feats[center], images[center]
+        out_images, feats_to_center = [c_img], [c_feat]
+        for j in range(len(frames)):
+            if j == center:
+                continue
+            flow, valid = flow_to_center(motions, center, j)
+            if flow is None:                                   # static scene: nothing to warp
+                w_feat, w_img, valid = feats[j], images[j], torch.ones_like(c_img[:, :1])
+            else:
+                warped, v = warp(torch.cat([feats[j], images[j]], 1), flow)
+                valid = valid * v
+                w_feat, w_img = warped[:, :-3], warped[:, -3:]
+            t_feat = self.temporal(w_feat, c_feat, valid)
+            # Off-screen taps fall back to the center's own pixel: the joint softmax then only
+            # mixes real radiance, so the output stays in the convex hull.
+            out_images.append(valid * w_img + (1 - valid) * c_img)
+            feats_to_center.append(t_feat)
+        hidden = F.relu_(self.kernel_head(torch.stack(feats_to_center, 1)))
+        k = self.config.kernel_size
+        return LevelCache([pad_for_kernel(i, k) for i in out_images], hidden)
+
+    # -- apply: the cheap λ tail ----------------------------------------------------------
+
+    def apply(self, cache: DenoiserCache, lam: float | Tensor = 1.0) -> Tensor:
+        k = self.config.kernel_size
+        code = self._lambda_code(cache, lam)
+        results = []
+        for level in cache.levels:
+            if code.shape[-1] > 1 and code.shape[-2:] != level.hidden.shape[-2:]:
+                code = down(code)           # per-pixel λ map follows the pyramid
+            weights = unnormalised_weights(self.specialise(level.hidden, code))   # joint softmax, eq. 4
+            results.append(filter_padded(level.padded, weights, k))             # eq. 3
+        out = results[-1]
+        for fine in reversed(results[:-1]):                      # coarse → fine, eq. 5
+            out = self.composite(fine, out)
+        h, w = cache.size
+        return remodulate(out, cache.albedo)[..., :h, :w]
+
+    def _lambda_code(self, cache: DenoiserCache, lam: float | Tensor) -> Tensor:
+        ref = cache.albedo
+        n, _, hp, wp = ref.shape
+        if not isinstance(lam, Tensor):
+            lam = torch.tensor(float(lam))
+        lam = lam.to(device=ref.device, dtype=ref.dtype)
+        if lam.numel() == 1:
+            return lambda_code(lam.reshape(1, 1, 1, 1).expand(n, 1, 1, 1))
+        h, w = cache.size
+        if lam.dim() == 2:
+            lam = lam.view(1, 1, h, w)
+        if lam.dim() != 4 or lam.shape[1] != 1 or lam.shape[-2:] != (h, w) or lam.shape[0] not in (1, n):
+            raise ValueError(f"λ map must be a float or broadcastable to ({n},1,{h},{w}); got {tuple(lam.shape)}")
+        lam = torch.nan_to_num(lam, nan=LAMBDA_MIN).expand(n, 1, h, w)
+        return lambda_code(pad_to(lam, self.config.alignment))
+
+    def forward(self, window: list[FrameTensors], center: int, lam: float | Tensor = 1.0) -> Tensor:
+        return self.apply(self.prepare(window, center), lam)

@@ -1,0 +1,62 @@
+"""Kernel prediction (Vogels et al. 2018 eqs. 3–4): per-pixel k×k kernels, softmax-normalised.
+
+The softmax makes every output pixel a convex combination of its input neighbourhood, which
+bounds the output and keeps training stable. For a temporal window the logits of all frames
+share ONE softmax (eq. 4 over frames), so the network decides how much each frame
+contributes. Kernels are applied by a loop over the k² offsets: an unfold would materialise a
+k²-times copy of the image (≈1.3 GB at 256² for 21×21, DESIGN.md).
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def kernel_weights(logits: Sequence[Tensor]) -> list[Tensor]:
+    """Joint softmax over all frames' k² logits at each pixel (eq. 4), one tensor per frame."""
+    joint = torch.softmax(torch.cat(list(logits), dim=1), dim=1)
+    return list(torch.split(joint, [l.shape[1] for l in logits], dim=1))
+
+
+def pad_for_kernel(image: Tensor, k: int) -> Tensor:
+    """Replicate border of k//2 so every tap reads a real pixel (any size, even 1×1)."""
+    r = k // 2
+    return F.pad(image, (r, r, r, r), mode="replicate")
+
+
+def unnormalised_weights(logits: Tensor) -> Tensor:
+    """exp(logits − max) IN PLACE on a fresh (N, F·k², H, W) tensor. Softmax's division is
+    deferred to one division of the 3-channel output (filter_padded), which saves a full
+    pass and allocation over F·k² channels. The shift is detached: softmax ignores it."""
+    return logits.sub_(logits.detach().amax(dim=1, keepdim=True)).exp_()
+
+
+def filter_padded(padded: Sequence[Tensor], weights: Tensor, k: int) -> Tensor:
+    """Σ_frames Σ_taps w·x / Σ w: eq. 3 with the joint normalisation of eq. 4.
+    padded[f] is frame f's image after pad_for_kernel; weights (N, F·k², H, W) ≥ 0."""
+    h, w = weights.shape[-2:]
+    out = torch.zeros(padded[0].shape[:2] + (h, w), dtype=weights.dtype, device=weights.device)
+    for f, image in enumerate(padded):
+        for dy in range(k):
+            for dx in range(k):
+                tap = (f * k + dy) * k + dx
+                out.addcmul_(weights[:, tap:tap + 1], image[:, :, dy:dy + h, dx:dx + w])
+    return out / weights.sum(dim=1, keepdim=True)
+
+
+def apply_kernels(images: Tensor | Sequence[Tensor], logits: Tensor | Sequence[Tensor], k: int) -> Tensor:
+    """Filter image(s) (N,C,H,W) with per-pixel kernels from logits (N,k²,H,W) (eq. 3); with
+    lists, one kernel per frame and one softmax over all of them (eq. 4).
+    Tap index dy·k + dx weights pixel (y + dy − k//2, x + dx − k//2)."""
+    if isinstance(images, Tensor):
+        images, logits = [images], [logits]
+    if len(images) != len(logits):
+        raise ValueError(f"{len(images)} images but {len(logits)} logit maps")
+    for l in logits:
+        if l.shape[1] != k * k:
+            raise ValueError(f"logits have {l.shape[1]} channels, expected k²={k * k}")
+    weights = unnormalised_weights(torch.cat(list(logits), dim=1))   # cat: a fresh tensor, safe in place
+    return filter_padded([pad_for_kernel(i, k) for i in images], weights, k)
