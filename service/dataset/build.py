@@ -278,6 +278,8 @@ def build_dataset(
                                reference_spp=reference_spp)
     settings.validate()
     root = Path(out_dir)
+    if root.exists() and not root.is_dir():
+        raise DatasetError(f"--out {root} exists and is not a folder")
     root.mkdir(parents=True, exist_ok=True)
     manifest = read_manifest(root)
     _check_compatible(root, manifest, settings)
