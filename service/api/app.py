@@ -215,7 +215,8 @@ def create_app(data_dir: Path, *, concurrency: int = 1) -> FastAPI:
             raise JobConflict("the image size is not known before the first iteration; retry once a preview exists")
         lam = decode_map(upload, shape) if upload is not None else lambda_from_json(job_id, update, shape)
         value = update.value if update is not None else None
-        return LambdaResult(version=worker.set_lambda(job_id, lam, value))
+        applied = worker.set_lambda(job_id, lam, value)
+        return LambdaResult(version=applied.version, full_passes=applied.full_passes, tail_passes=applied.tail_passes)
 
     @app.put("/jobs/{job_id}/lambda", response_model=LambdaResult)
     async def put_lambda(job_id: str, request: Request) -> LambdaResult:

@@ -157,7 +157,9 @@ class LambdaUpdate(BaseModel):
 
 
 class LambdaResult(BaseModel):
-    version: int
+    version: int = Field(description="preview version that shows the newest λ")
+    full_passes: int = Field(0, description="full denoiser passes this took (a rebuild after a restart)")
+    tail_passes: int = Field(0, description="λ-only passes from cached features")
 
 
 class Health(BaseModel):

@@ -11,17 +11,18 @@ import threading
 from typing import Callable, Generic, TypeVar
 
 T = TypeVar("T")
+R = TypeVar("R")
 
 
-class LatestWins(Generic[T]):
-    def __init__(self, apply: Callable[[T], int], name: str = "latest-wins") -> None:
+class LatestWins(Generic[T, R]):
+    def __init__(self, apply: Callable[[T], R], name: str = "latest-wins") -> None:
         self._apply = apply
         self._name = name
         self._cond = threading.Condition()
         self._pending: tuple[int, T] | None = None
         self._next_ticket = 0
         self._done_ticket = -1
-        self._result = 0
+        self._result: R | None = None
         self._failure: tuple[int, BaseException] | None = None  # (ticket, error) of the last failure
         self._draining = False
 
@@ -35,7 +36,7 @@ class LatestWins(Generic[T]):
                 threading.Thread(target=self._drain, name=self._name, daemon=True).start()
             return ticket
 
-    def wait(self, ticket: int, timeout: float | None = None) -> int:
+    def wait(self, ticket: int, timeout: float | None = None) -> R:
         """The result covering `ticket`; re-raises the error if that application failed."""
         with self._cond:
             if not self._cond.wait_for(lambda: self._done_ticket >= ticket, timeout):

@@ -13,6 +13,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
@@ -56,6 +57,16 @@ def loop_spec(spec: dict[str, Any], files: JobFiles) -> "LoopSpec":
     )
 
 
+@dataclass(frozen=True)
+class LambdaApplied:
+    """What one λ application did: the preview version showing it, and the denoiser work it
+    took (full forward passes vs. λ-only tail passes from cached features)."""
+
+    version: int
+    full_passes: int = 0
+    tail_passes: int = 0
+
+
 def _failure_message(exc: BaseException) -> str:
     text = str(exc).strip() or exc.__class__.__name__
     return f"{exc.__class__.__name__}: {text}" if not isinstance(exc, ValueError) else text
@@ -79,7 +90,7 @@ class JobWorker:
         self._live: dict[str, "RenderLoop"] = {}  # jobs rendering right now
         self._idle: OrderedDict[str, "RenderLoop"] = OrderedDict()  # finished, kept for λ
         self._publish_locks: dict[str, threading.Lock] = {}
-        self._lambda: dict[str, LatestWins[np.ndarray]] = {}
+        self._lambda: dict[str, LatestWins[np.ndarray, LambdaApplied]] = {}
         self._stopping = threading.Event()
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -247,7 +258,7 @@ class JobWorker:
             return lam
         return np.full(shape, float(record.spec.get("lambda", 1.0)), dtype=np.float32)
 
-    def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None) -> int:
+    def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None) -> LambdaApplied:
         """Keep `lam` with the job and re-denoise from cached features; returns the preview
         version that shows the newest λ (which may be a later request's under a burst)."""
         record = self._require(job_id)
@@ -259,7 +270,7 @@ class JobWorker:
         mailbox = self._lambda_mailbox(job_id)
         return mailbox.wait(mailbox.submit(lam), timeout=LAMBDA_WAIT_SECONDS)
 
-    def _lambda_mailbox(self, job_id: str) -> LatestWins[np.ndarray]:
+    def _lambda_mailbox(self, job_id: str) -> LatestWins[np.ndarray, LambdaApplied]:
         with self._lock:
             if job_id not in self._lambda:
                 self._lambda[job_id] = LatestWins(
@@ -267,14 +278,16 @@ class JobWorker:
                 )
             return self._lambda[job_id]
 
-    def _apply_lambda(self, job_id: str, lam: np.ndarray) -> int:
+    def _apply_lambda(self, job_id: str, lam: np.ndarray) -> LambdaApplied:
         record = self._require(job_id)
         loop = self._loop_for_lambda(job_id, record)
         if loop is None:
-            return record.preview_version  # nothing rendered yet: the map waits for iteration 1
+            return LambdaApplied(record.preview_version)  # nothing rendered yet: used from iteration 1
+        full_before, tail_before = loop.full_calls, loop.tail_calls
         images = loop.set_lambda(lam)
+        passes = {"full_passes": loop.full_calls - full_before, "tail_passes": loop.tail_calls - tail_before}
         if not images:
-            return record.preview_version
+            return LambdaApplied(record.preview_version, **passes)
         files = self.files(job_id)
         frames = []
         for f, image in enumerate(images):
@@ -284,7 +297,7 @@ class JobWorker:
         version = self._publish(job_id, files, frames)
         if self._require(job_id).state == COMPLETED:
             files.save_results(loop.result_frames())  # the result follows λ after the run too
-        return version
+        return LambdaApplied(version, **passes)
 
     def _loop_for_lambda(self, job_id: str, record: JobRecord) -> "RenderLoop | None":
         with self._lock:

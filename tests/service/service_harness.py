@@ -1,0 +1,86 @@
+"""Test harness for the job service. A real server: `python -m uvicorn --factory service.api.serve:app_from_env` in a subprocess
+on a free port, a real httpx client, the SQLite file in tmp_path. A subprocess (not a thread)
+so tests can `kill -9` it and start another on the same data dir."""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+import httpx
+
+REPO = Path(__file__).resolve().parents[2]
+STARTUP_SECONDS = 60.0
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+class Server:
+    def __init__(self, data_dir: Path, log_path: Path) -> None:
+        self.data_dir = data_dir
+        self.log_path = log_path
+        self.port = free_port()
+        self.process: subprocess.Popen | None = None
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def start(self) -> "Server":
+        env = {**os.environ, "RENDERLOOP_DATA_DIR": str(self.data_dir), "PYTHONUNBUFFERED": "1"}
+        command = [sys.executable, "-m", "uvicorn", "--factory", "service.api.serve:app_from_env",
+                   "--host", "127.0.0.1", "--port", str(self.port), "--log-level", "warning"]
+        log = open(self.log_path, "ab")
+        self.process = subprocess.Popen(command, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + STARTUP_SECONDS
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"server exited early:\n{self.log()}")
+            try:
+                if httpx.get(self.url + "/healthz", timeout=1).status_code == 200:
+                    return self
+            except httpx.TransportError:
+                time.sleep(0.2)
+        raise RuntimeError(f"server did not come up:\n{self.log()}")
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
+
+    def kill(self) -> None:
+        """`kill -9`: no shutdown hooks, whatever was in flight is lost."""
+        if self.process and self.process.poll() is None:
+            os.kill(self.process.pid, signal.SIGKILL)
+            self.process.wait(10)
+
+    def stop(self) -> None:
+        if self.process and self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(20)
+            except subprocess.TimeoutExpired:
+                self.kill()
+
+
+def wait_for(client: httpx.Client, job_id: str, done: Callable[[dict], bool], timeout: float = 180) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        job = client.get(f"/jobs/{job_id}").json()
+        if done(job):
+            return job
+        if job["state"] in ("failed", "canceled") and not done(job):
+            raise AssertionError(f"job ended as {job['state']}: {job}")
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting; last status {job}")
+
+
+def finished(job: dict) -> bool:
+    return job["state"] in ("completed", "failed", "canceled")

@@ -1,0 +1,153 @@
+"""Bad input over real HTTP: 404, 422 with field messages, hostile bundles named. No rendering."""
+from __future__ import annotations
+
+import io
+import socket
+import stat
+import zipfile
+
+import httpx
+import pytest
+
+from service_harness import Server
+
+JOB = {"scene": "cornell-box", "width": 16, "height": 16, "max_iterations": 1}
+SCENE = """<scene version="3.0.0">
+  <texture type="bitmap" id="t"><string name="filename" value="{path}"/></texture>
+</scene>"""
+BOMB = """<?xml version="1.0"?>
+<!DOCTYPE scene [<!ENTITY a "aaaaaaaaaa"><!ENTITY b "&a;&a;&a;&a;&a;&a;&a;&a;&a;&a;">]>
+<scene version="3.0.0"><string name="x" value="&b;"/></scene>"""
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    # One server for the whole module: none of these tests render, so they cannot disturb
+    # each other, and starting a server per test costs seconds each.
+    root = tmp_path_factory.mktemp("errors")
+    server = Server(root / "data", root / "server.log").start()
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def client(server):
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        yield c
+
+
+def zip_bytes(members: dict[str, str], symlinks: dict[str, str] = {}) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as zf:
+        for name, data in members.items():
+            zf.writestr(name, data)
+        for name, target in symlinks.items():
+            info = zipfile.ZipInfo(name)
+            info.external_attr = (stat.S_IFLNK | 0o777) << 16
+            zf.writestr(info, target)
+    return buffer.getvalue()
+
+
+def upload(client, archive: bytes, spec: str = '{"width": 16, "height": 16, "max_iterations": 1}'):
+    return client.post("/jobs", data={"spec": spec}, files={"bundle": ("scene.zip", archive, "application/zip")})
+
+
+def test_unknown_job_is_404(client):
+    for method, path in [("GET", "/jobs/nope"), ("GET", "/jobs/nope/preview"), ("POST", "/jobs/nope/cancel"),
+                         ("GET", "/jobs/nope/result.exr"), ("GET", "/jobs/nope/events")]:
+        response = client.request(method, path)
+        assert response.status_code == 404, path
+        assert "nope" in response.json()["detail"]
+    response = client.put("/jobs/nope/lambda", json={"value": 2.0})
+    assert response.status_code == 404
+
+
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"width": -4}, "width"),
+        ({"height": 0}, "height"),
+        ({"width": 5000, "height": 16}, "width"),
+        ({"allocator": "magic"}, "allocator"),
+        ({"lambda": 11}, "lambda"),
+        ({"lambda": 0.5}, "lambda"),
+        ({"frames": 17}, "frames"),
+        ({"max_iterations": 13}, "max_iterations"),
+        ({"time_limit": -1}, "time_limit"),
+        ({"target_error": 0}, "target_error"),
+        ({"scene": "../../etc/passwd"}, "scene"),
+        ({"scene": "no-such-scene"}, "scene"),
+        ({"colour": "red"}, "colour"),
+        ({"max_iterations": None}, "max_iterations or spp_budget"),
+    ],
+)
+def test_bad_job_bodies_are_422(client, change, field):
+    response = client.post("/jobs", json={**JOB, **change})
+    assert response.status_code == 422, response.text
+    assert field in response.json()["detail"]
+
+
+def test_malformed_json_is_422(client):
+    response = client.post("/jobs", content=b"{not json", headers={"content-type": "application/json"})
+    assert response.status_code == 422 and "JSON" in response.json()["detail"]
+
+
+@pytest.mark.parametrize(
+    "members, symlinks, named",
+    [
+        ({"scene.xml": SCENE.format(path="/etc/passwd")}, {}, "/etc/passwd"),
+        ({"scene.xml": SCENE.format(path="../../secret.png")}, {}, "../../secret.png"),
+        ({"scene.xml": SCENE.format(path="tex.png"), "../evil.png": "x"}, {}, "../evil.png"),
+        ({"scene.xml": SCENE.format(path="tex.png")}, {"tex.png": "/etc/passwd"}, "tex.png"),
+        ({"scene.xml": '<scene version="3.0.0"><include filename="../up.xml"/></scene>'}, {}, "../up.xml"),
+        ({"scene.xml": BOMB}, {}, "scene.xml"),
+    ],
+    ids=["absolute", "dotdot-reference", "dotdot-member", "zip-symlink", "include-outside", "entity-bomb"],
+)
+def test_hostile_bundles_are_422_naming_the_path(client, server, members, symlinks, named):
+    jobs_before = set((server.data_dir / "jobs").iterdir())
+    response = upload(client, zip_bytes(members, symlinks))
+    assert response.status_code == 422, response.text
+    assert named in response.json()["detail"]
+    assert set((server.data_dir / "jobs").iterdir()) == jobs_before  # nothing was kept
+
+
+def test_bundle_upload_needs_files(client):
+    response = client.post("/jobs", data={"spec": "{}"}, files={"other": ("x", b"x")})
+    assert response.status_code == 422 and "bundle" in response.json()["detail"]
+
+
+def test_loose_file_upload_with_escape_is_422(client):
+    files = [("files", ("scene.xml", SCENE.format(path="tex.png").encode())), ("files", ("../tex.png", b"x"))]
+    response = client.post("/jobs", data={"spec": "{}"}, files=files)
+    assert response.status_code == 422 and "../tex.png" in response.json()["detail"]
+
+
+def test_oversized_upload_is_413(server):
+    # A raw socket: httpx will not send a Content-Length it does not honour.
+    request = (
+        "POST /jobs HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=x\r\n"
+        f"Content-Length: {200 * 1024 * 1024}\r\nConnection: close\r\n\r\n"
+    )
+    with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
+        sock.sendall(request.encode())
+        reply = b""
+        while chunk := sock.recv(65536):
+            reply += chunk
+    assert reply.startswith(b"HTTP/1.1 413") and b"cap" in reply
+
+
+def test_bad_query_and_lambda_bodies(client):
+    job = client.post("/jobs", json={**JOB, "max_iterations": 1}).json()
+    assert client.get(f"/jobs/{job['id']}/preview", params={"layer": "bogus"}).status_code == 422
+    assert client.get(f"/jobs/{job['id']}/preview", params={"frame": 3}).status_code == 422
+    for body in [{"value": 11}, {"value": 0}, {"rects": [{"x": 0, "y": 0, "w": -1, "h": 4, "value": 2}]},
+                 {"value": 2, "rects": [{"x": 0, "y": 0, "w": 1, "h": 1, "value": 2}]}, {}]:
+        response = client.put(f"/jobs/{job['id']}/lambda", json=body)
+        assert response.status_code == 422, body
+        assert response.json()["detail"]
+
+
+def test_healthz(client):
+    body = client.get("/healthz").json()
+    assert body["status"] == "ok" and set(body["jobs"]) == {"queued", "running", "completed", "failed", "canceled"}
