@@ -143,7 +143,9 @@ class ScaleCompositor(nn.Module):
     def forward(self, fine: Tensor, coarse: Tensor) -> Tensor:
         coarse_up = up(coarse)
         a = torch.sigmoid(self.alpha(torch.cat([log_transform(fine), log_transform(coarse_up)], 1)))
-        return fine - a * up(down(fine)) + a * coarse_up
+        # Swapping bands can undershoot below 0 next to a firefly; radiance cannot be negative,
+        # and the next level's log transform needs x > -1.
+        return (fine - a * up(down(fine)) + a * coarse_up).clamp_min(0)
 
 
 # --- the λ-independent state ---------------------------------------------------------------

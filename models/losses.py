@@ -27,9 +27,10 @@ def l1(d: Tensor, r: Tensor) -> Tensor:
 
 
 def asymmetric_weight(d: Tensor, r: Tensor, c: Tensor, lam: float | Tensor) -> Tensor:
-    """1 + (λ − 1)·H((d − r)(r − c)) (eq. 6): λ-fold penalty where the result d lies on the
-    same side of the reference r as the noisy input c, i.e. where residual noise survived.
-    H(0) = 0, so exact agreement is never up-weighted."""
+    """1 + (λ − 1)·H((d − r)(r − c)) (eq. 6): λ-fold penalty where the result d overshoots the
+    reference r on the side AWAY from the noisy input c — an error the input did not have
+    (blur, lost detail, artefacts). Errors between c and r are residual noise and keep weight
+    1, so larger λ buys detail at the price of noise. H(0) = 0: exact agreement is never up-weighted."""
     same_side = ((d - r) * (r - c) > 0).to(d.dtype)
     return 1 + (torch.as_tensor(lam, dtype=d.dtype, device=d.device) - 1) * same_side
 

@@ -1,0 +1,20 @@
+import pytest
+import torch
+
+from models.denoiser import DenoiserConfig
+from models.frames import FrameTensors
+
+TINY = DenoiserConfig(width=8, spatial_blocks=1, temporal_blocks=1, kernel_size=3, lambda_width=4, composite_width=4)
+
+
+def make_frame(h: int = 12, w: int = 16, n: int = 1, motion: bool = True, seed: int = 0) -> FrameTensors:
+    g = torch.Generator().manual_seed(seed)
+    r = lambda c: torch.rand(n, c, h, w, generator=g)
+    return FrameTensors(color=r(3) * 2, variance=r(3) * 0.1, albedo=r(3) * 0.8 + 0.1,
+                        normal=r(3) * 2 - 1, depth=r(1) + 1, motion=(r(2) - 0.5) * 2 if motion else None)
+
+
+@pytest.fixture(autouse=True)
+def _seed_and_threads():
+    torch.manual_seed(0)
+    torch.set_num_threads(1)   # the machine is shared; tiny tensors gain nothing from threads

@@ -1,0 +1,59 @@
+from dataclasses import replace
+
+import pytest
+import torch
+
+from models import pretrained
+from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from models.denoiser import Denoiser
+from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from tests.models.conftest import TINY, make_frame
+
+
+def test_checkpoint_round_trip_restores_config_weights_and_extra(tmp_path):
+    den = Denoiser(TINY).eval()
+    path = save_checkpoint(tmp_path / "d.pt", den, extra={"epoch": 3})
+    back = load_checkpoint(path, expected_kind="denoiser")
+    assert back.config == den.config and back.checkpoint_extra == {"epoch": 3}
+    win = [make_frame(seed=i) for i in range(3)]
+    with torch.no_grad():
+        torch.testing.assert_close(back(win, 1, 2.0), den(win, 1, 2.0))
+    ep = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1))
+    assert isinstance(load_checkpoint(save_checkpoint(tmp_path / "e.pt", ep)), ErrorPredictor)
+
+
+def test_missing_file_raises_checkpoint_error(tmp_path):
+    with pytest.raises(CheckpointError, match="not found"):
+        load_checkpoint(tmp_path / "nope.pt")
+
+
+def test_wrong_kind_raises_checkpoint_error(tmp_path):
+    path = save_checkpoint(tmp_path / "e.pt", ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1)))
+    with pytest.raises(CheckpointError, match="expected 'denoiser'"):
+        load_checkpoint(path, expected_kind="denoiser")
+
+
+def test_version_mismatch_raises_checkpoint_error(tmp_path):
+    path = save_checkpoint(tmp_path / "d.pt", Denoiser(TINY))
+    ckpt = torch.load(path, weights_only=True)
+    ckpt["format_version"] = 99
+    torch.save(ckpt, path)
+    with pytest.raises(CheckpointError, match="format 99"):
+        load_checkpoint(path)
+
+
+def test_shape_mismatch_raises_checkpoint_error_naming_the_tensor(tmp_path):
+    path = save_checkpoint(tmp_path / "d.pt", Denoiser(TINY))
+    ckpt = torch.load(path, weights_only=True)
+    ckpt["config"] = {**ckpt["config"], "width": 12}       # config no longer matches the weights
+    torch.save(ckpt, path)
+    with pytest.raises(CheckpointError, match="encoder.conv1.weight"):
+        load_checkpoint(path)
+
+
+def test_missing_default_weights_say_how_to_produce_them(tmp_path, monkeypatch):
+    monkeypatch.setattr(pretrained, "DEFAULT_WEIGHTS_DIR", tmp_path)
+    with pytest.raises(CheckpointError, match="renderloop train"):
+        pretrained.load_default_denoiser()
+    with pytest.raises(CheckpointError, match="renderloop train"):
+        pretrained.load_default_error_predictor()

@@ -1,0 +1,135 @@
+from dataclasses import replace
+
+import pytest
+import torch
+
+from models.denoiser import Denoiser, DenoiserConfig
+from models.frames import FrameTensors
+from tests.models.conftest import TINY, make_frame
+
+
+def window(n_frames=3, **kw):
+    return [make_frame(seed=i, **kw) for i in range(n_frames)]
+
+
+@pytest.mark.parametrize("lam", [1.0, 3.5, 10.0, "map"])
+def test_apply_of_prepare_equals_forward(lam):
+    den = Denoiser(TINY).eval()
+    win = window()
+    if lam == "map":
+        lam = torch.rand(1, 1, 12, 16) * 9 + 1
+    with torch.no_grad():
+        cache = den.prepare(win, 1)
+        torch.testing.assert_close(den.apply(cache, lam), den(win, 1, lam))
+        torch.testing.assert_close(den.apply(cache, lam), den.apply(cache, lam))   # cache not consumed
+
+
+def test_lambda_changes_the_output_once_the_module_is_trained():
+    den = Denoiser(TINY).eval()
+    torch.nn.init.normal_(den.specialise.film[-1].weight)   # untrained module starts neutral
+    with torch.no_grad():
+        cache = den.prepare(window(), 1)
+        assert not torch.allclose(den.apply(cache, 1.0), den.apply(cache, 10.0))
+
+
+def hostile_cases():
+    fire = make_frame()
+    fire.color[0, :, 3, 4] = 1e6
+    zero = make_frame()
+    for t in (zero.color, zero.variance, zero.albedo, zero.normal, zero.depth, zero.motion):
+        t.zero_()
+    black_albedo = make_frame()
+    black_albedo.albedo.zero_()
+    nan = make_frame()
+    nan.color[0, 0, 1, 1] = float("nan")
+    nan.variance[0, :, 2, 2] = float("inf")
+    nan.normal[0, 1, 3, 3] = -float("inf")
+    nan.depth[0, 0, 4, 4] = float("nan")
+    nan.motion[0, 0, 5, 5] = float("nan")
+    off = make_frame()
+    off.motion.fill_(1e5)
+    return {
+        "fireflies": [fire, make_frame(seed=1), fire],
+        "all-zero": [zero, zero, zero],
+        "zero-albedo": [black_albedo] * 3,
+        "nan-inf": [nan, make_frame(seed=2), nan],
+        "1x1": [make_frame(1, 1, seed=i) for i in range(3)],
+        "3x5": [make_frame(3, 5, seed=i) for i in range(3)],
+        "one-frame": [make_frame()],
+        "motion-off-screen": [off, off, off],
+    }
+
+
+@pytest.mark.parametrize("case", list(hostile_cases()))
+@pytest.mark.parametrize("lam", [1.0, 10.0])
+def test_hard_cases_are_finite_in_forward_and_backward(case, lam):
+    den = Denoiser(TINY)
+    win = hostile_cases()[case]
+    center = len(win) // 2
+    out = den(win, center, lam)
+    h, w = win[center].size
+    assert out.shape == (1, 3, h, w)
+    assert out.isfinite().all()
+    (out / (out.detach().abs() + 1)).sum().backward()     # SMAPE-like scale for the 1e6 case
+    grads = [p.grad for p in den.parameters() if p.grad is not None]
+    assert grads and all(g.isfinite().all() for g in grads)
+
+
+def test_past_only_window_and_per_pixel_lambda_and_batch():
+    den = Denoiser(TINY).eval()
+    win = window(2, n=2)
+    with torch.no_grad():
+        out = den(win, -1, torch.rand(2, 1, 12, 16) * 9 + 1)
+    assert out.shape == (2, 3, 12, 16) and out.isfinite().all()
+
+
+def test_bad_lambda_map_shape_is_a_clear_error():
+    den = Denoiser(TINY)
+    with pytest.raises(ValueError, match="λ map"):
+        den(window(1), 0, torch.ones(1, 1, 5, 5))
+
+
+def test_unknown_source_fails_at_construction_listing_known_sources():
+    with pytest.raises(KeyError, match="known sources: mitsuba-path"):
+        Denoiser(replace(TINY, source="nope"))
+
+
+def test_single_scale_single_frame_output_lies_in_convex_hull_of_neighbourhood():
+    cfg = replace(TINY, temporal=False, multiscale=False, kernel_size=3)
+    den = Denoiser(cfg).eval()
+    f = make_frame()
+    f.albedo.fill_(1.0)            # demodulation by a constant: hull in radiance == hull in irradiance
+    with torch.no_grad():
+        out = den([f], 0, 5.0)
+    padded = torch.nn.functional.pad(f.color, (1, 1, 1, 1), mode="replicate")
+    win = padded.unfold(2, 3, 1).unfold(3, 3, 1)
+    assert (out >= win.amin((-1, -2)) - 1e-4).all() and (out <= win.amax((-1, -2)) + 1e-4).all()
+
+
+def test_temporal_model_with_identical_static_frames_does_not_shift_the_image():
+    """Identical frames, zero motion: every frame's kernel sees the same image, so the
+    temporal result must be a plain spatial filtering of it — same hull, translation
+    equivariant, a flat image stays flat."""
+    den = Denoiser(replace(TINY, multiscale=False)).eval()
+    f = make_frame(8, 32, motion=False)
+    f.albedo.fill_(1.0)
+    with torch.no_grad():
+        flat = FrameTensors(torch.full_like(f.color, 0.7), f.variance, f.albedo, f.normal, f.depth, torch.zeros(1, 2, 8, 32))
+        torch.testing.assert_close(den([flat] * 3, 1), flat.color)
+        still = den([f] * 3, 1)
+        single = den([f], 0)
+        shifted = f.map(lambda name, t: torch.roll(t, 1, dims=-1))
+        moved = den([shifted] * 3, 1)
+    # away from the zero-padded conv borders (receptive field < 9 px): same result, moved by 1 px
+    torch.testing.assert_close(moved[..., 10:-9], still[..., 9:-10])
+    # temporal on identical frames filters as much as single-frame: same noise level
+    assert (still - f.color).abs().mean() == pytest.approx((single - f.color).abs().mean().item(), rel=0.5)
+
+
+def test_single_frame_and_single_scale_flags_build_smaller_models():
+    full = Denoiser(TINY)
+    single = Denoiser(replace(TINY, temporal=False, multiscale=False))
+    assert single.temporal is None and single.composite is None
+    assert sum(p.numel() for p in single.parameters()) < sum(p.numel() for p in full.parameters())
+    with torch.no_grad():
+        assert single(window(), 1).shape == (1, 3, 12, 16)     # neighbours ignored

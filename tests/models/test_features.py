@@ -1,0 +1,37 @@
+import pytest
+import torch
+
+from models.features import (FEATURE_SETS, HDR_MAX, demodulate, feature_set, inverse_log_transform,
+                             log_transform, network_input, remodulate, sanitize)
+from tests.models.conftest import make_frame
+
+
+def test_transforms_round_trip():
+    x = torch.rand(1, 3, 4, 4) * 1000
+    torch.testing.assert_close(inverse_log_transform(log_transform(x)), x)
+    albedo = torch.rand(1, 3, 4, 4)
+    albedo[0, 0, 0, 0] = 0
+    torch.testing.assert_close(remodulate(demodulate(x, albedo), albedo), x)
+
+
+def test_sanitize_replaces_and_counts_bad_values():
+    t = torch.tensor([1.0, float("nan"), float("inf"), -float("inf"), -0.5, 1e9])
+    clean, n_bad = sanitize(t)
+    assert n_bad == 3
+    assert clean.tolist() == [1.0, 0.0, 0.0, 0.0, 0.0, HDR_MAX]
+
+
+def test_network_input_is_finite_with_hostile_buffers():
+    f = make_frame()
+    f.color[0, 0, 0, 0] = float("nan")
+    f.variance[0, 1, 1, 1] = float("inf")
+    f.albedo.zero_()
+    f.depth.zero_()
+    x = network_input(f)
+    assert x.shape == (1, FEATURE_SETS["mitsuba-path"].channels, 12, 16)
+    assert x.isfinite().all()
+
+
+def test_unknown_source_lists_known_ones():
+    with pytest.raises(KeyError, match="mitsuba-path"):
+        feature_set("blender-cycles")

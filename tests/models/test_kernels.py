@@ -1,0 +1,51 @@
+import torch
+
+from models.kernels import apply_kernels, kernel_weights
+
+
+def test_kernel_weights_are_non_negative_and_sum_to_one_jointly_across_frames():
+    logits = [torch.randn(2, 9, 5, 6) * 10 for _ in range(3)]
+    weights = kernel_weights(logits)
+    assert all((w >= 0).all() for w in weights)
+    total = sum(w.sum(dim=1) for w in weights)
+    torch.testing.assert_close(total, torch.ones(2, 5, 6))
+    # per frame the weights do NOT sum to one: the softmax is joint
+    assert not torch.allclose(weights[0].sum(1), torch.ones(2, 5, 6))
+
+
+def test_single_scale_output_lies_in_convex_hull_of_input_neighbourhood():
+    k = 5
+    image = torch.rand(1, 3, 9, 11) * 100
+    out = apply_kernels(image, torch.randn(1, k * k, 9, 11) * 5, k)
+    padded = torch.nn.functional.pad(image, (2, 2, 2, 2), mode="replicate")
+    windows = padded.unfold(2, k, 1).unfold(3, k, 1)          # (1,3,9,11,k,k) – fine at this size
+    lo, hi = windows.amin(dim=(-1, -2)), windows.amax(dim=(-1, -2))
+    assert (out >= lo - 1e-4).all() and (out <= hi + 1e-4).all()
+
+
+def test_temporal_output_lies_within_union_of_frame_neighbourhoods():
+    k = 3
+    images = [torch.rand(1, 3, 6, 7) for _ in range(3)]
+    images[1] += 5
+    out = apply_kernels(images, [torch.randn(1, 9, 6, 7) for _ in images], k)
+    assert out.min() >= 0 and out.max() <= 6 + 1e-5
+
+
+def test_delta_kernel_is_identity_and_offset_kernel_shifts():
+    k = 3
+    image = torch.rand(1, 3, 5, 5)
+    logits = torch.full((1, 9, 5, 5), -1e4)
+    logits[:, 4] = 0                                  # centre tap
+    torch.testing.assert_close(apply_kernels(image, logits.clone(), k), image)
+    logits = torch.full((1, 9, 5, 5), -1e4)
+    logits[:, 5] = 0                                  # tap (dy=1, dx=2): pixel to the right
+    out = apply_kernels(image, logits, k)
+    torch.testing.assert_close(out[..., :-1], image[..., 1:])
+
+
+def test_apply_kernels_backward_reaches_logits_and_images():
+    image = torch.rand(1, 3, 4, 4, requires_grad=True)
+    logits = torch.randn(1, 9, 4, 4, requires_grad=True)
+    apply_kernels(image, logits, 3).square().sum().backward()
+    assert image.grad.isfinite().all() and logits.grad.isfinite().all()
+    assert logits.grad.abs().sum() > 0
