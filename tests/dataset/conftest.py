@@ -9,6 +9,12 @@ TINY = dict(size=16, seed=0, reference_spp=64, progress=False)
 
 
 @pytest.fixture(scope="session")
+def tiny() -> dict:
+    """The build settings both fixtures use (size, seed, reference spp, no progress bar)."""
+    return dict(TINY)
+
+
+@pytest.fixture(scope="session")
 def sequence_dataset(tmp_path_factory) -> Path:
     """2 scenes × 3 frames (camera paths with motion), train split."""
     from service.dataset.build import build_dataset

@@ -1,0 +1,40 @@
+import argparse
+
+import pytest
+
+from service.dataset.command import add_parser, run
+
+
+def parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="renderloop")
+    add_parser(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(argv)
+
+
+def test_parser_reads_every_option(tmp_path):
+    args = parse(["dataset", "-o", str(tmp_path), "--scenes", "3", "--size", "32", "--frames", "5",
+                  "--seed", "7", "--split", "heldout", "--reference-spp", "256"])
+    assert (args.scenes, args.size, args.frames, args.seed, args.split, args.reference_spp) == (3, 32, 5, 7, "heldout", 256)
+    assert args.handler is run
+
+
+@pytest.mark.parametrize("option, value", [("--scenes", "0"), ("--size", "2"), ("--frames", "-1"),
+                                           ("--reference-spp", "0"), ("--seed", "-3")])
+def test_bad_values_fail_with_one_line(tmp_path, capsys, option, value):
+    assert run(parse(["dataset", "-o", str(tmp_path / "d"), option, value, "--quiet"])) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("renderloop dataset: error:") and option in err and "\n" not in err
+
+
+def test_out_must_be_a_folder(tmp_path, capsys):
+    file = tmp_path / "file"
+    file.write_text("x")
+    assert run(parse(["dataset", "-o", str(file), "--quiet"])) == 2
+    assert "not a folder" in capsys.readouterr().err
+
+
+def test_command_resumes_a_finished_data_set(still_dataset, capsys):
+    args = parse(["dataset", "-o", str(still_dataset), "--scenes", "2", "--size", "16", "--frames", "1",
+                  "--split", "heldout", "--reference-spp", "64", "--quiet"])
+    assert run(args) == 0
+    assert "manifest.json" in capsys.readouterr().out
