@@ -105,6 +105,7 @@ class JobStatus(BaseModel):
     finished_at: str | None
     preview_version: int
     lambda_value: float | None = Field(None, description="global λ last set; null once a per-pixel map is used")
+    resumed_from: int | None = Field(None, description="iteration a restart resumed this job at")
     spec: dict
 
     @classmethod
@@ -123,6 +124,7 @@ class JobStatus(BaseModel):
             finished_at=_iso(record.finished_at),
             preview_version=record.preview_version,
             lambda_value=record.lambda_value,
+            resumed_from=record.resumed_from,
             spec=record.spec,
         )
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import os
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 import numpy as np
@@ -30,7 +31,7 @@ class Preview:
 
 def _atomic_bytes(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
+    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.tmp")  # unique: writers may overlap
     with open(tmp, "wb") as handle:
         handle.write(data)
         handle.flush()
@@ -105,6 +106,6 @@ class JobFiles:
 
         for index, frame in enumerate(frames):
             path = self.result_path(index)
-            tmp = path.with_name(path.stem + ".tmp.exr")
+            tmp = path.with_name(f"{path.stem}.{uuid.uuid4().hex}.tmp.exr")
             write_exr(tmp, frame)
             os.replace(tmp, path)

@@ -35,7 +35,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     started_at      REAL,
     finished_at     REAL,
     preview_version INTEGER NOT NULL DEFAULT 0,
-    lambda_value    REAL
+    lambda_value    REAL,
+    resumed_from    INTEGER
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state);
 """
@@ -59,6 +60,7 @@ class JobRecord:
     finished_at: float | None = None
     preview_version: int = 0
     lambda_value: float | None = None  # the global λ last set; None once a per-pixel map is set
+    resumed_from: int | None = None  # iteration the last restart resumed at; None if never resumed
 
     @property
     def finished(self) -> bool:
@@ -168,6 +170,9 @@ class JobStore:
             )
             row = self._db.execute("SELECT preview_version FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return int(row["preview_version"])
+
+    def set_resumed_from(self, job_id: str, iteration: int) -> None:
+        self._execute("UPDATE jobs SET resumed_from = ? WHERE id = ?", (iteration, job_id))
 
     def set_lambda_value(self, job_id: str, value: float | None) -> None:
         self._execute("UPDATE jobs SET lambda_value = ? WHERE id = ?", (value, job_id))

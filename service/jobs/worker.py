@@ -90,7 +90,7 @@ class JobWorker:
         self._live: dict[str, "RenderLoop"] = {}  # jobs rendering right now
         self._idle: OrderedDict[str, "RenderLoop"] = OrderedDict()  # finished, kept for λ
         self._publish_locks: dict[str, threading.Lock] = {}
-        self._lambda: dict[str, LatestWins[np.ndarray, LambdaApplied]] = {}
+        self._lambda: dict[str, LatestWins[tuple[np.ndarray, float | None], LambdaApplied]] = {}
         self._stopping = threading.Event()
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -171,10 +171,12 @@ class JobWorker:
 
         state = LoopState.load(files.state_dir) if files.has_checkpoint() else None
         loop = RenderLoop(loop_spec(record.spec, files), state=state)
+        if state is not None:
+            self.store.set_resumed_from(job_id, state.iteration)
         with self._lock:
             self._live[job_id] = loop
         # Registered first, then read: a λ request that missed the live loop saved its map
-        # before we read it here (see set_lambda), so no λ change is lost on the way in.
+        # before we read it here (see _apply_lambda), so no λ change is lost on the way in.
         lam = files.load_lambda()
         if lam is not None and lam.shape == loop.state.lam_map.shape:
             loop.state.lam_map = lam  # newer than the checkpoint's copy
@@ -259,26 +261,28 @@ class JobWorker:
         return np.full(shape, float(record.spec.get("lambda", 1.0)), dtype=np.float32)
 
     def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None) -> LambdaApplied:
-        """Keep `lam` with the job and re-denoise from cached features; returns the preview
-        version that shows the newest λ (which may be a later request's under a burst)."""
+        """Keep `lam` with the job and re-denoise from cached features. Under a burst only the
+        newest request is applied; every caller gets the version that shows it."""
         record = self._require(job_id)
         if record.state in (FAILED, CANCELED):
             raise JobConflict(f"job {job_id} is {record.state}: there is nothing left to re-denoise")
-        files = self.files(job_id)
-        files.save_lambda(lam)  # persisted first: later iterations and restarts use it
-        self.store.set_lambda_value(job_id, value)
         mailbox = self._lambda_mailbox(job_id)
-        return mailbox.wait(mailbox.submit(lam), timeout=LAMBDA_WAIT_SECONDS)
+        return mailbox.wait(mailbox.submit((lam, value)), timeout=LAMBDA_WAIT_SECONDS)
 
-    def _lambda_mailbox(self, job_id: str) -> LatestWins[np.ndarray, LambdaApplied]:
+    def _lambda_mailbox(self, job_id: str) -> LatestWins[tuple[np.ndarray, float | None], LambdaApplied]:
         with self._lock:
             if job_id not in self._lambda:
                 self._lambda[job_id] = LatestWins(
-                    lambda lam: self._apply_lambda(job_id, lam), name=f"lambda-{job_id[:8]}"
+                    lambda request: self._apply_lambda(job_id, *request), name=f"lambda-{job_id[:8]}"
                 )
             return self._lambda[job_id]
 
-    def _apply_lambda(self, job_id: str, lam: np.ndarray) -> LambdaApplied:
+    def _apply_lambda(self, job_id: str, lam: np.ndarray, value: float | None) -> LambdaApplied:
+        # Persisted here, on the one thread that applies this job's λ, so the saved map is
+        # always the newest request's; later iterations and restarts read it.
+        files = self.files(job_id)
+        files.save_lambda(lam)
+        self.store.set_lambda_value(job_id, value)
         record = self._require(job_id)
         loop = self._loop_for_lambda(job_id, record)
         if loop is None:
@@ -288,7 +292,6 @@ class JobWorker:
         passes = {"full_passes": loop.full_calls - full_before, "tail_passes": loop.tail_calls - tail_before}
         if not images:
             return LambdaApplied(record.preview_version, **passes)
-        files = self.files(job_id)
         frames = []
         for f, image in enumerate(images):
             previous = files.load_preview(f)

@@ -1,5 +1,5 @@
-"""Test harness for the job service. A real server: `python -m uvicorn --factory service.api.serve:app_from_env` in a subprocess
-on a free port, a real httpx client, the SQLite file in tmp_path. A subprocess (not a thread)
+"""Test harness for the job service. A real server (uvicorn running
+`service.api.serve:app_from_env`, see service_launcher.py) in a subprocess on a free port, a real httpx client, the SQLite file in tmp_path. A subprocess (not a thread)
 so tests can `kill -9` it and start another on the same data dir."""
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from typing import Callable, Iterator
 import httpx
 
 REPO = Path(__file__).resolve().parents[2]
+LAUNCHER = Path(__file__).with_name("service_launcher.py")
 STARTUP_SECONDS = 60.0
 
 
@@ -37,8 +38,7 @@ class Server:
 
     def start(self) -> "Server":
         env = {**os.environ, "RENDERLOOP_DATA_DIR": str(self.data_dir), "PYTHONUNBUFFERED": "1"}
-        command = [sys.executable, "-m", "uvicorn", "--factory", "service.api.serve:app_from_env",
-                   "--host", "127.0.0.1", "--port", str(self.port), "--log-level", "warning"]
+        command = [sys.executable, str(LAUNCHER), str(self.port)]
         log = open(self.log_path, "ab")
         self.process = subprocess.Popen(command, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + STARTUP_SECONDS
