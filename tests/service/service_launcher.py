@@ -23,13 +23,16 @@ from service.api.serve import DATA_DIR_ENV, app_from_env
 
 
 def untrained_weights(directory: Path) -> Path:
-    if not (directory / pretrained.DENOISER_FILE).is_file():
-        torch.manual_seed(0)
-        denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1))
-        # The λ module starts as "no specialisation" (zero FiLM); give it weights so λ matters.
-        torch.nn.init.normal_(denoiser.specialise.film[-1].weight, std=0.5)
-        save_checkpoint(directory / pretrained.DENOISER_FILE, denoiser)
-        save_checkpoint(directory / pretrained.ERROR_PREDICTOR_FILE, ErrorPredictor(ErrorPredictorConfig(width=8)))
+    """Seeded, so every start (also after a kill) writes the same networks for this code."""
+    torch.manual_seed(0)
+    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1))
+    # The λ module starts as "no specialisation" (zero-initialised layers); give those
+    # weights so λ changes the image.
+    for parameter in denoiser.specialise.parameters():
+        if parameter.dim() > 1 and not parameter.detach().any():
+            torch.nn.init.normal_(parameter, std=0.5)
+    save_checkpoint(directory / pretrained.DENOISER_FILE, denoiser)
+    save_checkpoint(directory / pretrained.ERROR_PREDICTOR_FILE, ErrorPredictor(ErrorPredictorConfig(width=8)))
     return directory
 
 

@@ -1,0 +1,73 @@
+"""Persistence: `kill -9` the server mid-job, start another on the same data dir."""
+from __future__ import annotations
+
+import httpx
+import numpy as np
+
+from service.exr import read_exr
+from service_harness import finished, wait_for
+
+ITERATIONS = 7  # 16 → 1024 spp: the late iterations are long enough to be killed inside
+
+
+def test_kill_9_mid_job_resumes_from_its_checkpoint(start_server, tmp_path):
+    first = start_server()
+    with httpx.Client(base_url=first.url, timeout=60) as client:
+        body = {"scene": "cornell-box", "width": 64, "height": 64, "max_iterations": ITERATIONS}
+        job_id = client.post("/jobs", json=body).json()["id"]
+        queued_id = client.post("/jobs", json={**body, "width": 16, "height": 16, "max_iterations": 2}).json()["id"]
+        wait_for(client, job_id, lambda job: job["iteration"] >= 2)
+        rects = {"rects": [{"x": 0, "y": 0, "w": 32, "h": 64, "value": 3.0}]}
+        assert client.put(f"/jobs/{job_id}/lambda", json=rects).status_code == 200
+        at_kill = client.get(f"/jobs/{job_id}").json()
+    first.kill()
+    assert at_kill["state"] == "running" and at_kill["iteration"] < ITERATIONS, "job ended before the kill"
+
+    second = start_server(first.data_dir)
+    with httpx.Client(base_url=second.url, timeout=60) as client:
+        final = wait_for(client, job_id, finished, timeout=300)
+        assert final["state"] == "completed", final
+        assert final["iteration"] == ITERATIONS and final["spp"] == 16 * 2 ** (ITERATIONS - 1)
+        # Resumed where the last checkpoint left it (never from scratch), with its λ map.
+        assert final["resumed_from"] is not None and final["resumed_from"] >= at_kill["iteration"] >= 2
+        assert final["started_at"] == at_kill["started_at"]
+        expected = np.ones((64, 64), np.float32)
+        expected[:, :32] = 3.0
+        result = tmp_path / "result.exr"
+        result.write_bytes(client.get(f"/jobs/{job_id}/result.exr").content)
+        frame = read_exr(result)
+        np.testing.assert_array_equal(frame.lam, expected)
+        assert frame.spp.mean() == 16 * 2 ** (ITERATIONS - 1)
+
+        # The job queued behind it runs after the restart too.
+        assert wait_for(client, queued_id, finished)["state"] == "completed"
+        # This server finished the job itself: its loop is still warm, λ is a tail pass.
+        warm = client.put(f"/jobs/{job_id}/lambda", json={"value": 4.0}).json()
+        assert warm["full_passes"] == 0 and warm["tail_passes"] == 1
+    second.stop()
+
+    third = start_server(first.data_dir)
+    with httpx.Client(base_url=third.url, timeout=60) as client:
+        # λ on a finished job after a restart: the features cache is rebuilt once, then λ-only.
+        first_change = client.put(f"/jobs/{job_id}/lambda", json={"value": 2.0}).json()
+        assert first_change["full_passes"] == 1
+        second_change = client.put(f"/jobs/{job_id}/lambda", json={"value": 5.0}).json()
+        assert second_change["full_passes"] == 0 and second_change["tail_passes"] == 1
+        assert second_change["version"] > first_change["version"] > warm["version"]
+
+
+def test_finished_jobs_survive_a_restart(start_server):
+    first = start_server()
+    with httpx.Client(base_url=first.url, timeout=60) as client:
+        body = {"scene": "cornell-box", "width": 16, "height": 16, "max_iterations": 2,
+                "denoise": False, "allocator": "uniform"}
+        job_id = client.post("/jobs", json=body).json()["id"]
+        before = wait_for(client, job_id, finished)
+        result = client.get(f"/jobs/{job_id}/result.exr").content
+    first.stop()
+    second = start_server(first.data_dir)
+    with httpx.Client(base_url=second.url, timeout=60) as client:
+        after = client.get(f"/jobs/{job_id}").json()
+        assert after == before
+        assert client.get(f"/jobs/{job_id}/result.exr").content == result
+        assert client.get(f"/jobs/{job_id}/preview").status_code == 200
