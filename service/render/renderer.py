@@ -47,9 +47,11 @@ def pass_seed(user_seed: int, pass_index: int, chunk_index: int) -> int:
     return (mixed ^ (mixed >> 32)) & 0xFFFFFFFF
 
 
-def _trace_chunk(mi, scene, integrator, sensor, prev_sensor, pixels: np.ndarray, width: int, seed: int,
-                 diff_scale: float):
-    """Sample rays for `pixels` (flat indices), integrate, and return per-lane arrays."""
+def _trace_chunk(mi, scene, integrator, sensor, prev_sensor, pixels: np.ndarray, width: int, pixel_count: int,
+                 seed: int, diff_scale: float) -> tuple[np.ndarray, int]:
+    """Trace one chunk of lanes (flat pixel indices) and return per-pixel sums and the
+    number of non-finite samples. Columns: radiance RGB, radiance² RGB, albedo RGB,
+    normal XYZ, depth (+ motion XY)."""
     import drjit as dr
 
     n = len(pixels)
@@ -89,19 +91,36 @@ def _trace_chunk(mi, scene, integrator, sensor, prev_sensor, pixels: np.ndarray,
         # ds.uv is the film position (pixels) of `world` in the previous frame.
         motion = dr.select(seen, ds.uv - position, 0.0)
 
-    dr.eval(radiance, albedo, normal, depth, motion)
-    to_np = lambda v: np.asarray(v, dtype=np.float64).reshape(-1, n).T if v is not None else None
-    return to_np(mi.Vector3f(radiance)), to_np(albedo), to_np(normal), np.asarray(depth, dtype=np.float64), to_np(motion)
+    # Sanitise per sample: one NaN/Inf lane must not poison a pixel's running sums.
+    finite = dr.all(dr.isfinite(radiance))
+    radiance = dr.select(finite, radiance, 0.0)
+    channels = [radiance.x, radiance.y, radiance.z,
+                dr.square(radiance.x), dr.square(radiance.y), dr.square(radiance.z),
+                albedo.x, albedo.y, albedo.z, normal.x, normal.y, normal.z, depth]
+    if motion is not None:
+        channels += [motion.x, motion.y]
+    # Reduce into per-pixel sums inside the same kernel (dr.scatter_reduce): per-lane values
+    # never exist as arrays, so memory stays O(pixels) per chunk.
+    stride = len(channels)
+    sums = dr.zeros(mi.Float, pixel_count * stride)
+    for c, value in enumerate(channels):
+        dr.scatter_reduce(dr.ReduceOp.Add, sums, value, idx * stride + c)
+    nonfinite = dr.count(~finite)
+    dr.eval(sums, nonfinite)
+    return np.asarray(sums, dtype=np.float64).reshape(pixel_count, stride), int(np.asarray(nonfinite).ravel()[0])
 
 
-def _accumulate(target: np.ndarray, pixels: np.ndarray, values: np.ndarray) -> None:
-    """target[pixel] += sum of values for that pixel (per channel), via bincount."""
-    flat = target.reshape(target.shape[0] * target.shape[1], -1)
-    size = flat.shape[0]
-    if values.ndim == 1:
-        values = values[:, None]
-    for c in range(values.shape[1]):
-        flat[:, c] += np.bincount(pixels, weights=values[:, c], minlength=size)
+def _add_sums(buffer: FrameBuffer, sums: np.ndarray) -> None:
+    """Add one chunk's per-pixel sums (P, 13 or 15 columns) into the float64 frame buffer."""
+    h, w = buffer.shape
+    per_pixel = sums.reshape(h, w, -1)
+    buffer.radiance_sum += per_pixel[..., 0:3]
+    buffer.radiance_sq_sum += per_pixel[..., 3:6]
+    buffer.albedo_sum += per_pixel[..., 6:9]
+    buffer.normal_sum += per_pixel[..., 9:12]
+    buffer.depth_sum += per_pixel[..., 12]
+    if per_pixel.shape[-1] > 13:
+        buffer.motion_sum += per_pixel[..., 13:15]
 
 
 def render_samples(
@@ -144,22 +163,13 @@ def render_samples(
     chunks = max(1, -(-total // max_wavefront))
     for chunk in range(chunks if total else 0):
         pixels = lanes[chunk * max_wavefront:(chunk + 1) * max_wavefront]
-        radiance, albedo, normal, depth, motion = _trace_chunk(
-            mi, scene, integrator, sensor, prev_sensor, pixels, width,
+        sums, nonfinite = _trace_chunk(
+            mi, scene, integrator, sensor, prev_sensor, pixels, width, height * width,
             pass_seed(seed, buffer.passes, chunk), diff_scale,
         )
-        # Sanitise per sample: one NaN/Inf lane must not poison a pixel's running sums.
-        bad = ~np.isfinite(radiance).all(axis=1)
-        if bad.any():
-            radiance[bad] = 0.0
-            buffer.meta["nonfinite_samples"] = int(buffer.meta.get("nonfinite_samples", 0) + bad.sum())
-        _accumulate(buffer.radiance_sum, pixels, radiance)
-        _accumulate(buffer.radiance_sq_sum, pixels, radiance**2)
-        _accumulate(buffer.albedo_sum, pixels, np.nan_to_num(albedo))
-        _accumulate(buffer.normal_sum, pixels, np.nan_to_num(normal))
-        _accumulate(buffer.depth_sum[..., None], pixels, np.nan_to_num(depth))
-        if motion is not None:
-            _accumulate(buffer.motion_sum, pixels, np.nan_to_num(motion))
+        if nonfinite:
+            buffer.meta["nonfinite_samples"] = int(buffer.meta.get("nonfinite_samples", 0) + nonfinite)
+        _add_sums(buffer, sums)
         if progress is not None:
             progress(len(pixels))
     buffer.spp += counts.astype(np.int64)

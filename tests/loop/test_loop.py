@@ -16,8 +16,10 @@ SIZE = 16
 def nets():
     torch.manual_seed(0)
     denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1)).eval()
-    # The λ module starts as "no specialisation" (zero FiLM); give it weights so λ matters.
-    torch.nn.init.normal_(denoiser.specialise.film[-1].weight, std=0.5)
+    # The λ module starts as "no specialisation"; perturb it so λ visibly matters.
+    with torch.no_grad():
+        for p in denoiser.specialise.parameters():
+            p.add_(torch.randn_like(p) * 0.5)
     return denoiser, ErrorPredictor(ErrorPredictorConfig(width=8)).eval()
 
 
