@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import logging
 import shutil
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -40,7 +39,6 @@ from service.jobs.store import STATES, JobRecord, JobStore
 from service.jobs.worker import JobWorker
 from service.render.scenes import builtin_scene_names
 
-log = logging.getLogger(__name__)
 
 MAX_UPLOAD_BYTES = bundle.MAX_BUNDLE_BYTES + 1024 * 1024  # the bundle plus form overhead
 EVENT_POLL_SECONDS = 0.25
