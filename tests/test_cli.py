@@ -1,0 +1,65 @@
+"""`renderloop` as a user runs it: real subprocesses, real renders, one-line errors."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from service.exr import read_exr
+
+CLI = [sys.executable, "-m", "service.cli"]
+
+
+def renderloop(*args, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=600, cwd=cwd)
+
+
+def test_list_prints_the_builtin_scenes():
+    result = renderloop("render", "--list")
+    assert result.returncode == 0
+    assert "cornell-box" in result.stdout and "fireflies" in result.stdout
+
+
+def test_uniform_render_writes_every_layer_and_matches_mi_render(tmp_path):
+    out = tmp_path / "x.exr"
+    result = renderloop("render", "cornell-box", "--width", 32, "--height", 32, "--spp", 64, "--no-denoise",
+                        "--png", "-o", out)
+    assert result.returncode == 0, result.stderr
+    frame = read_exr(out)
+    for layer in ("color", "noisy", "variance", "albedo", "normal", "depth", "spp"):
+        assert getattr(frame, layer) is not None, layer
+    assert (frame.spp == 64).all() and frame.spp.dtype == np.uint32
+    np.testing.assert_array_equal(frame.color, frame.noisy)  # --no-denoise: the plain MC estimate
+    assert frame.header["scene"] == "cornell-box" and frame.header["total_samples"] == 32 * 32 * 64
+    assert (tmp_path / "x.png").stat().st_size > 0
+
+    from service.render.runtime import mitsuba
+    from service.render.scenes import load_scene
+
+    reference = np.asarray(mitsuba().render(load_scene("cornell-box", width=32, height=32), spp=256))
+    assert abs(frame.color.mean() / reference.mean() - 1) < 0.02
+
+
+@pytest.mark.parametrize("args, message", [
+    (["render", "no-such-file.xml", "--spp", "4", "-o", "o.exr"], "no-such-file.xml"),
+    (["render", "cornell-box", "--spp", "-3", "-o", "o.exr"], "--spp must be >= 1"),
+    (["render", "cornell-box", "--width", "100000", "--height", "8", "--spp", "1", "-o", "o.exr"], "8192"),
+    (["render", "cornell-box", "--spp", "4"], "-o OUT.exr"),
+    (["render", "cornell-box", "--spp", "4", "--no-denoise", "--iterations", "2", "--allocator", "magic",
+      "-o", "o.exr"], "unknown allocator"),
+    (["denoise", "missing.exr", "-o", "o.exr"], "no such file"),
+])
+def test_bad_input_gives_one_clear_line_and_a_nonzero_exit(tmp_path, args, message):
+    result = renderloop(*args, cwd=tmp_path)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert message in result.stderr
+    assert result.stderr.strip().count("\n") == 0 or "usage" in result.stderr
+
+
+def test_malformed_xml_is_reported_without_a_traceback(tmp_path):
+    scene = tmp_path / "broken.xml"
+    scene.write_text("<scene version='3.0.0'><shape type='sphere'></scene>")
+    result = renderloop("render", scene, "--spp", "1", "--no-denoise", "-o", tmp_path / "o.exr")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "broken.xml" in result.stderr
