@@ -1,6 +1,8 @@
 """CPU speed and memory of the default denoiser: `python -m models.bench`.
 
-Timing: median wall time of `repeats` runs after one warm-up, under torch.inference_mode.
+Timing: median wall time of `repeats` runs after one warm-up, under torch.inference_mode,
+plus the process CPU time of the same runs. On a shared machine wall time includes waiting
+for the cores; with one thread, CPU time is close to what the run takes on an idle core.
 Memory: torch's CPU allocator is invisible to tracemalloc, so each case runs in a fresh
 spawned process and reports the growth of the process's peak resident set size
 (resource.getrusage ru_maxrss) caused by the timed runs, on top of the model and inputs
@@ -9,10 +11,11 @@ is only as fine as the OS page accounting: treat it as ±a few MB.
 """
 from __future__ import annotations
 
+import argparse
 import multiprocessing as mp
+import os
 import resource
 import statistics
-import sys
 import time
 from dataclasses import replace
 
@@ -49,19 +52,23 @@ def _case(name: str, size: int, repeats: int, threads: int, queue) -> None:
             run = lambda: model(window, center, 1.0)
         run()                                               # warm-up (oneDNN primitive caches)
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        times = []
+        times, cpu = [], []
         for _ in range(repeats):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             run()
             times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    queue.put({"model": name, "size": size, "threads": threads, "ms_median": 1e3 * statistics.median(times),
-               "ms_min": 1e3 * min(times), "peak_rss_growth_mb": (rss1 - rss0) / 1024,
+    queue.put({"model": name, "size": size, "threads": threads, "load_avg_1min": os.getloadavg()[0],
+               "ms_median": 1e3 * statistics.median(times),
+               "ms_min": 1e3 * min(times), "cpu_ms_median": 1e3 * statistics.median(cpu), "peak_rss_growth_mb": (rss1 - rss0) / 1024,
                "peak_rss_mb": rss1 / 1024})
 
 
 def benchmark_models(sizes=(256, 512), repeats: int = 3, threads: int = 2, cases=CASES) -> list[dict]:
-    """One dict per (case, size): model, size, threads, ms_median, ms_min, peak_rss_growth_mb, peak_rss_mb."""
+    """One dict per (case, size): model, size, threads, load_avg_1min (the machine's load
+    when the case finished: other processes share the cores), ms_median, ms_min, cpu_ms_median (process CPU time),
+    peak_rss_growth_mb, peak_rss_mb."""
     ctx = mp.get_context("spawn")
     rows = []
     for size in sizes:
@@ -75,12 +82,19 @@ def benchmark_models(sizes=(256, 512), repeats: int = 3, threads: int = 2, cases
 
 
 def main() -> None:
-    sizes = tuple(int(s) for s in sys.argv[1:]) or (256, 512)
+    """python -m models.bench [SIZE ...] [--threads T] [--repeats R]"""
+    parser = argparse.ArgumentParser(description="CPU benchmark of the default denoiser")
+    parser.add_argument("sizes", nargs="*", type=int, default=[256, 512])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    sizes, threads, repeats = tuple(args.sizes), args.threads, args.repeats
     print(f"default config: {DenoiserConfig()}")
-    print("| model | size | threads | median ms | min ms | peak RSS growth MB |")
-    print("|---|---|---|---|---|---|")
-    for r in benchmark_models(sizes):
-        print(f"| {r['model']} | {r['size']}² | {r['threads']} | {r['ms_median']:.0f} | {r['ms_min']:.0f} | {r['peak_rss_growth_mb']:.0f} |")
+    print("| model | size | threads | median wall ms | min wall ms | median CPU ms | peak RSS growth MB | load avg |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in benchmark_models(sizes, repeats, threads):
+        print(f"| {r['model']} | {r['size']}² | {r['threads']} | {r['ms_median']:.0f} | {r['ms_min']:.0f} | {r['cpu_ms_median']:.0f} "
+              f"| {r['peak_rss_growth_mb']:.0f} | {r['load_avg_1min']:.1f} |")
 
 
 if __name__ == "__main__":

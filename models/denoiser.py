@@ -5,7 +5,7 @@ Per pyramid level, every frame of the window goes through
     source encoder (2 conv3x3)  →  spatial feature extractor (residual blocks)
     neighbours only: warp to the center frame → temporal feature extractor (3 residual blocks)
     pre-λ kernel head (conv1x1)                                     ── prepare() stops here
-    λ-module: FiLM by log λ → conv1x1 → k² logits per frame         ── apply() starts here
+    λ-module: kernel head with λ-dependent weights → k² logits/frame ── apply() starts here
     joint softmax over all frames' logits, filter demodulated radiance (eqs. 3–4)
 
 and the levels are merged coarse → fine by the scale compositor (eq. 5), then the albedo is
@@ -26,7 +26,7 @@ from torch import Tensor
 from models.features import demodulate, feature_set, log_transform, remodulate, sanitize_frame
 from models.frames import FrameTensors
 from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
-from models.layers import Pointwise, conv3x3, res_blocks
+from models.layers import Pointwise, channels_last, conv3x3, res_blocks
 from models.warp import flow_to_center, warp
 
 LAMBDA_MIN, LAMBDA_MAX = 1.0, 10.0   # range of the asymmetric loss weight λ (eq. 6, Vogels §6)
@@ -35,13 +35,14 @@ LAMBDA_MIN, LAMBDA_MAX = 1.0, 10.0   # range of the asymmetric loss weight λ (e
 @dataclass
 class DenoiserConfig:
     source: str = "mitsuba-path"   # render source → encoder input (models.features.FEATURE_SETS)
-    width: int = 32                # feature channels everywhere between encoder and kernel head
-    spatial_blocks: int = 2        # residual blocks of the spatial feature extractor
+    width: int = 24                # feature channels everywhere between encoder and kernel head
+    spatial_blocks: int = 1        # residual blocks of the spatial feature extractor
     temporal_blocks: int = 3       # residual blocks of the temporal feature extractor (paper: 3)
     kernel_size: int = 5           # k; per level, so the 3-level pyramid reaches 5·4 = 20 px
     levels: int = 3                # pyramid levels (paper: 3)
     temporal_radius: int = 1       # M: window of 2M+1 frames the model is trained for
-    lambda_width: int = 16         # channels of the λ loss-specialisation module
+    lambda_width: int = 16         # hidden channels of the λ module: kernel head input and λ-MLP width
+    lambda_rank: int = 2           # λ-dependent directions of the kernel head W(λ) = W₀ + Σ sᵣ(λ)ΔWᵣ
     composite_width: int = 8       # channels of the per-pixel α CNN (eq. 5)
     temporal: bool = True          # False: single-frame model, neighbours ignored
     multiscale: bool = True        # False: finest level only, no compositing
@@ -109,43 +110,56 @@ class TemporalExtractor(nn.Module):
         self.blocks = res_blocks(width, blocks)
 
     def forward(self, warped: Tensor, center: Tensor, valid: Tensor) -> Tensor:
-        return warped + self.blocks(F.relu_(self.fuse(torch.cat([warped, center, valid], 1))))
+        x = channels_last(torch.cat([warped, center, valid], 1))
+        return warped + self.blocks(F.relu_(self.fuse(x)))
 
 
 class LambdaModule(nn.Module):
-    """Loss specialisation (Vogels §6): log λ scales and shifts the kernel head's hidden
-    features (FiLM), then one pointwise layer emits each frame's k² logits. Pointwise only:
-    this is the part a λ edit re-runs. Shared across frames and levels."""
+    """Loss specialisation (Vogels §6), the last layer of the kernel predictor made
+    λ-dependent: a 2-layer MLP maps log λ to `rank` mixing coefficients s(λ), and the
+    pointwise kernel head is W(λ) = W₀ + Σᵣ sᵣ(λ)·ΔWᵣ (bias folded in as a constant input
+    channel). For a global λ this folds into ONE matrix product per level, so re-running
+    the tail costs a GEMM plus the filtering; a per-pixel λ map costs 1 + rank products."""
 
-    def __init__(self, width: int, k: int):
+    def __init__(self, cin: int, width: int, k: int, rank: int):
         super().__init__()
-        self.film = nn.Sequential(Pointwise(1, width), nn.ReLU(), Pointwise(width, 2 * width))
-        self.logits = Pointwise(width, k * k)
-        nn.init.zeros_(self.film[-1].weight)   # start as "no specialisation"
-        nn.init.zeros_(self.film[-1].bias)
+        self.mix = nn.Sequential(Pointwise(1, width), nn.ReLU(), Pointwise(width, rank))
+        self.base = nn.Parameter(torch.empty(k * k, cin + 1).uniform_(-cin ** -0.5, cin ** -0.5))
+        self.delta = nn.Parameter(torch.zeros(rank, k * k, cin + 1))   # start as "no specialisation"
 
     def forward(self, hidden: Tensor, code: Tensor) -> Tensor:
-        """hidden (N,F,C,H,W) all frames, code (N,1,H,W) or (N,1,1,1) → logits (N,F·k²,H,W)."""
-        gamma, beta = self.film(code).unsqueeze(1).chunk(2, dim=2)
-        z = torch.addcmul(beta, hidden, 1 + gamma).relu_()
-        logits = self.logits(z)
-        return logits.view(logits.shape[0], -1, *logits.shape[-2:])
+        """hidden (N,F,C+1,H,W) with a ones channel last, code (N,1,H,W) or (N,1,1,1)
+        → logits (N,F·k²,H,W), one k×k kernel per frame."""
+        n, f, c, h, w = hidden.shape
+        flat = hidden.reshape(n * f, c, h * w)
+        s = self.mix(code)                                                   # (N,rank,h|1,w|1)
+        if s.shape[-1] == 1 and s.shape[-2] == 1:                           # global λ: fold
+            weight = self.base + torch.einsum("nr,rkc->nkc", s.flatten(1), self.delta)
+            logits = torch.bmm(weight.repeat_interleave(f, 0), flat)
+        else:                                                                # λ map: mix per pixel
+            logits = torch.bmm(self.base.expand(n * f, -1, -1), flat)
+            s = s.flatten(2).repeat_interleave(f, 0).unsqueeze(2)            # (N·F,rank,1,HW)
+            for r in range(self.delta.shape[0]):
+                logits = logits.addcmul_(torch.bmm(self.delta[r].expand(n * f, -1, -1), flat), s[:, r])
+        return logits.view(n, -1, h, w)
 
 
 class ScaleCompositor(nn.Module):
-    """Eq. 5: o = i_f − α·U(D(i_f)) + α·U(i_c): swap the fine result's low frequencies for the
-    coarse result's where α (a small CNN on both, per pixel) says so."""
+    """Eq. 5: o = i_f − α·U(D(i_f)) + α·U(i_c) = i_f + α·U(i_c − D(i_f)): swap the fine
+    result's low band for the coarse result's where α says so. α comes from a small CNN on
+    both results, evaluated at the coarse resolution and upsampled: which band to trust
+    is a low-frequency decision, and this keeps the λ tail 4× cheaper."""
 
     def __init__(self, width: int):
         super().__init__()
         self.alpha = nn.Sequential(conv3x3(6, width), nn.ReLU(), conv3x3(width, 1))
 
     def forward(self, fine: Tensor, coarse: Tensor) -> Tensor:
-        coarse_up = up(coarse)
-        a = torch.sigmoid(self.alpha(torch.cat([log_transform(fine), log_transform(coarse_up)], 1)))
+        fine_low = down(fine)
+        a = torch.sigmoid(self.alpha(torch.cat([log_transform(fine_low), log_transform(coarse)], 1)))
         # Swapping bands can undershoot below 0 next to a firefly; radiance cannot be negative,
         # and the next level's log transform needs x > -1.
-        return (fine - a * up(down(fine)) + a * coarse_up).clamp_min(0)
+        return torch.addcmul(fine, up(a), up(coarse - fine_low)).clamp_min_(0)
 
 
 # --- the λ-independent state ---------------------------------------------------------------
@@ -153,7 +167,7 @@ class ScaleCompositor(nn.Module):
 @dataclass
 class LevelCache:
     padded: list[Tensor]   # demodulated radiance per frame, warped to the center (center first), kernel-padded
-    hidden: Tensor         # (N,F,C,H,W) pre-λ kernel-head features of all frames
+    hidden: Tensor         # (N,F,C+1,H,W) pre-λ kernel-head features of all frames, ones channel last
 
 
 @dataclass
@@ -176,7 +190,7 @@ class Denoiser(nn.Module):
         self.spatial = res_blocks(cfg.width, cfg.spatial_blocks)
         self.temporal = TemporalExtractor(cfg.width, cfg.temporal_blocks) if cfg.temporal else None
         self.kernel_head = Pointwise(cfg.width, cfg.lambda_width)
-        self.specialise = LambdaModule(cfg.lambda_width, cfg.kernel_size)
+        self.specialise = LambdaModule(cfg.lambda_width, cfg.lambda_width, cfg.kernel_size, cfg.lambda_rank)
         self.composite = ScaleCompositor(cfg.composite_width) if cfg.multiscale else None
 
     # -- prepare: everything before λ -----------------------------------------------------
@@ -205,7 +219,7 @@ class Denoiser(nn.Module):
 
     def _prepare_level(self, frames: list[FrameTensors], center: int) -> LevelCache:
         n = frames[0].color.shape[0]
-        inputs = torch.cat([self.features.build(f) for f in frames], 0)    # all frames, one batch
+        inputs = channels_last(torch.cat([self.features.build(f) for f in frames], 0))  # all frames, one batch
         feats = self.spatial(self.encoder(inputs)).split(n, 0)
         images = [demodulate(f.color, f.albedo) for f in frames]
         motions = [f.motion for f in frames]
@@ -218,7 +232,7 @@ class Denoiser(nn.Module):
             if flow is None:                                   # static scene: nothing to warp
                 w_feat, w_img, valid = feats[j], images[j], torch.ones_like(c_img[:, :1])
             else:
-                warped, v = warp(torch.cat([feats[j], images[j]], 1), flow)
+                warped, v = warp(torch.cat([feats[j], channels_last(images[j])], 1), flow)
                 valid = valid * v
                 w_feat, w_img = warped[:, :-3], warped[:, -3:]
             t_feat = self.temporal(w_feat, c_feat, valid)
@@ -226,9 +240,13 @@ class Denoiser(nn.Module):
             # mixes real radiance, so the output stays in the convex hull.
             out_images.append(valid * w_img + (1 - valid) * c_img)
             feats_to_center.append(t_feat)
-        hidden = F.relu_(self.kernel_head(torch.stack(feats_to_center, 1)))
+        # (N,F,C+1,H,W) planes for the λ tail's GEMM; the last channel is the bias input
+        c_hid = self.config.lambda_width
+        hidden = c_img.new_ones(n, len(frames), c_hid + 1, *c_img.shape[-2:])
+        for j, f in enumerate(feats_to_center):
+            hidden[:, j, :c_hid] = F.relu_(self.kernel_head(f))
         k = self.config.kernel_size
-        return LevelCache([pad_for_kernel(i, k) for i in out_images], hidden)
+        return LevelCache([pad_for_kernel(i, k).contiguous() for i in out_images], hidden)
 
     # -- apply: the cheap λ tail ----------------------------------------------------------
 

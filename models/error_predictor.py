@@ -18,7 +18,7 @@ from torch import Tensor
 
 from models.features import HDR_MAX, demodulate, feature_set, log_transform, sanitize, sanitize_frame
 from models.frames import FrameTensors
-from models.layers import conv3x3, res_blocks
+from models.layers import channels_last, conv3x3, res_blocks
 
 
 @dataclass
@@ -43,5 +43,5 @@ class ErrorPredictor(nn.Module):
         """frame: the noisy input; denoised (N,3,H,W) → (N,1,H,W) predicted SMAPE ≥ 0."""
         f, _ = sanitize_frame(frame)
         d, _ = sanitize(denoised.float(), 0.0, HDR_MAX)
-        x = torch.cat([self.features.build(f), log_transform(demodulate(d, f.albedo))], 1)
-        return F.softplus(self.out(self.blocks(F.relu_(self.head(x)))))
+        x = channels_last(torch.cat([self.features.build(f), log_transform(demodulate(d, f.albedo))], 1))
+        return F.softplus(self.out(self.blocks(F.relu_(self.head(x))))).contiguous()

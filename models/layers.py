@@ -9,6 +9,16 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
+def channels_last(x: Tensor) -> Tensor:
+    """NHWC memory layout (same NCHW shape): oneDNN's 3×3 convs at these widths run ~2× faster
+    on CPU in it (measured 137 vs 274 ms for 3×24→24 at 512², one thread)."""
+    return x.contiguous(memory_format=torch.channels_last)
+
+
+def is_channels_last(x: Tensor) -> bool:
+    return x.dim() == 4 and x.shape[1] > 1 and not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last)
+
+
 def conv3x3(cin: int, cout: int) -> nn.Conv2d:
     return nn.Conv2d(cin, cout, 3, padding=1)
 
@@ -30,8 +40,13 @@ class Pointwise(nn.Module):
         nn.init.uniform_(self.bias, -bound, bound)
 
     def forward(self, x: Tensor) -> Tensor:
+        if is_channels_last(x):                       # pixels-major already: a plain linear layer
+            return F.linear(x.permute(0, 2, 3, 1), self.weight, self.bias).permute(0, 3, 1, 2)
         *lead, c, h, w = x.shape
-        y = torch.matmul(self.weight, x.reshape(*lead, c, h * w)).add_(self.bias.view(-1, 1))
+        flat = x.reshape(-1, c, h * w)
+        # one batched GEMM with the bias fused; torch.matmul would fold the batch into one mm
+        # and copy the result back to this layout (a full extra pass)
+        y = torch.baddbmm(self.bias.view(1, -1, 1), self.weight.expand(flat.shape[0], -1, -1), flat)
         return y.view(*lead, -1, h, w)
 
 

@@ -29,21 +29,23 @@ def warp(features: Tensor, motion: Tensor) -> tuple[Tensor, Tensor]:
 
     x0, y0 = torch.floor(px), torch.floor(py)
     fx, fy = px - x0, py - y0           # fractional parts: exactly 0 for integer shifts
-    flat = features.reshape(n, c, h * w)
+    # gather whole pixels (rows of C values): a view for channels-last features, one copy otherwise
+    rows = features.permute(0, 2, 3, 1).reshape(n, h * w, c)
+    batch = torch.arange(n, device=features.device).view(n, 1)
+    mask = valid.to(features.dtype)
 
     def tap(xi: Tensor, yi: Tensor, weight: Tensor) -> tuple[Tensor, Tensor]:
         # off-screen corners get weight 0 (zero padding); indices are clamped only to stay legal
         inside = (xi >= 0) & (xi <= w - 1) & (yi >= 0) & (yi <= h - 1)
-        idx = (yi.clamp(0, h - 1) * w + xi.clamp(0, w - 1)).long().view(n, 1, h * w).expand(n, c, h * w)
-        return torch.gather(flat, 2, idx).view(n, c, h, w), (weight * inside).unsqueeze(1)
+        idx = (yi.clamp(0, h - 1) * w + xi.clamp(0, w - 1)).long().view(n, h * w)
+        return rows[batch, idx], (weight * inside * mask).view(n, h * w, 1)
 
     corners = [tap(x0, y0, (1 - fx) * (1 - fy)), tap(x0 + 1, y0, fx * (1 - fy)),
                tap(x0, y0 + 1, (1 - fx) * fy), tap(x0 + 1, y0 + 1, fx * fy)]
-    mask = valid.unsqueeze(1).to(features.dtype)
-    out = corners[0][0] * (corners[0][1] * mask)
+    out = corners[0][0] * corners[0][1]
     for value, weight in corners[1:]:
-        out.addcmul_(value, weight * mask)
-    return out, mask
+        out.addcmul_(value, weight)
+    return out.view(n, h, w, c).permute(0, 3, 1, 2), mask.unsqueeze(1)
 
 
 def flow_to_center(motions: list[Tensor | None], center: int, j: int) -> tuple[Tensor | None, Tensor | None]:

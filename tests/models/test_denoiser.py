@@ -26,7 +26,7 @@ def test_apply_of_prepare_equals_forward(lam):
 
 def test_lambda_changes_the_output_once_the_module_is_trained():
     den = Denoiser(TINY).eval()
-    torch.nn.init.normal_(den.specialise.film[-1].weight)   # untrained module starts neutral
+    torch.nn.init.normal_(den.specialise.delta)   # untrained module starts neutral
     with torch.no_grad():
         cache = den.prepare(window(), 1)
         assert not torch.allclose(den.apply(cache, 1.0), den.apply(cache, 10.0))

@@ -49,3 +49,19 @@ def test_apply_kernels_backward_reaches_logits_and_images():
     apply_kernels(image, logits, 3).square().sum().backward()
     assert image.grad.isfinite().all() and logits.grad.isfinite().all()
     assert logits.grad.abs().sum() > 0
+
+
+def test_apply_kernels_gradient_matches_explicit_softmax_filtering():
+    image = torch.rand(1, 2, 4, 5, dtype=torch.float64)
+    logits = [torch.randn(1, 9, 4, 5, dtype=torch.float64, requires_grad=True) for _ in range(2)]
+    frames = [image, image.flip(-1)]
+    apply_kernels(frames, logits, 3).sum().backward()
+    fast = [l.grad.clone() for l in logits]
+    for l in logits:
+        l.grad = None
+    padded = [torch.nn.functional.pad(f, (1, 1, 1, 1), mode="replicate") for f in frames]
+    ref = sum(w[:, t:t + 1] * p[:, :, t // 3:t // 3 + 4, t % 3:t % 3 + 5]
+              for w, p in zip(kernel_weights(logits), padded) for t in range(9))
+    ref.sum().backward()
+    for a, l in zip(fast, logits):
+        torch.testing.assert_close(a, l.grad)
