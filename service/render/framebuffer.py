@@ -6,6 +6,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+def _finite(values: np.ndarray) -> np.ndarray:
+    """NaN/±Inf → 0. A running sum that went non-finite (a corrupted or overflowed accumulator;
+    the renderer already drops non-finite samples) holds no usable estimate: read it like an
+    unsampled pixel, so no layer handed to the networks or written to EXR is non-finite."""
+    return np.where(np.isfinite(values), values, 0.0)
+
+
 @dataclass
 class FrameBuffer:
     """Running sums for one frame, persistent across render calls.
@@ -42,7 +49,7 @@ class FrameBuffer:
 
     def _per_sample(self, total: np.ndarray) -> np.ndarray:
         n = self.spp.reshape(self.spp.shape + (1,) * (total.ndim - 2)).astype(np.float64)
-        return np.divide(total, n, out=np.zeros_like(total), where=n > 0)
+        return _finite(np.divide(total, n, out=np.zeros_like(total), where=n > 0))
 
     @property
     def mean(self) -> np.ndarray:
@@ -58,7 +65,7 @@ class FrameBuffer:
             self.radiance_sq_sum - n * mean**2, n - 1, out=np.zeros_like(mean), where=n > 1
         )
         var_of_mean = np.divide(np.maximum(sample_var, 0.0), n, out=np.zeros_like(mean), where=n > 1)
-        return var_of_mean.astype(np.float32)
+        return _finite(var_of_mean).astype(np.float32)
 
     def relative_variance(self, eps: float = 1e-2) -> np.ndarray:
         """Variance of the mean over squared luminance-ish magnitude (Rousselle et al. style)."""
