@@ -15,7 +15,7 @@ cheap tail a user's λ edit re-runs.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import ClassVar
 
 import torch
@@ -26,7 +26,7 @@ from torch import Tensor
 from models.features import demodulate, feature_set, log_transform, remodulate, sanitize_frame
 from models.frames import FrameTensors
 from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
-from models.layers import Pointwise, channels_last, conv3x3, res_blocks
+from models.layers import Pointwise, cat_channels_last, conv3x3, res_blocks
 from models.warp import flow_to_center, warp
 
 LAMBDA_MIN, LAMBDA_MAX = 1.0, 10.0   # range of the asymmetric loss weight λ (eq. 6, Vogels §6)
@@ -50,6 +50,11 @@ class DenoiserConfig:
     @property
     def n_levels(self) -> int:
         return self.levels if self.multiscale else 1
+
+    @property
+    def window_size(self) -> int:
+        """Frames per window the model is trained for (2M+1); any window ≥ 1 frame works."""
+        return 2 * self.temporal_radius + 1 if self.temporal else 1
 
     @property
     def alignment(self) -> int:
@@ -110,7 +115,7 @@ class TemporalExtractor(nn.Module):
         self.blocks = res_blocks(width, blocks)
 
     def forward(self, warped: Tensor, center: Tensor, valid: Tensor) -> Tensor:
-        x = channels_last(torch.cat([warped, center, valid], 1))
+        x = cat_channels_last([warped, center, valid])
         return warped + self.blocks(F.relu_(self.fuse(x)))
 
 
@@ -176,7 +181,6 @@ class DenoiserCache:
     albedo: Tensor                 # padded center albedo for remodulation
     size: tuple[int, int]          # original (H, W) to crop back to
     n_bad: int = 0                 # NaN/Inf values replaced while sanitising the window
-    extra: dict = field(default_factory=dict)
 
 
 class Denoiser(nn.Module):
@@ -219,7 +223,8 @@ class Denoiser(nn.Module):
 
     def _prepare_level(self, frames: list[FrameTensors], center: int) -> LevelCache:
         n = frames[0].color.shape[0]
-        inputs = channels_last(torch.cat([self.features.build(f) for f in frames], 0))  # all frames, one batch
+        # all frames as one channels-last batch: one pass through the shared convs
+        inputs = torch.cat([self.features.build(f).permute(0, 2, 3, 1) for f in frames], 0).permute(0, 3, 1, 2)
         feats = self.spatial(self.encoder(inputs)).split(n, 0)
         images = [demodulate(f.color, f.albedo) for f in frames]
         motions = [f.motion for f in frames]
@@ -232,7 +237,7 @@ class Denoiser(nn.Module):
             if flow is None:                                   # static scene: nothing to warp
                 w_feat, w_img, valid = feats[j], images[j], torch.ones_like(c_img[:, :1])
             else:
-                warped, v = warp(torch.cat([feats[j], channels_last(images[j])], 1), flow)
+                warped, v = warp(cat_channels_last([feats[j], images[j]]), flow)
                 valid = valid * v
                 w_feat, w_img = warped[:, :-3], warped[:, -3:]
             t_feat = self.temporal(w_feat, c_feat, valid)
@@ -255,7 +260,7 @@ class Denoiser(nn.Module):
         code = self._lambda_code(cache, lam)
         results = []
         for level in cache.levels:
-            if code.shape[-1] > 1 and code.shape[-2:] != level.hidden.shape[-2:]:
+            if code.shape[-2:] != (1, 1) and code.shape[-2:] != level.hidden.shape[-2:]:
                 code = down(code)           # per-pixel λ map follows the pyramid
             weights = unnormalised_weights(self.specialise(level.hidden, code))   # joint softmax, eq. 4
             results.append(filter_padded(level.padded, weights, k))             # eq. 3
@@ -266,15 +271,16 @@ class Denoiser(nn.Module):
         return remodulate(out, cache.albedo)[..., :h, :w]
 
     def _lambda_code(self, cache: DenoiserCache, lam: float | Tensor) -> Tensor:
+        """λ (float, (H,W) or (N|1,1,H,W)) → log-code at the padded size, or (N,1,1,1) if global."""
         ref = cache.albedo
-        n, _, hp, wp = ref.shape
+        n = ref.shape[0]
         if not isinstance(lam, Tensor):
             lam = torch.tensor(float(lam))
         lam = lam.to(device=ref.device, dtype=ref.dtype)
         if lam.numel() == 1:
-            return lambda_code(lam.reshape(1, 1, 1, 1).expand(n, 1, 1, 1))
+            return lambda_code(torch.nan_to_num(lam, nan=LAMBDA_MIN).reshape(1, 1, 1, 1).expand(n, 1, 1, 1))
         h, w = cache.size
-        if lam.dim() == 2:
+        if lam.dim() == 2 and lam.shape == (h, w):
             lam = lam.view(1, 1, h, w)
         if lam.dim() != 4 or lam.shape[1] != 1 or lam.shape[-2:] != (h, w) or lam.shape[0] not in (1, n):
             raise ValueError(f"λ map must be a float or broadcastable to ({n},1,{h},{w}); got {tuple(lam.shape)}")

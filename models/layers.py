@@ -15,6 +15,12 @@ def channels_last(x: Tensor) -> Tensor:
     return x.contiguous(memory_format=torch.channels_last)
 
 
+def cat_channels_last(tensors: list[Tensor]) -> Tensor:
+    """Channel concatenation straight into NHWC: one pass, whatever the inputs' layouts
+    (torch.cat of mixed layouts returns NCHW, and converting afterwards costs a second pass)."""
+    return torch.cat([t.permute(0, 2, 3, 1) for t in tensors], dim=3).permute(0, 3, 1, 2)
+
+
 def is_channels_last(x: Tensor) -> bool:
     return x.dim() == 4 and x.shape[1] > 1 and not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last)
 
