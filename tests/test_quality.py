@@ -1,0 +1,133 @@
+"""The denoiser quality report on a tiny data set with an untrained network: every section is
+there, every number in it is finite, the crops it links exist; plus the measures it rests on."""
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+from models.checkpoint import save_checkpoint
+from models.denoiser import Denoiser, DenoiserConfig
+from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from service import quality
+
+SPP_LEVELS = (16, 32, 64, 128)
+NETWORK_ROWS = (quality.NOISY, quality.SINGLE, quality.MULTISCALE, quality.TEMPORAL)
+
+
+def tiny_denoiser() -> Denoiser:
+    torch.manual_seed(0)
+    return Denoiser(DenoiserConfig(width=8, lambda_width=8, temporal_blocks=1)).eval()
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory) -> Path:
+    from service.dataset.build import build_dataset
+
+    root = tmp_path_factory.mktemp("quality")
+    data, weights = root / "data", root / "weights"
+    build_dataset(data, scenes=2, size=16, frames=3, seed=0, split="heldout", reference_spp=64, progress=False)
+    save_checkpoint(weights / "denoiser.pt", tiny_denoiser(), extra={"command": "tiny untrained"})
+    save_checkpoint(weights / "error_predictor.pt", ErrorPredictor(ErrorPredictorConfig(width=8, blocks=1)))
+    return quality.run_quality_report(data, root / "docs", weights_dir=weights, builtin_scenes=("cornell-box",),
+                                      builtin_size=16, reference_spp=64, lambdas=(1.0, 10.0))
+
+
+def section(text: str, heading: str) -> str:
+    """The markdown from `heading` to the next heading of the same or a higher level."""
+    level = heading.split(" ")[0]
+    start = text.index(heading + "\n")
+    end = re.search(rf"^#{{1,{len(level)}}} ", text[start + len(heading):], re.M)
+    return text[start:start + len(heading) + end.start()] if end else text[start:]
+
+
+NUMBER = r"-?\d+(?:\.\d+)?|n/a"
+NUMERIC_CELL = re.compile(rf"({NUMBER})×?(?: \[({NUMBER}), ({NUMBER})\])?")
+
+
+def numeric_rows(table: str) -> list[list[float]]:
+    """Numeric cells of every table row below a header ('0.12', '3.4×', '0.5 [0.1, 0.9]'; 'n/a' → nan)."""
+    rows = []
+    for line in table.splitlines():
+        if not line.startswith("| ") or set(line) <= set("|-: "):
+            continue
+        numbers = []
+        for cell in line.strip("|").split("|"):
+            match = NUMERIC_CELL.fullmatch(cell.strip())
+            if match:
+                numbers += [math.nan if g == "n/a" else float(g) for g in match.groups() if g is not None]
+        rows.append(numbers)
+    return rows[1:]  # the first row of a table is its header
+
+
+def test_report_states_command_machine_and_headline(report: Path) -> None:
+    text = report.read_text()
+    assert report.name == "denoiser.md"
+    assert "Command: `renderloop bench --denoiser --data " in text
+    assert "Machine: " in text and "cores" in text
+    headline = re.search(r"SMAPE reduction of 16-spp inputs on held-out scenes: ([\d.]+)×", text)
+    assert headline and math.isfinite(float(headline.group(1)))
+    assert "ablations of the one trained network" in text
+
+
+@pytest.mark.parametrize("heading", ["### Held-out procedural scenes", "### Built-in scenes"])
+def test_quality_tables_cover_every_level_and_method(report: Path, heading: str) -> None:
+    table = section(report.read_text(), heading)
+    for spp in SPP_LEVELS:
+        for method in NETWORK_ROWS:
+            assert re.search(rf"^\| {spp} \| \**{re.escape(method)}\** \|", table, re.M), (spp, method)
+    rows = numeric_rows(table)
+    assert len(rows) >= len(SPP_LEVELS) * len(NETWORK_ROWS)
+    assert all(len(r) == 6 and all(math.isfinite(x) for x in r) for r in rows)  # spp + 4 metrics + factor
+
+
+def test_flicker_lambda_and_error_predictor_tables_are_finite(report: Path) -> None:
+    text = report.read_text()
+    flicker = numeric_rows(section(text, "## Temporal flicker"))
+    assert len(flicker) >= len(NETWORK_ROWS)
+    assert all(math.isfinite(x) for r in flicker for x in r)
+    for heading in ("### Held-out scenes, 16 spp", "### Built-in scenes, 16 spp"):
+        rows = numeric_rows(section(text, heading))
+        assert [r[0] for r in rows] == [1.0, 10.0]
+        assert all(math.isfinite(x) for r in rows for x in r)
+    errors = numeric_rows(section(section(text, "## Error predictor vs true SMAPE"), "### Held-out scenes"))
+    assert [r[0] for r in errors] == list(SPP_LEVELS)
+    assert all(math.isfinite(x) for r in errors for x in r)
+
+
+def test_crops_are_written_and_linked(report: Path) -> None:
+    text = report.read_text()
+    links = re.findall(r"\]\((denoiser/[^)]+\.png)\)", text)
+    assert any("temporal" in link for link in links) and any("true-SMAPE" in link for link in links)
+    for link in links:
+        assert (report.parent / link).stat().st_size > 0
+
+
+def test_ablation_reuses_the_trained_weights() -> None:
+    trained = tiny_denoiser()
+    single = quality.ablation(trained, multiscale=False, temporal=False)
+    assert single.composite is None and single.temporal is None
+    for name, value in single.state_dict().items():
+        assert torch.equal(value, trained.state_dict()[name]), name
+
+
+def test_lambda_measures_see_noise_and_blur() -> None:
+    torch.manual_seed(0)
+    x = torch.linspace(0, 1, 32)
+    reference = (0.2 + 0.6 * (x[None, :] > 0.5).float() + 0.3 * torch.sin(20 * x)[:, None]).expand(1, 3, 32, 32)
+    same = quality.lambda_measures(reference, reference)
+    noisy = quality.lambda_measures(reference * (1 + 0.3 * torch.randn(1, 1, 32, 32)), reference)
+    blurred = quality.lambda_measures(torch.nn.functional.avg_pool2d(reference, 5, 1, 2, count_include_pad=False),
+                                      reference)
+    assert same["noise"] == 0 and same["detail"] == pytest.approx(1) and same["grad_corr"] == pytest.approx(1)
+    assert noisy["noise"] > 0.01 and noisy["detail"] > 1
+    assert blurred["detail"] < 0.9
+
+
+def test_rank_correlation_matches_a_monotone_map() -> None:
+    a = torch.rand(1, 1, 8, 8).numpy()
+    assert quality.spearman(a, a ** 3) == pytest.approx(1)
+    assert quality.pearson(a, -a) == pytest.approx(-1)
