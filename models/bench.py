@@ -24,7 +24,10 @@ import torch
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
 
-CASES = ("single-frame", "multi-scale", "temporal-3", "lambda-tail")
+# single-frame: no temporal, no pyramid (KPCN); multi-scale: 3 levels, one frame; temporal-3:
+# the full default model on a 3-frame window; lambda-tail(-map): apply() alone on a cached
+# temporal-3 prepare, with a global λ / a per-pixel λ map.
+CASES = ("single-frame", "multi-scale", "temporal-3", "lambda-tail", "lambda-tail-map")
 
 
 def _frame(h: int, w: int, gen: torch.Generator) -> FrameTensors:
@@ -41,12 +44,12 @@ def _case(name: str, size: int, repeats: int, threads: int, queue) -> None:
     cfg = {"single-frame": replace(base, temporal=False, multiscale=False),
            "multi-scale": replace(base, temporal=False)}.get(name, base)
     model = Denoiser(cfg).eval()
-    window = [_frame(size, size, gen) for _ in range(3)] if name in ("temporal-3", "lambda-tail") else [_frame(size, size, gen)]
+    window = [_frame(size, size, gen) for _ in range(3 if cfg.temporal else 1)]
     center = len(window) // 2
     with torch.inference_mode():
-        if name == "lambda-tail":
+        if name.startswith("lambda-tail"):
             cache = model.prepare(window, center)
-            lam = torch.full((1, 1, size, size), 4.0)      # per-pixel map: the costlier path
+            lam = torch.rand(1, 1, size, size, generator=gen) * 9 + 1 if name.endswith("map") else 4.0
             run = lambda: model.apply(cache, lam)
         else:
             run = lambda: model(window, center, 1.0)
