@@ -57,3 +57,4 @@ def test_missing_default_weights_say_how_to_produce_them(tmp_path, monkeypatch):
         pretrained.load_default_denoiser()
     with pytest.raises(CheckpointError, match="renderloop train"):
         pretrained.load_default_error_predictor()
+
