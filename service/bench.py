@@ -25,6 +25,7 @@ def add_parser(sub) -> None:
     p.add_argument("--spp", type=int, default=64, help="samples per pixel for --sampler (default 64)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("-o", "--out", type=Path, default=Path("docs"))
+    __import__("service.loop_bench", fromlist=["add_arguments"]).add_arguments(p)  # --loop [--quick] (service/loop_bench.py)
     p.set_defaults(handler=run_bench)
 
 
@@ -89,6 +90,7 @@ Throughput ratio ours / `mi.render`: **{result['ratio']:.2f}×** (per run: {', '
 
 
 def run_bench(args) -> int:
+    if args.loop: return __import__("service.loop_bench", fromlist=["run_loop_command"]).run_loop_command(args)
     if not (args.sampler or args.models or args.denoiser):
         args.sampler = True
     if args.sampler:

@@ -1,0 +1,67 @@
+"""`renderloop bench --loop --quick` end to end (so the report code cannot rot), plus the
+log-log reading of time-to-target that the headline rests on."""
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+import models.pretrained as pretrained
+from models.checkpoint import save_checkpoint
+from models.denoiser import Denoiser, DenoiserConfig
+from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from service.loop_bench import METRICS, STAGES, run_loop_benchmark, time_to_reach
+
+
+@pytest.fixture
+def weights_dir(tmp_path: Path) -> Path | None:
+    """The shipped weights when they exist; otherwise tiny untrained networks (speed and
+    plumbing are what this test checks, not quality)."""
+    if (pretrained.DEFAULT_WEIGHTS_DIR / pretrained.DENOISER_FILE).is_file():
+        return None
+    torch.manual_seed(0)
+    folder = tmp_path / "weights"
+    save_checkpoint(folder / pretrained.DENOISER_FILE,
+                    Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal_blocks=1, kernel_size=3,
+                                            lambda_width=4, composite_width=4)), extra={"note": "untrained test net"})
+    save_checkpoint(folder / pretrained.ERROR_PREDICTOR_FILE, ErrorPredictor(ErrorPredictorConfig(width=8, blocks=1)))
+    return folder
+
+
+def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, weights_dir: Path | None) -> None:
+    report = run_loop_benchmark(tmp_path / "docs", quick=True, weights_dir=weights_dir, cache_dir=tmp_path / "cache",
+                                command="renderloop bench --loop --quick")
+    text = report.read_text()
+    for needed in ("Command: `renderloop bench --loop --quick`", "Machine:", "Date:", "## Headline", "**median**",
+                   "## Micro-benchmarks", "p50", "ms / megapixel"):
+        assert needed in text
+    assert "Failed:" not in text  # every micro-benchmark ran, the HTTP one against a real server included
+    rows = list(csv.DictReader(open(tmp_path / "docs" / "benchmarks" / "loop-quick.csv")))
+    methods = {r["method"] for r in rows}
+    assert {"a", "b", "c", "d"} <= methods
+    assert len({r["scene"] for r in rows}) == 2
+    for r in rows:
+        for column in (*METRICS, *(f"{s}_s" for s in STAGES), "cumulative_s"):
+            assert math.isfinite(float(r[column])), (column, r)
+    assert sorted({float(r["spp_mean"]) for r in rows}) == [16, 32, 64]
+    for png in ("error_vs_time.png", "spp_maps.png", "error_maps.png"):
+        assert (tmp_path / "docs" / "benchmarks" / png).stat().st_size > 0
+    # References are cached on disk (one per scene), so later runs do not render them again.
+    assert len(list((tmp_path / "cache" / "references").glob("*.npy"))) == 2
+
+
+def test_time_to_reach_interpolates_in_log_log() -> None:
+    # SMAPE ∝ t^-1/2: from 0.4 at 1 s to 0.2 at 4 s, so 0.2828 is reached at 2 s.
+    seconds, how = time_to_reach([1.0, 4.0], [0.4, 0.2], 0.4 / math.sqrt(2))
+    assert how == "interpolated" and seconds == pytest.approx(2.0)
+
+
+def test_time_to_reach_flags_bounds_and_extrapolation() -> None:
+    assert time_to_reach([1.0, 4.0], [0.1, 0.05], 0.2) == (1.0, "first iteration")
+    seconds, how = time_to_reach([1.0, 4.0], [0.4, 0.2], 0.1)
+    assert how == "extrapolated" and seconds == pytest.approx(16.0)
+    assert time_to_reach([1.0, 4.0], [0.4, 0.5], 0.1) == (math.inf, "not reached")
+    assert time_to_reach([], [], 0.1) == (math.inf, "not reached")
