@@ -61,11 +61,14 @@ def hostile_cases():
 
 
 @pytest.mark.parametrize("case", list(hostile_cases()))
-@pytest.mark.parametrize("lam", [1.0, 10.0])
+@pytest.mark.parametrize("lam", [1.0, 10.0, "map"])
 def test_hard_cases_are_finite_in_forward_and_backward(case, lam):
     den = Denoiser(TINY)
     win = hostile_cases()[case]
     center = len(win) // 2
+    if lam == "map":                      # per-pixel λ with NaN and out-of-range values
+        lam = torch.rand(1, 1, *win[center].size) * 20
+        lam[0, 0, 0, 0] = float("nan")
     out = den(win, center, lam)
     h, w = win[center].size
     assert out.shape == (1, 3, h, w)
