@@ -124,8 +124,8 @@ class LambdaModule(nn.Module):
     λ-dependent: a 2-layer MLP maps log λ to `rank` mixing coefficients s(λ), and the
     pointwise kernel head is W(λ) = W₀ + Σᵣ sᵣ(λ)·ΔWᵣ (bias folded in as a constant input
     channel). For a global λ this folds into ONE matrix product per level, so re-running
-    the tail costs a GEMM plus the filtering; a per-pixel λ map stacks [h; s₁h; …] and
-    still needs one (1 + rank times deeper) product."""
+    the tail costs a GEMM plus the filtering; a per-pixel λ map costs 1 + rank GEMMs
+    (measured faster than one GEMM over the stacked [h; s₁h; …]: 250 vs 300 ms at 512²)."""
 
     def __init__(self, cin: int, width: int, k: int, rank: int):
         super().__init__()
@@ -142,11 +142,11 @@ class LambdaModule(nn.Module):
         if s.shape[-1] == 1 and s.shape[-2] == 1:                           # global λ: fold
             weight = self.base + torch.einsum("nr,rkc->nkc", s.flatten(1), self.delta)
             logits = torch.bmm(weight.repeat_interleave(f, 0), flat)
-        else:                          # λ map: W(λ)·h = [W₀ ΔW₁ …]·[h; s₁h; …], one GEMM
-            s = s.flatten(2).repeat_interleave(f, 0)                         # (N·F,rank,HW)
-            stacked = torch.cat([flat] + [flat * s[:, r:r + 1] for r in range(s.shape[1])], 1)
-            weight = torch.cat([self.base, *self.delta], 1)
-            logits = torch.bmm(weight.expand(n * f, -1, -1), stacked)
+        else:                                                                # λ map: mix per pixel
+            logits = torch.bmm(self.base.expand(n * f, -1, -1), flat)
+            s = s.flatten(2).repeat_interleave(f, 0).unsqueeze(2)            # (N·F,rank,1,HW)
+            for r in range(self.delta.shape[0]):
+                logits = logits.addcmul_(torch.bmm(self.delta[r].expand(n * f, -1, -1), flat), s[:, r])
         return logits.view(n, -1, h, w)
 
 
