@@ -65,3 +65,15 @@ def test_apply_kernels_gradient_matches_explicit_softmax_filtering():
     ref.sum().backward()
     for a, l in zip(fast, logits):
         torch.testing.assert_close(a, l.grad)
+
+
+def test_inference_row_tiling_gives_the_same_result_as_one_pass(monkeypatch):
+    import models.kernels as kernels
+
+    images = [torch.rand(1, 3, 10, 6) for _ in range(2)]
+    logits = [torch.randn(1, 9, 10, 6) for _ in range(2)]
+    with torch.no_grad():
+        whole = apply_kernels(images, [l.clone() for l in logits], 3)
+        monkeypatch.setattr(kernels, "TILE_PIXELS", 18)      # 3-row tiles, last one shorter
+        tiled = apply_kernels(images, [l.clone() for l in logits], 3)
+    torch.testing.assert_close(tiled, whole)
