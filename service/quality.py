@@ -39,7 +39,7 @@ from models.checkpoint import load_checkpoint
 from models.denoiser import Denoiser
 from models.error_predictor import ErrorPredictor
 from models.frames import FrameTensors
-from models.losses import smape, smape_map
+from models.losses import SMAPE_EPS, smape, smape_map
 from models.metrics import psnr, relmse, ssim
 from models.pretrained import DEFAULT_WEIGHTS_DIR, DENOISER_FILE, ERROR_PREDICTOR_FILE
 from service.images import false_colour, linear_to_srgb, tonemap, write_png
@@ -226,23 +226,27 @@ class BuiltinRenderer:
         return FrameBuffer.empty(self.size, self.size)
 
 
-def cached_reference(renderer: BuiltinRenderer, spp: int, cache_dir: Path) -> Tensor:
-    """The high-spp reference, rendered once and kept as .npy (rerunning the report is cheap)."""
+def cached_reference(renderer: BuiltinRenderer, spp: int, cache_dir: Path) -> tuple[Tensor, float]:
+    """The high-spp reference, rendered once and kept as .npz (rerunning the report is cheap);
+    and its own noise level, the mean relative standard error of its pixels."""
     from service.render.runtime import active_variant
 
-    path = cache_dir / f"{renderer.name}_{renderer.size}px_{spp}spp_{active_variant()}_seed{REFERENCE_SEED}.npy"
+    path = cache_dir / f"{renderer.name}_{renderer.size}px_{spp}spp_{active_variant()}_seed{REFERENCE_SEED}.npz"
     if path.is_file():
-        mean = np.load(path)
+        with np.load(path) as stored:
+            mean, variance = stored["mean"], stored["variance"]
     else:
         log(f"rendering the {spp}-spp reference of {renderer.name} at {renderer.size}² (cached in {cache_dir})")
         buffer = renderer.fresh()
         renderer.render(buffer, spp, REFERENCE_SEED)
-        mean = buffer.mean
+        mean, variance = buffer.mean, buffer.variance
         cache_dir.mkdir(parents=True, exist_ok=True)
-        partial = path.with_suffix(".partial.npy")
-        np.save(partial, mean)
+        partial = path.with_name(f".{path.stem}.partial.npz")
+        np.savez(partial, mean=mean, variance=variance)
         os.replace(partial, path)  # an interrupted run never leaves a torn cache file
-    return torch.from_numpy(np.ascontiguousarray(mean.transpose(2, 0, 1), dtype=np.float32))[None]
+    # Same ε as SMAPE: comparable with the error figures the reference is used to measure.
+    relative_error = float(np.mean(np.sqrt(variance) / (np.abs(mean) + SMAPE_EPS)))
+    return torch.from_numpy(np.ascontiguousarray(mean.transpose(2, 0, 1), dtype=np.float32))[None], relative_error
 
 
 def builtin_images(renderer: BuiltinRenderer, reference: Tensor) -> list[EvalImage]:
@@ -596,10 +600,11 @@ def _run(data_dir: Path, out_dir: Path, weights_dir: Path, builtin_scenes: Seque
 
         built: list[Outputs] = []
         flicker_tables: dict[str, dict[str, tuple[float, float]]] = {}
+        reference_noise: dict[str, float] = {}
         for name in builtin_scenes:
             log(f"built-in scene {name} at {builtin_size}²")
             renderer = BuiltinRenderer(name, builtin_size)
-            reference = cached_reference(renderer, reference_spp, cache)
+            reference, reference_noise[name] = cached_reference(renderer, reference_spp, cache)
             built += evaluate(builtin_images(renderer, reference), methods, denoiser, predictor, lambdas)
             flicker_tables[name] = flicker_rows(renderer, reference, methods)
 
@@ -629,7 +634,7 @@ def _run(data_dir: Path, out_dir: Path, weights_dir: Path, builtin_scenes: Seque
                         n_held=len({o.image.scene for o in held}), builtin_scenes=builtin_scenes,
                         builtin_size=builtin_size, reference_spp=reference_spp, cache=cache,
                         factor=factor, per_scene=per_scene_headline(held), sections=sections,
-                        flicker_tables=flicker_tables, names=names, oidn_note=oidn_note, crops=crops,
+                        flicker_tables=flicker_tables, reference_noise=reference_noise, names=names, oidn_note=oidn_note, crops=crops,
                         seconds=time.perf_counter() - started)
     log(f"wrote {path} (headline: 16-spp SMAPE reduction {factor:.2f}× on held-out scenes)")
     return path
@@ -639,7 +644,8 @@ def write_report(out_dir: Path, *, data_dir: Path, denoiser: Denoiser, denoiser_
                  predictor: ErrorPredictor, predictor_path: Path, held_entry: dict, n_held: int,
                  builtin_scenes: Sequence[str], builtin_size: int, reference_spp: int, cache: Path,
                  factor: float, per_scene: list[tuple[str, float, float]], sections: dict[str, str],
-                 flicker_tables: dict[str, dict[str, tuple[float, float]]], names: list[str],
+                 flicker_tables: dict[str, dict[str, tuple[float, float]]], reference_noise: dict[str, float],
+                 names: list[str],
                  oidn_note: str | None, crops: list[str], seconds: float) -> Path:
     from service.render.runtime import active_variant
 
@@ -662,6 +668,7 @@ def write_report(out_dir: Path, *, data_dir: Path, denoiser: Denoiser, denoiser_
                           "| method | mean abs Δ, linear ÷ mean reference | mean abs Δ, sRGB 0–255 |\n|---|---:|---:|\n"
                           + "\n".join(f"| {name} | {fmt(rows[name][0])} | {fmt(rows[name][1], '.2f')} |"
                                       for name in names) + "\n")
+    noise_line = ", ".join(f"{scene} {fmt(value, '.3f')}" for scene, value in reference_noise.items()) or "n/a"
     complete = "" if held_entry.get("complete") else " **(the split's build was not complete: finished items only)**"
     text = f"""# Denoiser quality
 
@@ -708,7 +715,9 @@ built by `{held_entry.get('command', '?')}`{complete}. Held-out seeds are disjoi
 
 Built-in scenes: {', '.join(builtin_scenes) or 'none'} at {builtin_size}², rendered here with the
 loop's renderer and integrator; inputs 16 → 32 → 64 → 128 spp progressively, reference
-{reference_spp} spp with its own seed (cached in `{cache}`). The built-ins are static, so their
+{reference_spp} spp with its own seed (cached in `{cache}`); the references' own noise, as the mean
+relative standard error of their pixels: {noise_line}. Error figures well below that level
+are not resolvable on that scene. The built-ins are static, so their
 {len(SEQUENCE_SEEDS)}-frame window is the same view rendered with {len(SEQUENCE_SEEDS)} seeds — what the loop
 renders for `--frames {len(SEQUENCE_SEEDS)}` of a static scene. The temporal row therefore sees
 {len(SEQUENCE_SEEDS)}× the samples of the other rows there; on held-out scenes the neighbours are
