@@ -19,6 +19,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 
 from service.api import imaging
+from service.images import png_bytes
 from service.api.errors import BodySizeLimit, install_error_handlers
 from service.api.lambda_map import constant, decode_map, paint_rects
 from service.api.schemas import (
@@ -181,7 +182,7 @@ def create_app(data_dir: Path, *, concurrency: int = 1) -> FastAPI:
             return Response(status_code=304, headers=headers)
         if format == "exr":
             return Response(imaging.exr_bytes(layer, values), media_type="image/x-exr", headers=headers)
-        png = imaging.png_bytes(imaging.to_rgb8(layer, values, exposure))
+        png = png_bytes(imaging.to_rgb8(layer, values, exposure))
         return Response(png, media_type="image/png", headers=headers)
 
     @app.get("/jobs/{job_id}/result.exr")
