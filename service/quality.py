@@ -184,8 +184,9 @@ def heldout_images(data_dir: Path, radius: int) -> tuple[list[EvalImage], dict]:
 
     entry = read_manifest(data_dir)["splits"].get("heldout")
     if entry is None:
-        raise SystemExit(f"{data_dir} has no held-out split; build it with "
-                         f"`renderloop dataset -o {data_dir} --split heldout ...`")
+        # FileNotFoundError: the CLI reports it as a user error (one line, no traceback).
+        raise FileNotFoundError(f"{data_dir} has no held-out split; build it with "
+                                f"`renderloop dataset -o {data_dir} --split heldout ...`")
     radius = min(radius, (entry["frames"] - 1) // 2)  # shorter sequences: the widest window that fits
     dataset = DenoiserDataset(data_dir, split="heldout", radius=radius, crop=None, levels=LEVELS)
     images = []
