@@ -72,7 +72,7 @@ class BenchSettings:
 
 FULL = BenchSettings(size=64, reference_spp=4096, iterations=5,
                      builtin_scenes=("cornell-box", "glossy-spheres", "fireflies"), heldout_scenes=2,
-                     timing_repeats=2, sampler=(256, 64, 3), model_sizes=(256, 512), model_repeats=3,
+                     timing_repeats=3, sampler=(256, 64, 3), model_sizes=(256, 512), model_repeats=3,
                      http_size=256, http_requests=40)
 QUICK = BenchSettings(size=32, reference_spp=512, iterations=3, builtin_scenes=("cornell-box",),
                       heldout_scenes=1, timing_repeats=1, sampler=(32, 16, 1), model_sizes=(32,),
@@ -600,6 +600,7 @@ def write_plots(results: list[SceneResult], head: Headline, folder: Path) -> lis
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+        from matplotlib.ticker import NullFormatter
     except ImportError:
         return []
     from service.images import linear_to_srgb
@@ -616,7 +617,9 @@ def write_plots(results: list[SceneResult], head: Headline, folder: Path) -> lis
         ax.axhline(head.target[result.scene.label], color="grey", linestyle=":", linewidth=1)
         ax.set_title(result.scene.label, fontsize=8)
         ax.set_xlabel("cumulative wall time [s]", fontsize=7)
-        ax.tick_params(labelsize=6)
+        ax.tick_params(which="both", labelsize=6)
+        for axis in (ax.xaxis, ax.yaxis):  # log-axis minor labels overlap at this size
+            axis.set_minor_formatter(NullFormatter())
     axes[0][0].set_ylabel("SMAPE", fontsize=7)
     axes[0][0].legend(fontsize=6)
     paths.append(_save(fig, folder / "error_vs_time.png", plt))
@@ -628,7 +631,8 @@ def write_plots(results: list[SceneResult], head: Headline, folder: Path) -> lis
         panels = [(linear_to_srgb(result.reference), "reference", None), (linear_to_srgb(d.image), "(d) image", None),
                   (c.spp_map if c else np.zeros_like(d.spp_map), "(c) spp", vmax), (d.spp_map, "(d) spp", vmax)]
         for ax, (image, title, top) in zip(row, panels):
-            shown = ax.imshow(image, vmin=0 if top else None, vmax=top, cmap="magma" if top else None)
+            shown = ax.imshow(image, vmin=0 if top else None, vmax=top, cmap="magma" if top else None,
+                              interpolation="nearest")
             if top:
                 fig.colorbar(shown, ax=ax, fraction=0.046)
             ax.set_title(f"{result.scene.label}: {title}", fontsize=6)
@@ -641,7 +645,7 @@ def write_plots(results: list[SceneResult], head: Headline, folder: Path) -> lis
         true = true_error_map(d.image, result.reference)
         top = float(np.percentile(true, 99)) or 1.0
         for ax, (image, title) in zip(row, [(d.predicted_error, "predicted SMAPE"), (true, "true SMAPE")]):
-            shown = ax.imshow(image, vmin=0, vmax=top, cmap="viridis")
+            shown = ax.imshow(image, vmin=0, vmax=top, cmap="viridis", interpolation="nearest")
             fig.colorbar(shown, ax=ax, fraction=0.046)
             ax.set_title(f"{result.scene.label}: (d) {title}", fontsize=6)
             ax.axis("off")
@@ -651,7 +655,7 @@ def write_plots(results: list[SceneResult], head: Headline, folder: Path) -> lis
 
 def _save(fig, path: Path, plt) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=80)  # small PNGs: they are committed
+    fig.savefig(path, dpi=90, pil_kwargs={"optimize": True})  # small PNGs: they are committed
     plt.close(fig)
     return path
 
@@ -833,18 +837,19 @@ def _micro_lines(micro: dict) -> list[str]:
         lines += [f"Failed: {models['failed']}", ""]
     elif models:
         lines += ["Default `DenoiserConfig` (same cost as trained weights of that configuration), fresh process "
-                  "per case, median of the timed runs after a warm-up; `lambda-tail` is the λ-only re-run from "
-                  "cached features with a per-pixel map (what a λ edit costs).", "",
+                  "per case, median of the timed runs after a warm-up; `lambda-tail` / `lambda-tail-map` are the "
+                  "λ-only re-run from cached temporal features with a global λ / a per-pixel λ map (what a λ "
+                  "edit costs).", "",
                   "| case | size | threads | median ms | min ms | ms / megapixel | peak RSS MB | RSS growth MB |",
                   "|---|---:|---:|---:|---:|---:|---:|---:|"]
         for r in models:
             mp = r["size"] ** 2 / 1e6
             lines.append(f"| {r['model']} | {r['size']}² | {r['threads']} | {r['ms_median']:.1f} | {r['ms_min']:.1f} | "
                          f"{r['ms_median'] / mp:.0f} | {r['peak_rss_mb']:.0f} | {r['peak_rss_growth_mb']:.0f} |")
-        tails = [r for r in models if r["model"] == "lambda-tail"]
+        tails = [r for r in models if r["model"].startswith("lambda-tail")]
         if tails:
             lines += ["", "λ tail latency: " + "; ".join(
-                f"{r['size']}²: median {r['ms_median']:.1f} ms, min {r['ms_min']:.1f} ms" for r in tails) + "."]
+                f"{r['model']} {r['size']}²: median {r['ms_median']:.1f} ms (min {r['ms_min']:.1f})" for r in tails) + "."]
         lines.append("")
     http = micro.get("http", {})
     lines += ["### λ over HTTP (real uvicorn server, `PUT /jobs/{id}/lambda` on a finished job)", ""]
