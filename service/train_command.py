@@ -27,6 +27,9 @@ def add_parser(sub) -> None:
     p.add_argument("--val-every", type=int, default=150)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--width", type=int, default=None, help="denoiser feature width (default: model default)")
+    p.add_argument("--symmetric-fraction", type=float, default=0.5,
+                   help="first fraction of denoiser steps trained at λ = 1 before λ is randomised (default 0.5)")
+    p.add_argument("--init", type=Path, default=None, help="start the denoiser from this checkpoint's weights")
     p.add_argument("--resume", action="store_true", help="continue from OUT/.train_<stage>.pt")
     p.add_argument("--device", default=None, help="cpu | cuda (default: cuda when available)")
     p.add_argument("--quiet", action="store_true")
@@ -123,8 +126,15 @@ def train_denoiser(args, device) -> dict:
     from models.training import cut_window, denoiser_loss, denoiser_smape, sample_lambda
 
     torch.manual_seed(args.seed)
-    config = DenoiserConfig() if args.width is None else DenoiserConfig(width=args.width)
-    model = Denoiser(config).to(device)
+    if args.init is not None:
+        from models.checkpoint import load_checkpoint
+
+        model = load_checkpoint(args.init, expected_kind="denoiser", device=device)
+        config = model.config
+    else:
+        config = DenoiserConfig() if args.width is None else DenoiserConfig(width=args.width)
+        model = Denoiser(config).to(device)
+    symmetric_steps = int(args.symmetric_fraction * args.steps)
     train, val = _datasets(args, config.temporal_radius)
     batches = _batches(train, args.batch, args.seed)
     gen = torch.Generator().manual_seed(args.seed)
@@ -135,7 +145,11 @@ def train_denoiser(args, device) -> dict:
         frames, centre = cut_window([f.to(device) for f in b.frames], b.centre, single)
         ref = b.references[b.centre].to(device)
         n, _, h, w = ref.shape
-        return denoiser_loss(model, frames, centre, ref, sample_lambda(n, h, w, gen).to(device))
+        # Vogels et al. train the λ specialisation on top of a network that already denoises:
+        # a random λ from step 0 rewards doing nothing (λ > 1 punishes every blur), so the
+        # first part of training uses the symmetric loss (λ = 1).
+        lam = torch.ones(n, 1, h, w) if step < symmetric_steps else sample_lambda(n, h, w, gen)
+        return denoiser_loss(model, frames, centre, ref, lam.to(device))
 
     def val_fn() -> float:
         scores = []
