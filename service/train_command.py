@@ -74,8 +74,9 @@ def _batches(dataset, batch: int, seed: int):
         epoch += 1
 
 
-def _fit(stage: str, model, loss_fn, val_fn, args, device, extra: dict) -> dict:
-    """Generic loop: Adam, periodic validation, best checkpoint, resumable state."""
+def _fit(stage: str, model, loss_fn, val_fn, args, device, extra: dict, keep_from: int = 0) -> dict:
+    """Generic loop: Adam, periodic validation, best checkpoint from step `keep_from` on,
+    resumable state."""
     import torch
     from tqdm import tqdm
 
@@ -111,7 +112,7 @@ def _fit(stage: str, model, loss_fn, val_fn, args, device, extra: dict) -> dict:
             model.eval()
             val = val_fn()
             history.append({"step": step + 1, "train_loss": running, "val": val})
-            if val < best:
+            if val < best and step + 1 > keep_from:
                 best = val
                 save_checkpoint(out_file, model, {**extra, "step": step + 1, "val": val})
             torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
@@ -159,7 +160,29 @@ def train_denoiser(args, device) -> dict:
             scores.append(denoiser_smape(model, frames, s.centre, s.reference[s.centre:s.centre + 1].to(device)))
         return sum(scores) / len(scores)
 
-    return _fit("denoiser", model, loss_fn, val_fn, args, device, {"command": args.command_line})
+    # Checkpoints from the symmetric phase have an untrained λ module (λ would do nothing):
+    # the shipped one must come from the λ phase.
+    keep_from = symmetric_steps if symmetric_steps < args.steps else 0
+    return _fit("denoiser", model, loss_fn, val_fn, args, device, {"command": args.command_line}, keep_from)
+
+
+def start_at_typical_error(model, denoiser, batch, device) -> None:
+    """Start the error network at the median true SMAPE of a batch, with a quiet output layer.
+
+    Softplus has a vanishing gradient below zero: from the default init the first steps of L1
+    overshoot into that region and the network dies at ~0 for every pixel (seen in the first
+    run: predictions of 1e-17). Starting at the L1 optimum of a constant avoids the overshoot.
+    """
+    import torch
+
+    from models.losses import smape_map
+
+    with torch.no_grad():
+        frame = batch.frames[0].to(device)
+        target = smape_map(denoiser([frame], 0, 1.0), batch.references[0].to(device))
+        median = float(target.median().clamp_min(1e-4))
+        model.out.weight.mul_(0.1)
+        model.out.bias.fill_(median + torch.log(-torch.expm1(torch.tensor(-median))).item())
 
 
 def train_error_predictor(args, device) -> dict:
@@ -176,6 +199,7 @@ def train_error_predictor(args, device) -> dict:
     model = ErrorPredictor().to(device)
     train, val = _datasets(args, 0)
     batches = _batches(train, args.batch, args.seed + 1)
+    start_at_typical_error(model, denoiser, next(_batches(train, args.batch, args.seed + 2)), device)
 
     def loss_fn(step: int):
         b = next(batches)
