@@ -106,7 +106,8 @@ def _fit(stage: str, model, loss_fn, val_fn, args, device, extra: dict, keep_fro
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         sched.step()
-        running = float(loss) if running is None else 0.95 * running + 0.05 * float(loss)
+        value = loss.item()
+        running = value if running is None else 0.95 * running + 0.05 * value
         bar.set_postfix(loss=f"{running:.4f}", best=f"{best:.4f}", refresh=False)
         if (step + 1) % args.val_every == 0 or step + 1 == args.steps:
             model.eval()
