@@ -63,3 +63,29 @@ def test_malformed_xml_is_reported_without_a_traceback(tmp_path):
     result = renderloop("render", scene, "--spp", "1", "--no-denoise", "-o", tmp_path / "o.exr")
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert "broken.xml" in result.stderr
+
+
+def test_denoise_takes_a_no_denoise_render_end_to_end(tmp_path):
+    noisy = tmp_path / "noisy.exr"
+    assert renderloop("render", "cornell-box", "--width", 24, "--height", 24, "--spp", 16, "--no-denoise",
+                      "-o", noisy).returncode == 0
+    out = tmp_path / "denoised.exr"
+    result = renderloop("denoise", noisy, "--lambda", 3, "-o", out)
+    assert result.returncode == 0, result.stderr
+    frame, source = read_exr(out), read_exr(noisy)
+    assert np.isfinite(frame.color).all() and (frame.color >= 0).all()
+    assert not np.array_equal(frame.color, source.noisy)  # it was filtered
+    np.testing.assert_array_equal(frame.noisy, source.noisy)  # input layers kept beside it
+    assert frame.error.shape == (24, 24) and (frame.error >= 0).all() and (frame.lam == 3).all()
+    bad = renderloop("denoise", noisy, "--lambda", 30, "-o", out)
+    assert bad.returncode == 2 and "[1, 10]" in bad.stderr
+
+
+def test_default_render_runs_the_adaptive_loop_with_the_shipped_weights(tmp_path):
+    out = tmp_path / "loop.exr"
+    result = renderloop("render", "fireflies", "--width", 24, "--height", 24, "--iterations", 3, "-o", out)
+    assert result.returncode == 0, result.stderr
+    assert "stop: max_iterations" in result.stdout
+    frame = read_exr(out)
+    assert frame.spp.sum() == 64 * 24 * 24 and frame.spp.min() < frame.spp.max()  # adaptive, exact budget
+    assert np.isfinite(frame.color).all() and np.isfinite(frame.error).all()
