@@ -3,12 +3,15 @@
 so tests can `kill -9` it and start another on the same data dir."""
 from __future__ import annotations
 
+import io
 import os
 import signal
 import socket
+import stat
 import subprocess
 import sys
 import time
+import zipfile
 from pathlib import Path
 from typing import Callable
 
@@ -84,3 +87,16 @@ def wait_for(client: httpx.Client, job_id: str, done: Callable[[dict], bool], ti
 
 def finished(job: dict) -> bool:
     return job["state"] in ("completed", "failed", "canceled")
+
+
+def zip_bytes(members: dict[str, bytes | str], symlinks: dict[str, str] = {}) -> bytes:
+    """A zip with the given members, plus symlink entries (name → target) as a hostile bundle has."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as zf:
+        for name, data in members.items():
+            zf.writestr(name, data)
+        for name, target in symlinks.items():
+            info = zipfile.ZipInfo(name)
+            info.external_attr = (stat.S_IFLNK | 0o777) << 16
+            zf.writestr(info, target)
+    return buffer.getvalue()

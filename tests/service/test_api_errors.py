@@ -1,15 +1,12 @@
 """Bad input over real HTTP: 404, 422 with field messages, hostile bundles named. No rendering."""
 from __future__ import annotations
 
-import io
 import socket
-import stat
-import zipfile
 
 import httpx
 import pytest
 
-from service_harness import Server
+from service_harness import Server, zip_bytes
 
 JOB = {"scene": "cornell-box", "width": 16, "height": 16, "max_iterations": 1}
 SCENE = """<scene version="3.0.0">
@@ -34,18 +31,6 @@ def server(tmp_path_factory):
 def client(server):
     with httpx.Client(base_url=server.url, timeout=60) as c:
         yield c
-
-
-def zip_bytes(members: dict[str, str], symlinks: dict[str, str] = {}) -> bytes:
-    buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w") as zf:
-        for name, data in members.items():
-            zf.writestr(name, data)
-        for name, target in symlinks.items():
-            info = zipfile.ZipInfo(name)
-            info.external_attr = (stat.S_IFLNK | 0o777) << 16
-            zf.writestr(info, target)
-    return buffer.getvalue()
 
 
 def upload(client, archive: bytes, spec: str = '{"width": 16, "height": 16, "max_iterations": 1}'):

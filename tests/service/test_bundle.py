@@ -2,11 +2,10 @@
 from __future__ import annotations
 
 import io
-import stat
-import zipfile
 
 import pytest
 
+from service_harness import zip_bytes
 from service.jobs.bundle import BundleError, BundleLimits, extract_zip, prepare_bundle, save_files
 
 SCENE = """<scene version="3.0.0">
@@ -21,16 +20,7 @@ BOMB = """<?xml version="1.0"?>
 
 
 def make_zip(members: dict[str, bytes | str], symlinks: dict[str, str] = {}) -> io.BytesIO:
-    buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w") as zf:
-        for name, data in members.items():
-            zf.writestr(name, data)
-        for name, target in symlinks.items():
-            info = zipfile.ZipInfo(name)
-            info.external_attr = (stat.S_IFLNK | 0o777) << 16
-            zf.writestr(info, target)
-    buffer.seek(0)
-    return buffer
+    return io.BytesIO(zip_bytes(members, symlinks))
 
 
 def good_members(**overrides: str) -> dict[str, str]:
