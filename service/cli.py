@@ -10,6 +10,9 @@ import os
 import sys
 from pathlib import Path
 
+from service import bench, denoise_command, train_command
+from service.dataset import command as dataset_command
+
 EXIT_USAGE = 2
 
 
@@ -141,30 +144,22 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     add_render_parser(sub)
     add_serve_parser(sub)
-    for module in ("service.dataset.command", "service.train_command", "service.denoise_command", "service.bench"):
-        try:
-            mod = __import__(module, fromlist=["add_parser"])
-        except ModuleNotFoundError as exc:
-            if exc.name != module:
-                raise
-            continue
-        mod.add_parser(sub)
+    for module in (dataset_command, train_command, denoise_command, bench):
+        module.add_parser(sub)
     return parser
 
 
 def user_errors() -> tuple[type[BaseException], ...]:
     """Exception types that describe bad input rather than a bug."""
+    from models.checkpoint import CheckpointError
+    from service.dataset.build import DatasetError
     from service.exr import ExrError
+    from service.loop.loop import LoopSpecError
     from service.render.runtime import RuntimeSetupError
+    from service.render.scenes import SceneError
 
-    errors: list[type[BaseException]] = [CliError, ExrError, RuntimeSetupError, FileNotFoundError]
-    for module, name in (("service.render.scenes", "SceneError"), ("service.loop.loop", "LoopSpecError"),
-                         ("models.checkpoint", "CheckpointError")):
-        try:
-            errors.append(getattr(__import__(module, fromlist=[name]), name))
-        except (ImportError, AttributeError):
-            pass
-    return tuple(errors)
+    return (CliError, ExrError, RuntimeSetupError, FileNotFoundError, SceneError, LoopSpecError,
+            CheckpointError, DatasetError)
 
 
 def main(argv: list[str] | None = None) -> int:

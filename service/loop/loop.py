@@ -93,7 +93,6 @@ class RenderLoop:
             with self._lock:
                 self.state.iteration += 1
                 self.state.elapsed += time.perf_counter() - started
-            self._last_iteration_seconds = timings
             record = self._record(timings)
             record.stop_reason = self._stop_after(record)
             if record.stop_reason is None and should_stop():
@@ -119,7 +118,7 @@ class RenderLoop:
         if spec.time_limit is not None:
             # The next iteration renders as many samples as all earlier ones together, so it
             # takes about as long as they did: stop if it would overrun the limit.
-            if state.elapsed >= spec.time_limit or 2 * state.elapsed > spec.time_limit:
+            if 2 * state.elapsed > spec.time_limit:
                 return "time_limit"
         return None
 
