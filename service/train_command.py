@@ -11,14 +11,27 @@ import sys
 import time
 from pathlib import Path
 
-STAGES = ("denoiser", "error", "all")
+# Vogels et al. train in stages, each starting from the previous one's weights: a single-frame
+# single-scale KPCN, then the scale compositor, then the temporal extractor, then the λ
+# specialisation; the error network last, on the frozen denoiser. `denoiser` trains the full
+# network end to end instead (λ = 1 for --symmetric-fraction of the steps, then random λ).
+DENOISER_STAGES: dict[str, tuple[dict, str]] = {   # stage → (DenoiserConfig switches, λ schedule)
+    "single": ({"multiscale": False, "temporal": False}, "symmetric"),
+    "multiscale": ({"temporal": False}, "symmetric"),
+    "temporal": ({}, "symmetric"),
+    "lambda": ({}, "random"),
+}
+STAGES = (*DENOISER_STAGES, "staged", "denoiser", "error", "all")
 VALIDATION_EVERY_NTH_SCENE = 8  # scenes with index % 8 == 7 are held back for validation
 
 
 def add_parser(sub) -> None:
     p = sub.add_parser("train", help="train the denoiser and/or the error predictor on a built data set")
     p.add_argument("--data", type=Path, required=True, help="data set folder (renderloop dataset -o ...)")
-    p.add_argument("--stage", choices=STAGES, default="all")
+    p.add_argument("--stage", choices=STAGES, default="all",
+                   help="single|multiscale|temporal|lambda: one paper stage (from --init or the previous "
+                        "stage's file); staged: all four then the error network; denoiser: end to end; "
+                        "error: the error network; all: denoiser then error (default)")
     p.add_argument("-o", "--out", type=Path, default=Path("models/weights"))
     p.add_argument("--steps", type=int, default=1500, help="optimiser steps per stage (default 1500)")
     p.add_argument("--batch", type=int, default=8)
@@ -74,7 +87,8 @@ def _batches(dataset, batch: int, seed: int):
         epoch += 1
 
 
-def _fit(stage: str, model, loss_fn, val_fn, args, device, extra: dict, keep_from: int = 0) -> dict:
+def _fit(stage: str, model, loss_fn, val_fn, args, device, extra: dict, keep_from: int = 0,
+         out_name: str | None = None) -> dict:
     """Generic loop: Adam, periodic validation, best checkpoint from step `keep_from` on,
     resumable state."""
     import torch
@@ -82,7 +96,7 @@ def _fit(stage: str, model, loss_fn, val_fn, args, device, extra: dict, keep_fro
 
     from models.checkpoint import save_checkpoint
 
-    out_file = args.out / ("denoiser.pt" if stage == "denoiser" else "error_predictor.pt")
+    out_file = args.out / (out_name or "error_predictor.pt")
     state_file = args.out / f".train_{stage}.pt"
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=args.steps, eta_min=args.lr * 0.05)
@@ -121,25 +135,38 @@ def _fit(stage: str, model, loss_fn, val_fn, args, device, extra: dict, keep_fro
     return {"best_val": best, "history": history, "checkpoint": str(out_file)}
 
 
-def train_denoiser(args, device) -> dict:
+def _denoiser_to_train(args, device, switches: dict):
+    """A fresh network, or --init's weights in a network with the stage's switches (modules the
+    earlier stage lacked — compositor, temporal extractor — start fresh)."""
+    import dataclasses
+
+    from models.checkpoint import load_checkpoint
+    from models.denoiser import Denoiser, DenoiserConfig
+
+    if args.init is None:
+        base = DenoiserConfig() if args.width is None else DenoiserConfig(width=args.width)
+        return Denoiser(dataclasses.replace(base, **switches)).to(device)
+    trained = load_checkpoint(args.init, expected_kind="denoiser", device=device)
+    full = dataclasses.replace(trained.config, temporal=True, multiscale=True)
+    model = Denoiser(dataclasses.replace(full, **switches)).to(device)
+    model.load_state_dict(trained.state_dict(), strict=False)
+    return model
+
+
+def train_denoiser(args, device, stage: str = "denoiser", switches: dict | None = None,
+                   schedule: str = "mixed") -> dict:
+    """schedule: "symmetric" (λ = 1), "random" (log λ ~ U(0, log 10)) or "mixed" (λ = 1 for
+    --symmetric-fraction of the steps, then random)."""
     import torch
 
-    from models.denoiser import Denoiser, DenoiserConfig
     from models.training import cut_window, denoiser_loss, denoiser_smape, sample_lambda
 
     torch.manual_seed(args.seed)
-    if args.init is not None:
-        from models.checkpoint import load_checkpoint
-
-        model = load_checkpoint(args.init, expected_kind="denoiser", device=device)
-        config = model.config
-    else:
-        config = DenoiserConfig() if args.width is None else DenoiserConfig(width=args.width)
-        model = Denoiser(config).to(device)
-    symmetric_steps = int(args.symmetric_fraction * args.steps)
-    train, val = _datasets(args, config.temporal_radius)
+    model = _denoiser_to_train(args, device, switches or {})
+    train, val = _datasets(args, model.config.temporal_radius)
     batches = _batches(train, args.batch, args.seed)
     gen = torch.Generator().manual_seed(args.seed)
+    symmetric_steps = {"symmetric": args.steps, "random": 0}.get(schedule, int(args.symmetric_fraction * args.steps))
 
     def loss_fn(step: int):
         b = next(batches)
@@ -149,7 +176,7 @@ def train_denoiser(args, device) -> dict:
         n, _, h, w = ref.shape
         # Vogels et al. train the λ specialisation on top of a network that already denoises:
         # a random λ from step 0 rewards doing nothing (λ > 1 punishes every blur), so the
-        # first part of training uses the symmetric loss (λ = 1).
+        # symmetric loss (λ = 1) comes first.
         lam = torch.ones(n, 1, h, w) if step < symmetric_steps else sample_lambda(n, h, w, gen)
         return denoiser_loss(model, frames, centre, ref, lam.to(device))
 
@@ -161,10 +188,12 @@ def train_denoiser(args, device) -> dict:
             scores.append(denoiser_smape(model, frames, s.centre, s.reference[s.centre:s.centre + 1].to(device)))
         return sum(scores) / len(scores)
 
-    # Checkpoints from the symmetric phase have an untrained λ module (λ would do nothing):
-    # the shipped one must come from the λ phase.
+    # Checkpoints from a symmetric phase have an untrained λ module (λ would do nothing): when
+    # a λ phase follows, the kept one must come from it.
     keep_from = symmetric_steps if symmetric_steps < args.steps else 0
-    return _fit("denoiser", model, loss_fn, val_fn, args, device, {"command": args.command_line}, keep_from)
+    out_name = "denoiser.pt" if stage in ("denoiser", "lambda") else f"stage_{stage}.pt"
+    return _fit(stage, model, loss_fn, val_fn, args, device, {"command": args.command_line, "stage": stage},
+                keep_from, out_name)
 
 
 def start_at_typical_error(model, denoiser, batch, device) -> None:
@@ -215,7 +244,7 @@ def train_error_predictor(args, device) -> dict:
             losses.append(float(error_predictor_loss(model, denoiser, frame, s.reference[:1].to(device))))
         return sum(losses) / len(losses)
 
-    return _fit("error", model, loss_fn, val_fn, args, device, {"command": args.command_line})
+    return _fit("error", model, loss_fn, val_fn, args, device, {"command": args.command_line, "stage": "error"})
 
 
 def run_train(args) -> int:
@@ -232,7 +261,13 @@ def run_train(args) -> int:
     if args.stage in ("denoiser", "all"):
         result = train_denoiser(args, device)
         print(f"denoiser: best validation SMAPE {result['best_val']:.4f} → {result['checkpoint']}")
-    if args.stage in ("error", "all"):
+    stages = list(DENOISER_STAGES) if args.stage == "staged" else [args.stage] if args.stage in DENOISER_STAGES else []
+    for stage in stages:
+        switches, schedule = DENOISER_STAGES[stage]
+        result = train_denoiser(args, device, stage, switches, schedule)
+        print(f"stage {stage}: best validation SMAPE {result['best_val']:.4f} → {result['checkpoint']}")
+        args.init, args.resume = Path(result["checkpoint"]), False  # the next stage starts here
+    if args.stage in ("error", "all", "staged"):
         result = train_error_predictor(args, device)
         print(f"error predictor: best validation L1 {result['best_val']:.4f} → {result['checkpoint']}")
     print(f"trained in {time.perf_counter() - started:.0f} s on {device}")
