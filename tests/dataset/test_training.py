@@ -39,14 +39,20 @@ def test_a_tiny_denoiser_loss_falls_and_stays_finite_on_hdr_data(sequence_datase
     assert sum(losses[-5:]) / 5 < 0.9 * sum(losses[:5]) / 5
 
 
-def test_train_command_writes_loadable_checkpoints_with_their_command(sequence_dataset, tmp_path):
+@pytest.mark.parametrize("stage", ["all", "staged"])
+def test_train_command_writes_loadable_checkpoints_with_their_command(sequence_dataset, tmp_path, stage):
     out = tmp_path / "weights"
     result = subprocess.run(
-        [sys.executable, "-m", "service.cli", "train", "--data", str(sequence_dataset), "--stage", "all",
+        [sys.executable, "-m", "service.cli", "train", "--data", str(sequence_dataset), "--stage", stage,
          "-o", str(out), "--steps", "4", "--val-every", "2", "--batch", "2", "--crop", "16", "--width", "8",
          "--quiet"],
         capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr
     denoiser = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser")
     assert denoiser.config.width == 8 and "renderloop train" in denoiser.checkpoint_extra["command"]
+    assert denoiser.config.temporal and denoiser.config.multiscale  # the shipped one is the full network
+    if stage == "staged":
+        single = load_checkpoint(out / "stage_single.pt", expected_kind="denoiser")
+        assert not single.config.temporal and not single.config.multiscale
+        assert denoiser.checkpoint_extra["stage"] == "lambda"
     load_checkpoint(out / "error_predictor.pt", expected_kind="error_predictor")
