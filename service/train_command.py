@@ -98,7 +98,7 @@ def _fit(stage: str, model, loss_fn, val_fn, args, device, extra: dict, keep_fro
 
     out_file = args.out / (out_name or "error_predictor.pt")
     state_file = args.out / f".train_{stage}.pt"
-    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=args.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=args.steps, eta_min=args.lr * 0.05)
     start, best, history = 0, float("inf"), []
     if args.resume and state_file.is_file():
@@ -163,6 +163,11 @@ def train_denoiser(args, device, stage: str = "denoiser", switches: dict | None 
 
     torch.manual_seed(args.seed)
     model = _denoiser_to_train(args, device, switches or {})
+    if stage == "lambda" and args.init is not None:
+        # Only the loss-specialisation module learns λ; everything before it stays as the
+        # symmetric stages left it (it is what the service caches, and λ = 1 keeps its quality).
+        for name, parameter in model.named_parameters():
+            parameter.requires_grad_(name.startswith("specialise."))
     train, val = _datasets(args, model.config.temporal_radius)
     batches = _batches(train, args.batch, args.seed)
     gen = torch.Generator().manual_seed(args.seed)
