@@ -1,11 +1,30 @@
 """Bridge from frame buffers (numpy, HWC) to the networks (torch, NCHW) and back."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import torch
 
 from models.frames import FrameTensors
 from service.render.framebuffer import FrameBuffer
+
+
+TORCH_THREADS_ENV = "RENDERLOOP_TORCH_THREADS"
+
+
+def configure_torch_threads() -> None:
+    """Honour RENDERLOOP_TORCH_THREADS: on a busy 2-core host, torch's default of one thread per
+    core made a 64² denoise 30× slower than one thread (docs/benchmarks.md, Notes)."""
+    value = os.environ.get(TORCH_THREADS_ENV)
+    if value:
+        try:
+            threads = int(value)
+        except ValueError:
+            raise ValueError(f"{TORCH_THREADS_ENV} must be a positive integer, got {value!r}") from None
+        if threads < 1:
+            raise ValueError(f"{TORCH_THREADS_ENV} must be a positive integer, got {value!r}")
+        torch.set_num_threads(threads)
 
 
 def _nchw(array: np.ndarray) -> torch.Tensor:

@@ -16,7 +16,7 @@ import torch
 
 from service.exr import ExrFrame
 from service.loop.allocate import allocate_samples, allocation_weights, iteration_budget
-from service.loop.denoise import frame_tensors, lam_tensor, temporal_window, to_image
+from service.loop.denoise import configure_torch_threads, frame_tensors, lam_tensor, temporal_window, to_image
 from service.loop.spec import ALLOCATORS, IterationRecord, LoopSpec
 from service.loop.state import LoopState
 from service.render.effects import inspect_scene, make_integrator
@@ -53,6 +53,7 @@ def validate_spec(spec: LoopSpec) -> None:
 class RenderLoop:
     def __init__(self, spec: LoopSpec, *, state: LoopState | None = None, denoiser=None, error_predictor=None):
         validate_spec(spec)
+        configure_torch_threads()
         self.spec = spec
         self.effects = inspect_scene(spec.scene, frames=spec.frames, width=spec.width, height=spec.height)
         self.scenes = [load_scene(spec.scene, width=spec.width, height=spec.height, frame=f) for f in range(spec.frames)]
