@@ -44,7 +44,6 @@ class DenoiserConfig:
     lambda_width: int = 16         # hidden channels of the λ module: kernel head input and λ-MLP width
     lambda_rank: int = 2           # λ-dependent directions of the kernel head W(λ) = W₀ + Σ sᵣ(λ)ΔWᵣ
     composite_width: int = 8       # channels of the per-pixel α CNN (eq. 5)
-    alpha_floor: float = 0.0       # α ∈ [floor, 1 − floor]: a saturated sigmoid stops the coarse levels learning
     temporal: bool = True          # False: single-frame model, neighbours ignored
     multiscale: bool = True        # False: finest level only, no compositing
 
@@ -157,18 +156,13 @@ class ScaleCompositor(nn.Module):
     both results, evaluated at the coarse resolution and upsampled: which band to trust
     is a low-frequency decision, and this keeps the λ tail 4× cheaper."""
 
-    def __init__(self, width: int, floor: float = 0.0):
+    def __init__(self, width: int):
         super().__init__()
         self.alpha = nn.Sequential(conv3x3(6, width), nn.ReLU(), conv3x3(width, 1))
-        # Trained freely, α fell to ~1e-8 early (the coarse results were still bad) and the
-        # coarse kernels, which learn only through α, never recovered. A floor keeps both
-        # paths alive.
-        self.floor = floor
 
     def forward(self, fine: Tensor, coarse: Tensor) -> Tensor:
         fine_low = down(fine)
         a = torch.sigmoid(self.alpha(torch.cat([log_transform(fine_low), log_transform(coarse)], 1)))
-        a = self.floor + (1 - 2 * self.floor) * a
         # Swapping bands can undershoot below 0 next to a firefly; radiance cannot be negative,
         # and the next level's log transform needs x > -1.
         return torch.addcmul(fine, up(a), up(coarse - fine_low)).clamp_min_(0)
@@ -202,7 +196,7 @@ class Denoiser(nn.Module):
         self.temporal = TemporalExtractor(cfg.width, cfg.temporal_blocks) if cfg.temporal else None
         self.kernel_head = Pointwise(cfg.width, cfg.lambda_width)
         self.specialise = LambdaModule(cfg.lambda_width, cfg.lambda_width, cfg.kernel_size, cfg.lambda_rank)
-        self.composite = ScaleCompositor(cfg.composite_width, cfg.alpha_floor) if cfg.multiscale else None
+        self.composite = ScaleCompositor(cfg.composite_width) if cfg.multiscale else None
 
     # -- prepare: everything before λ -----------------------------------------------------
 

@@ -15,10 +15,9 @@ from pathlib import Path
 # single-scale KPCN, then the scale compositor, then the temporal extractor, then the λ
 # specialisation; the error network last, on the frozen denoiser. `denoiser` trains the full
 # network end to end instead (λ = 1 for --symmetric-fraction of the steps, then random λ).
-ALPHA_FLOOR = 0.05  # keeps the scale compositor's coarse path trainable (models.denoiser.ScaleCompositor)
 DENOISER_STAGES: dict[str, tuple[dict, str]] = {   # stage → (DenoiserConfig switches, λ schedule)
     "single": ({"multiscale": False, "temporal": False}, "symmetric"),
-    "multiscale": ({"temporal": False, "alpha_floor": ALPHA_FLOOR}, "symmetric"),
+    "multiscale": ({"temporal": False}, "symmetric"),
     "temporal": ({}, "symmetric"),
     "lambda": ({}, "random"),
 }
