@@ -1,10 +1,15 @@
 """Shared fixtures. Add fixtures here; never remove one another test relies on."""
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+
+# The suite runs on shared 2-core machines, where torch's one-thread-per-core default makes
+# small denoises 30× slower (docs/benchmarks.md); servers started by tests inherit this.
+os.environ.setdefault("RENDERLOOP_TORCH_THREADS", "1")
 
 # A camera that sees the unit sphere at the origin; tiny film so loads and renders stay cheap.
 TINY_SENSOR_XML = """
