@@ -19,10 +19,9 @@ from service.loop.allocate import allocate_samples, allocation_weights, iteratio
 from service.loop.denoise import configure_torch_threads, frame_tensors, lam_tensor, temporal_window, to_image
 from service.loop.spec import ALLOCATORS, IterationRecord, LoopSpec
 from service.loop.state import LoopState
-from service.render.effects import inspect_scene, make_integrator
+from service.render.effects import inspect_frames, load_frames, make_integrator
 from service.render.renderer import render_samples
 from service.render.runtime import active_variant
-from service.render.scenes import load_scene
 
 
 class LoopSpecError(ValueError):
@@ -55,8 +54,10 @@ class RenderLoop:
         validate_spec(spec)
         configure_torch_threads()
         self.spec = spec
-        self.effects = inspect_scene(spec.scene, frames=spec.frames, width=spec.width, height=spec.height)
-        self.scenes = [load_scene(spec.scene, width=spec.width, height=spec.height, frame=f) for f in range(spec.frames)]
+        # Each frame is loaded once; the effects report reads the loaded frames.
+        loaded = load_frames(spec.scene, frames=spec.frames, width=spec.width, height=spec.height)
+        self.effects = inspect_frames(loaded)
+        self.scenes = [frame.scene for frame in loaded]
         self.integrator = make_integrator(self.effects)
         width, height = self.scenes[0].sensors()[0].film().crop_size()
         self.state = state or LoopState.new(spec.frames, int(height), int(width), spec.lam)

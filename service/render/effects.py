@@ -47,22 +47,27 @@ class SceneEffects:
         return self.frames > 1 and (self.animated_camera or self.animated_shapes)
 
 
-def inspect_scene(
-    source: str | Path,
-    *,
-    frames: int = 1,
-    width: int | None = None,
-    height: int | None = None,
-) -> SceneEffects:
-    """Load frame 0 (and frames 1 and last when animated) and report what the scene needs."""
+def load_frames(
+    source: str | Path, *, frames: int = 1, width: int | None = None, height: int | None = None
+) -> list[LoadedScene]:
+    """Every frame of a sequence, each loaded once; a file without `$frame` is one scene
+    shared by all frames (it cannot change between them)."""
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise SceneError(f"frames must be an integer >= 1, got {frames!r}")
-    mi = mitsuba()
     first = load_scene_info(source, width=width, height=height, frame=0)
+    if not first.declares_frame:
+        return [first] * frames
+    return [first] + [load_scene_info(source, width=width, height=height, frame=f) for f in range(1, frames)]
+
+
+def inspect_frames(loaded: list[LoadedScene]) -> SceneEffects:
+    """The effects report of an already loaded sequence (frame 0 first)."""
+    mi = mitsuba()
+    first = loaded[0]
     scene = first.scene
     media = _has_media(scene)
     bsdf_flags = _bsdf_flags(mi, scene)
-    animated_camera, animated_shapes = _motion(source, first, frames, width, height)
+    animated_camera, animated_shapes = _motion(mi, loaded)
     return SceneEffects(
         media=media,
         integrator="volpath" if media else "path",
@@ -74,10 +79,29 @@ def inspect_scene(
         # specular surface; only real mirror/glass lobes matter here.
         delta_bsdf=mi.has_flag(bsdf_flags, mi.BSDFFlags.DeltaReflection)
         or mi.has_flag(bsdf_flags, mi.BSDFFlags.DeltaTransmission),
-        frames=frames,
+        frames=len(loaded),
         animated_camera=animated_camera,
         animated_shapes=animated_shapes,
     )
+
+
+def inspect_scene(
+    source: str | Path,
+    *,
+    frames: int = 1,
+    width: int | None = None,
+    height: int | None = None,
+) -> SceneEffects:
+    """Load frame 0 (and frames 1 and last when animated) and report what the scene needs."""
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+        raise SceneError(f"frames must be an integer >= 1, got {frames!r}")
+    first = load_scene_info(source, width=width, height=height, frame=0)
+    loaded = [first] * frames
+    if frames > 1 and first.declares_frame:
+        # Motion is judged on frames 1 and last against 0; the frames between are not needed.
+        for frame in sorted({1, frames - 1}):
+            loaded[frame] = load_scene_info(source, width=width, height=height, frame=frame)
+    return inspect_frames(loaded)
 
 
 def make_integrator(effects: SceneEffects):
@@ -154,19 +178,17 @@ def _differs(a: np.ndarray, b: np.ndarray) -> bool:
     return a.shape != b.shape or not np.allclose(a, b, rtol=0.0, atol=MOTION_TOLERANCE)
 
 
-def _motion(
-    source: str | Path, first: LoadedScene, frames: int, width: int | None, height: int | None
-) -> tuple[bool, bool]:
+def _motion(mi, loaded: list[LoadedScene]) -> tuple[bool, bool]:
     """(camera moves, shapes move) between frame 0 and frames 1 and last."""
+    first = loaded[0]
     # An XML file without a $frame parameter is the same scene for every frame.
-    if frames == 1 or not first.declares_frame:
+    if len(loaded) == 1 or not first.declares_frame:
         return False, False
-    mi = mitsuba()
     pose0 = _camera_pose(mi, first.scene.sensors()[0])
     boxes0 = _shape_boxes(first.scene)
     camera = shapes = False
-    for frame in sorted({1, frames - 1}):
-        scene = load_scene_info(source, width=width, height=height, frame=frame).scene
+    for frame in sorted({1, len(loaded) - 1}):
+        scene = loaded[frame].scene
         camera = camera or _differs(pose0, _camera_pose(mi, scene.sensors()[0]))
         shapes = shapes or _differs(boxes0, _shape_boxes(scene))
     return camera, shapes
