@@ -215,19 +215,23 @@ class Denoiser(nn.Module):
         frames = [f.map(lambda _, t: pad_to(t, align)) for f in frames]
         albedo = frames[center].albedo
 
+        # Demodulate once at full resolution and pool the result: re-demodulating pooled buffers
+        # (D(c)/D(a) ≠ D(c/a) on textures and albedo edges) made every coarse result differ
+        # from D(fine) by a texture-shaped bias, and eq. 5 then learned α → 0.
+        images = [demodulate(f.color, f.albedo) for f in frames]
         levels = []
         for level in range(self.config.n_levels):
             if level:
                 frames = [down_frame(f) for f in frames]
-            levels.append(self._prepare_level(frames, center))
+                images = [down(i) for i in images]
+            levels.append(self._prepare_level(frames, images, center))
         return DenoiserCache(levels, albedo, size, n_bad)
 
-    def _prepare_level(self, frames: list[FrameTensors], center: int) -> LevelCache:
+    def _prepare_level(self, frames: list[FrameTensors], images: list[Tensor], center: int) -> LevelCache:
         n = frames[0].color.shape[0]
         # all frames as one channels-last batch: one pass through the shared convs
         inputs = torch.cat([self.features.build(f).permute(0, 2, 3, 1) for f in frames], 0).permute(0, 3, 1, 2)
         feats = self.spatial(self.encoder(inputs)).split(n, 0)
-        images = [demodulate(f.color, f.albedo) for f in frames]
         motions = [f.motion for f in frames]
         c_feat, c_img = feats[center], images[center]
         out_images, feats_to_center = [c_img], [c_feat]
