@@ -52,11 +52,6 @@ class DenoiserConfig:
         return self.levels if self.multiscale else 1
 
     @property
-    def window_size(self) -> int:
-        """Frames per window the model is trained for (2M+1); any window ≥ 1 frame works."""
-        return 2 * self.temporal_radius + 1 if self.temporal else 1
-
-    @property
     def alignment(self) -> int:
         """Sizes must divide by 2^(levels-1) for the 2×2 pyramid; inputs are padded to it."""
         return 2 ** (self.n_levels - 1)

@@ -101,13 +101,9 @@ def path_features(f: FrameTensors) -> Tensor:
     ], dim=1)
 
 
-def radiance_only_input(frame: FrameTensors) -> Tensor:
+def radiance_features(f: FrameTensors) -> Tensor:
     """(N,6,H,W) for sources without auxiliary buffers (e.g. an EXR of colour + variance);
     the caller passes albedo = 1 so demodulation is a no-op."""
-    return radiance_features(sanitize_frame(frame)[0])
-
-
-def radiance_features(f: FrameTensors) -> Tensor:
     return torch.cat([
         log_transform(demodulate(f.color, f.albedo)),
         log_transform(relative_variance(f.variance, f.color)),

@@ -954,7 +954,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loop", action="store_true",
                         help="render loop benchmark: error vs wall time per method → docs/benchmarks.md")
     parser.add_argument("--quick", action="store_true", help="with --loop: small images, two scenes, three iterations")
-    parser.add_argument("--weights", type=Path, default=None, help="with --loop: weights folder (default models/weights)")
+    parser.add_argument("--weights", type=Path, default=None, help="with --loop or --denoiser: weights folder (default models/weights)")
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE_DIR, help="with --loop: reference cache folder")
 
 

@@ -97,9 +97,6 @@ class JobFiles:
             layers = {name: (data[name] if name in data.files else None) for name in PREVIEW_LAYERS}
             return Preview(version=int(data["version"]), layers=layers)
 
-    def has_results(self, frames: int) -> bool:
-        return all(self.result_path(f).is_file() for f in range(frames))
-
     def save_results(self, frames: list) -> None:
         """Write one EXR per frame (`service.exr.ExrFrame`s), each renamed into place."""
         from service.exr import write_exr  # OpenEXR only where results are written

@@ -317,9 +317,3 @@ class JobWorker:
         loop = RenderLoop(loop_spec(record.spec, files), state=LoopState.load(files.state_dir))
         self._keep_idle(job_id, loop)
         return loop
-
-    @property
-    def live_loops(self) -> dict[str, "RenderLoop"]:
-        """Loops in memory by job id (running or kept after the run), for diagnostics and tests."""
-        with self._lock:
-            return {**self._idle, **self._live}

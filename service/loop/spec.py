@@ -1,7 +1,7 @@
 """What a render job asks for (LoopSpec) and what each loop iteration hands back (IterationRecord)."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -28,9 +28,6 @@ class LoopSpec:
     denoise: bool = True
     lam: float = 1.0  # default λ (1 = symmetric loss)
     seed: int = 0
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 @dataclass

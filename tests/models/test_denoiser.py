@@ -3,7 +3,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from models.denoiser import Denoiser, DenoiserConfig
+from models.denoiser import Denoiser
 from models.frames import FrameTensors
 from tests.models.conftest import TINY, make_frame
 
