@@ -12,7 +12,9 @@ import torch.nn as nn
 from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+# Format 1 denoisers predate the λ module's s(1) anchor; they load through an exact conversion.
+READABLE_VERSIONS = (1, FORMAT_VERSION)
 MODEL_KINDS: dict[str, tuple[type[nn.Module], type]] = {
     Denoiser.kind: (Denoiser, DenoiserConfig),
     ErrorPredictor.kind: (ErrorPredictor, ErrorPredictorConfig),
@@ -50,9 +52,9 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"cannot read checkpoint {path}: {e}") from e
     if not isinstance(ckpt, dict) or "format_version" not in ckpt:
         raise CheckpointError(f"{path} is not a renderloop checkpoint (no format_version)")
-    if ckpt["format_version"] != FORMAT_VERSION:
+    if ckpt["format_version"] not in READABLE_VERSIONS:
         raise CheckpointError(f"{path} has checkpoint format {ckpt['format_version']}, "
-                              f"this code reads format {FORMAT_VERSION}")
+                              f"this code reads formats {', '.join(map(str, READABLE_VERSIONS))}")
     return ckpt
 
 
@@ -78,5 +80,7 @@ def load_checkpoint(path: str | Path, expected_kind: str | None = None, device: 
         model.load_state_dict(ckpt["state_dict"])
     except RuntimeError as e:
         raise CheckpointError(f"{path}: weights do not fit the {kind} built from its config:\n{e}") from e
+    if kind == Denoiser.kind and ckpt["format_version"] == 1:
+        model.specialise.anchor_at_symmetric_()
     model.checkpoint_extra = ckpt.get("extra", {})
     return model.to(device).eval()

@@ -164,10 +164,11 @@ def train_denoiser(args, device, stage: str = "denoiser", switches: dict | None 
     torch.manual_seed(args.seed)
     model = _denoiser_to_train(args, device, switches or {})
     if stage == "lambda" and args.init is not None:
-        # Only the loss-specialisation module learns λ; everything before it stays as the
-        # symmetric stages left it (it is what the service caches, and λ = 1 keeps its quality).
+        # Only the λ directions learn (the MLP s(λ) and ΔW); the trunk and the symmetric kernel
+        # head W₀ stay as the symmetric stages left them, so λ = 1 is exactly that network
+        # (the λ module is anchored at s(1)) and the service's cached features stay valid.
         for name, parameter in model.named_parameters():
-            parameter.requires_grad_(name.startswith("specialise."))
+            parameter.requires_grad_(name.startswith(("specialise.mix.", "specialise.delta")))
     train, val = _datasets(args, model.config.temporal_radius)
     batches = _batches(train, args.batch, args.seed)
     gen = torch.Generator().manual_seed(args.seed)

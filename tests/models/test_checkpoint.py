@@ -57,3 +57,23 @@ def test_missing_default_weights_say_how_to_produce_them(tmp_path, monkeypatch):
     with pytest.raises(CheckpointError, match="renderloop train"):
         pretrained.load_default_error_predictor()
 
+
+
+def test_format_1_denoiser_loads_with_the_same_output_at_every_lambda(tmp_path):
+    """Format 1 had no s(1) anchor in the λ module: W(λ) = W₀ + Σ sᵣ(λ)ΔWᵣ."""
+    den = Denoiser(TINY).eval()
+    torch.nn.init.normal_(den.specialise.delta)
+    win = [make_frame(seed=i) for i in range(3)]
+    with torch.no_grad():
+        s1 = den.specialise.mix(torch.zeros(1, 1, 1, 1)).flatten()
+        old_base = den.specialise.base - torch.einsum("r,rkc->kc", s1, den.specialise.delta)
+        expected = {lam: den(win, 1, lam) for lam in (1.0, 3.0, 10.0)}
+        den.specialise.base.copy_(old_base)     # what a format-1 file stores for the same network
+    path = save_checkpoint(tmp_path / "d.pt", den)
+    ckpt = torch.load(path, weights_only=True)
+    ckpt["format_version"] = 1
+    torch.save(ckpt, path)
+    back = load_checkpoint(path, expected_kind="denoiser")
+    with torch.no_grad():
+        for lam, image in expected.items():
+            torch.testing.assert_close(back(win, 1, lam), image)

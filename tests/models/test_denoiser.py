@@ -136,3 +136,24 @@ def test_single_frame_and_single_scale_flags_build_smaller_models():
     assert sum(p.numel() for p in single.parameters()) < sum(p.numel() for p in full.parameters())
     with torch.no_grad():
         assert single(window(), 1).shape == (1, 3, 12, 16)     # neighbours ignored
+
+
+def test_lambda_one_is_the_symmetric_network_whatever_the_lambda_module_learns():
+    den = Denoiser(TINY).eval()
+    win = window()
+    with torch.no_grad():
+        before = den(win, 1, 1.0)
+        for p in [*den.specialise.mix.parameters(), den.specialise.delta]:
+            p.add_(torch.randn_like(p))
+        torch.testing.assert_close(den(win, 1, 1.0), before)
+        torch.testing.assert_close(den(win, 1, torch.ones(1, 1, 12, 16)), before)
+        assert not torch.allclose(den(win, 1, 4.0), before)
+
+
+def test_filter_levels_then_merge_levels_is_apply():
+    den = Denoiser(TINY).eval()
+    with torch.no_grad():
+        cache = den.prepare(window(), 1)
+        levels = den.filter_levels(cache, 2.0)
+        assert [t.shape[-1] for t in levels] == [16, 8, 4]
+        torch.testing.assert_close(den.merge_levels(cache, levels), den.apply(cache, 2.0))
