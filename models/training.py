@@ -21,6 +21,7 @@ from models.frames import FrameTensors
 from models.losses import asymmetric_loss, l1, smape, smape_map
 
 LAMBDA_BLOCK = 8  # per-pixel λ maps are drawn on a coarse grid: painted maps are piecewise smooth
+VALIDATION_LAMBDAS = (2.0, 4.0, 10.0)  # λ-stage validation: spread over log λ ∈ (0, log 10]
 COARSE_LEVEL_WEIGHT = 0.5  # weight of the coarse levels' own loss next to the composited result's
 
 
@@ -98,6 +99,16 @@ def error_predictor_loss(model: ErrorPredictor, denoiser: Denoiser, frame: Frame
 def denoiser_smape(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor) -> float:
     """Validation metric: symmetric SMAPE at λ = 1 (the default the loop uses)."""
     return float(smape(model(frames, centre, 1.0), reference))
+
+
+@torch.no_grad()
+def denoiser_lambda_loss(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor,
+                         lambdas: tuple[float, ...] = VALIDATION_LAMBDAS) -> float:
+    """Validation metric of the λ stage: mean eq. 6 over λ > 1. SMAPE at λ = 1 cannot rank λ-stage
+    checkpoints: the anchored λ module leaves λ = 1 exactly as the symmetric stages made it."""
+    cache = model.prepare(frames, centre)
+    noisy = frames[centre].color
+    return sum(float(asymmetric_loss(model.apply(cache, lam), reference, noisy, lam)) for lam in lambdas) / len(lambdas)
 
 
 def grad_norm(model: torch.nn.Module) -> float:

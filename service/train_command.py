@@ -159,7 +159,7 @@ def train_denoiser(args, device, stage: str = "denoiser", switches: dict | None 
     --symmetric-fraction of the steps, then random)."""
     import torch
 
-    from models.training import cut_window, denoiser_loss, denoiser_smape, sample_lambda
+    from models.training import cut_window, denoiser_lambda_loss, denoiser_loss, denoiser_smape, sample_lambda
 
     torch.manual_seed(args.seed)
     model = _denoiser_to_train(args, device, switches or {})
@@ -191,7 +191,11 @@ def train_denoiser(args, device, stage: str = "denoiser", switches: dict | None 
         for i in range(len(val)):
             s = val[i]
             frames = [s.noisy.map(lambda _, t, k=k: t[k:k + 1].to(device)) for k in range(s.noisy.color.shape[0])]
-            scores.append(denoiser_smape(model, frames, s.centre, s.reference[s.centre:s.centre + 1].to(device)))
+            reference = s.reference[s.centre:s.centre + 1].to(device)
+            if schedule == "random":
+                scores.append(denoiser_lambda_loss(model, frames, s.centre, reference))
+            else:
+                scores.append(denoiser_smape(model, frames, s.centre, reference))
         return sum(scores) / len(scores)
 
     # Checkpoints from a symmetric phase have an untrained λ module (λ would do nothing): when
@@ -271,7 +275,8 @@ def run_train(args) -> int:
     for stage in stages:
         switches, schedule = DENOISER_STAGES[stage]
         result = train_denoiser(args, device, stage, switches, schedule)
-        print(f"stage {stage}: best validation SMAPE {result['best_val']:.4f} → {result['checkpoint']}")
+        metric = "eq. 6 loss at λ = 2, 4, 10" if schedule == "random" else "SMAPE"
+        print(f"stage {stage}: best validation {metric} {result['best_val']:.4f} → {result['checkpoint']}")
         args.init, args.resume = Path(result["checkpoint"]), False  # the next stage starts here
     if args.stage in ("error", "all", "staged"):
         result = train_error_predictor(args, device)

@@ -2,7 +2,7 @@ import torch
 
 from models.denoiser import Denoiser, down
 from models.features import demodulate
-from models.training import coarse_levels_loss, denoiser_loss
+from models.training import coarse_levels_loss, denoiser_lambda_loss, denoiser_loss, denoiser_smape
 from tests.models.conftest import TINY, make_frame
 
 
@@ -41,3 +41,14 @@ def test_coarse_kernels_keep_learning_when_the_compositor_shuts_them_out():
     (grad_own,) = torch.autograd.grad(own, coarse)
     assert grad_through_alpha.abs().max() < 1e-12 < grad_own.abs().max()
     assert torch.isfinite(denoiser_loss(den, frames, 1, reference, lam))
+
+
+def test_lambda_stage_validation_ranks_lambda_modules_that_lambda_one_smape_cannot():
+    den = Denoiser(TINY).eval()
+    frames, reference = window(), make_frame(seed=7).color
+    smape_before = denoiser_smape(den, frames, 1, reference)
+    loss_before = denoiser_lambda_loss(den, frames, 1, reference)
+    with torch.no_grad():
+        torch.nn.init.normal_(den.specialise.delta)
+    assert denoiser_smape(den, frames, 1, reference) == smape_before
+    assert denoiser_lambda_loss(den, frames, 1, reference) != loss_before
