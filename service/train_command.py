@@ -40,6 +40,8 @@ def add_parser(sub) -> None:
     p.add_argument("--val-every", type=int, default=150)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--width", type=int, default=None, help="denoiser feature width (default: model default)")
+    p.add_argument("--spatial-blocks", type=int, default=None,
+                   help="residual blocks of the denoiser's spatial extractor (default: model default)")
     p.add_argument("--symmetric-fraction", type=float, default=0.5,
                    help="first fraction of denoiser steps trained at λ = 1 before λ is randomised (default 0.5)")
     p.add_argument("--init", type=Path, default=None, help="start the denoiser from this checkpoint's weights")
@@ -144,7 +146,8 @@ def _denoiser_to_train(args, device, switches: dict):
     from models.denoiser import Denoiser, DenoiserConfig
 
     if args.init is None:
-        base = DenoiserConfig() if args.width is None else DenoiserConfig(width=args.width)
+        sizes = {"width": args.width, "spatial_blocks": args.spatial_blocks}
+        base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None})
         return Denoiser(dataclasses.replace(base, **switches)).to(device)
     trained = load_checkpoint(args.init, expected_kind="denoiser", device=device)
     full = dataclasses.replace(trained.config, temporal=True, multiscale=True)

@@ -45,11 +45,12 @@ def test_train_command_writes_loadable_checkpoints_with_their_command(sequence_d
     result = subprocess.run(
         [sys.executable, "-m", "service.cli", "train", "--data", str(sequence_dataset), "--stage", stage,
          "-o", str(out), "--steps", "4", "--val-every", "2", "--batch", "2", "--crop", "16", "--width", "8",
-         "--quiet"],
+         "--spatial-blocks", "2", "--quiet"],
         capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr
     denoiser = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser")
-    assert denoiser.config.width == 8 and "renderloop train" in denoiser.checkpoint_extra["command"]
+    assert denoiser.config.width == 8 and denoiser.config.spatial_blocks == 2
+    assert "renderloop train" in denoiser.checkpoint_extra["command"]
     assert denoiser.config.temporal and denoiser.config.multiscale  # the shipped one is the full network
     if stage == "staged":
         single = load_checkpoint(out / "stage_single.pt", expected_kind="denoiser")
