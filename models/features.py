@@ -32,8 +32,12 @@ def sanitize(t: Tensor, lo: float = 0.0, hi: float = HDR_MAX) -> tuple[Tensor, i
     return clean.clamp(lo, hi), n_bad
 
 
+# Albedo is a reflectance: at most 1. Renderers that estimate it by evaluating a glossy lobe at
+# one direction (Mitsuba 3's default eval_diffuse_reflectance on a rough conductor) return the
+# lobe's peak instead — up to 55 seen on a Cr surface with roughness 0.05 — and demodulating by
+# that, then remodulating with a lens-jittered copy of it, sprinkled sparkles over the result.
 _RANGES = {  # buffer → valid range
-    "color": (0.0, HDR_MAX), "variance": (0.0, HDR_MAX), "albedo": (0.0, HDR_MAX),
+    "color": (0.0, HDR_MAX), "variance": (0.0, HDR_MAX), "albedo": (0.0, 1.0),
     "normal": (-1.0, 1.0), "depth": (0.0, HDR_MAX), "motion": (-MOTION_MAX, MOTION_MAX),
 }
 

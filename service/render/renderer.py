@@ -77,7 +77,9 @@ def _trace_chunk(mi, scene, integrator, sensor, prev_sensor, pixels: np.ndarray,
     si = scene.ray_intersect(mi.Ray3f(ray))
     hit = si.is_valid()
     bsdf = si.bsdf(mi.RayDifferential3f(ray))
-    albedo = dr.select(hit, bsdf.eval_diffuse_reflectance(si, hit), 0.0)
+    # Clipped to [0, 1]: a reflectance cannot exceed 1, but the default eval_diffuse_reflectance
+    # of glossy BSDFs (rough conductors) returns the lobe's peak value, up to ~55 measured.
+    albedo = dr.select(hit, dr.clip(bsdf.eval_diffuse_reflectance(si, hit), 0.0, 1.0), 0.0)
     normal = dr.select(hit, si.sh_frame.n, 0.0)
     depth = dr.select(hit, si.t, 0.0)
 

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from models.features import (FEATURE_SETS, HDR_MAX, demodulate, feature_set, inverse_log_transform,
+from models.features import (FEATURE_SETS, HDR_MAX, demodulate, feature_set, sanitize_frame, inverse_log_transform,
                              log_transform, network_input, remodulate, sanitize)
 from tests.models.conftest import make_frame
 
@@ -35,3 +35,10 @@ def test_network_input_is_finite_with_hostile_buffers():
 def test_unknown_source_lists_known_ones():
     with pytest.raises(KeyError, match="mitsuba-path"):
         feature_set("blender-cycles")
+
+
+def test_albedo_is_clamped_to_a_reflectance_before_demodulation():
+    f = make_frame()
+    f.albedo[0, :, 2, 3] = 55.0            # a glossy lobe's peak, as some renderers report it
+    clean, n_bad = sanitize_frame(f)
+    assert n_bad == 0 and float(clean.albedo.max()) == 1.0
