@@ -77,9 +77,15 @@ def _trace_chunk(mi, scene, integrator, sensor, prev_sensor, pixels: np.ndarray,
     si = scene.ray_intersect(mi.Ray3f(ray))
     hit = si.is_valid()
     bsdf = si.bsdf(mi.RayDifferential3f(ray))
-    # Clipped to [0, 1]: a reflectance cannot exceed 1, but the default eval_diffuse_reflectance
-    # of glossy BSDFs (rough conductors) returns the lobe's peak value, up to ~55 measured.
-    albedo = dr.select(hit, dr.clip(bsdf.eval_diffuse_reflectance(si, hit), 0.0, 1.0), 0.0)
+    # Albedo is what the denoiser divides out and multiplies back, so it must be a smooth,
+    # low-noise texture. For BSDFs without a diffuse lobe (conductors, glass) Mitsuba's default
+    # eval_diffuse_reflectance evaluates the glossy lobe at one fixed direction: view-dependent
+    # values from 0 to ~55 (Cr, roughness 0.05), jittered by the lens under depth of field, which
+    # the remodulation turned into sparkles. Those surfaces get albedo 1 (the convention Intel
+    # Open Image Denoise documents for specular surfaces); diffuse lobes are clipped to [0, 1].
+    diffuse = mi.has_flag(bsdf.flags(), mi.BSDFFlags.DiffuseReflection)
+    reflectance = dr.clip(bsdf.eval_diffuse_reflectance(si, hit), 0.0, 1.0)
+    albedo = dr.select(hit, dr.select(diffuse, reflectance, 1.0), 0.0)
     normal = dr.select(hit, si.sh_frame.n, 0.0)
     depth = dr.select(hit, si.t, 0.0)
 
