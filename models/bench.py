@@ -36,11 +36,10 @@ def _frame(h: int, w: int, gen: torch.Generator) -> FrameTensors:
                         depth=r(1), motion=(r(2) - 0.5) * 4)
 
 
-def _case(name: str, size: int, repeats: int, threads: int, queue) -> None:
+def _case(name: str, size: int, repeats: int, threads: int, queue, base: DenoiserConfig) -> None:
     torch.set_num_threads(threads)
     torch.manual_seed(0)
     gen = torch.Generator().manual_seed(0)
-    base = DenoiserConfig()
     cfg = {"single-frame": replace(base, temporal=False, multiscale=False),
            "multi-scale": replace(base, temporal=False)}.get(name, base)
     model = Denoiser(cfg).eval()
@@ -68,7 +67,8 @@ def _case(name: str, size: int, repeats: int, threads: int, queue) -> None:
                "peak_rss_mb": rss1 / 1024})
 
 
-def benchmark_models(sizes=(256, 512), repeats: int = 3, threads: int = 2, cases=CASES) -> list[dict]:
+def benchmark_models(sizes=(256, 512), repeats: int = 3, threads: int = 2, cases=CASES,
+                     config: DenoiserConfig | None = None) -> list[dict]:
     """One dict per (case, size): model, size, threads, load_avg_1min (the machine's load
     when the case finished: other processes share the cores), ms_median, ms_min, cpu_ms_median (process CPU time),
     peak_rss_growth_mb, peak_rss_mb."""
@@ -77,25 +77,28 @@ def benchmark_models(sizes=(256, 512), repeats: int = 3, threads: int = 2, cases
     for size in sizes:
         for name in cases:
             queue = ctx.Queue()
-            proc = ctx.Process(target=_case, args=(name, size, repeats, threads, queue))
+            proc = ctx.Process(target=_case, args=(name, size, repeats, threads, queue, config or DenoiserConfig()))
             proc.start()
             rows.append(queue.get())
             proc.join()
     return rows
 
 
-def main() -> None:
-    """python -m models.bench [SIZE ...] [--threads T] [--repeats R]"""
+def main(argv: list[str] | None = None) -> None:
+    """python -m models.bench [SIZE ...] [--threads T] [--repeats R] [--width W] [--spatial-blocks B]"""
     parser = argparse.ArgumentParser(description="CPU benchmark of the default denoiser")
     parser.add_argument("sizes", nargs="*", type=int, default=[256, 512])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
-    args = parser.parse_args()
+    parser.add_argument("--width", type=int, default=DenoiserConfig.width)
+    parser.add_argument("--spatial-blocks", type=int, default=DenoiserConfig.spatial_blocks)
+    args = parser.parse_args(argv)
     sizes, threads, repeats = tuple(args.sizes), args.threads, args.repeats
-    print(f"default config: {DenoiserConfig()}")
+    config = DenoiserConfig(width=args.width, spatial_blocks=args.spatial_blocks)
+    print(f"config: {config}")
     print("| model | size | threads | median wall ms | min wall ms | median CPU ms | peak RSS growth MB | load avg |")
     print("|---|---|---|---|---|---|---|---|")
-    for r in benchmark_models(sizes, repeats, threads):
+    for r in benchmark_models(sizes, repeats, threads, config=config):
         print(f"| {r['model']} | {r['size']}² | {r['threads']} | {r['ms_median']:.0f} | {r['ms_min']:.0f} | {r['cpu_ms_median']:.0f} "
               f"| {r['peak_rss_growth_mb']:.0f} | {r['load_avg_1min']:.1f} |")
 

@@ -149,7 +149,7 @@ def run_bench(args) -> int:
     if args.models:
         from models.bench import main as models_bench
 
-        models_bench()
+        models_bench([])   # the defaults; `python -m models.bench --help` has the options
     if args.denoiser:
         from service.quality import run_quality_report
 

@@ -1,4 +1,4 @@
-from models.bench import benchmark_models
+from models.bench import benchmark_models, main
 
 
 def test_benchmark_reports_time_and_memory_per_case():
@@ -6,3 +6,11 @@ def test_benchmark_reports_time_and_memory_per_case():
     (row,) = benchmark_models(sizes=(8,), repeats=1, threads=1, cases=("lambda-tail",))
     assert row["model"] == "lambda-tail" and row["size"] == 8
     assert row["ms_median"] > 0 and row["cpu_ms_median"] >= 0 and row["peak_rss_growth_mb"] >= 0
+
+
+def test_bench_main_reads_its_own_arguments_not_the_cli_ones(monkeypatch, capsys):
+    """`renderloop bench --models` calls main() with sys.argv = [renderloop, bench, --models]."""
+    monkeypatch.setattr("sys.argv", ["renderloop", "bench", "--models"])
+    main(["8", "--threads", "1", "--repeats", "1", "--width", "8", "--spatial-blocks", "1"])
+    out = capsys.readouterr().out
+    assert "width=8" in out and "| temporal-3 | 8² | 1 |" in out
