@@ -190,6 +190,7 @@ def heldout_images(data_dir: Path, radius: int) -> tuple[list[EvalImage], dict]:
     radius = min(radius, (entry["frames"] - 1) // 2)  # shorter sequences: the widest window that fits
     dataset = DenoiserDataset(data_dir, split="heldout", radius=radius, crop=None, levels=LEVELS)
     images = []
+    references: set[Path] = set()
     for index, item in enumerate(dataset.items):
         sample = dataset[index]
         steps = sample.noisy.color.shape[0]
@@ -197,7 +198,21 @@ def heldout_images(data_dir: Path, radius: int) -> tuple[list[EvalImage], dict]:
         images.append(EvalImage("held-out", f"scene_{item.scene}/frame_{item.frames[sample.centre]}",
                                 int(item.level.removeprefix("spp")), window, sample.centre,
                                 sample.reference[sample.centre][None]))
-    return images, {**entry, "radius": radius}
+        references.add(item.references[sample.centre])
+    return images, {**entry, "radius": radius, "reference_noise": reference_noise(sorted(references))}
+
+
+def reference_noise(paths: Sequence[Path]) -> float:
+    """Mean relative standard error of the references' pixels (same ε as SMAPE): the exact image
+    scores about 0.4× this in SMAPE against them, so it bounds what the scores resolve."""
+    from service.exr import read_exr
+
+    values = []
+    for path in paths:
+        frame = read_exr(path)
+        if frame.variance is not None:
+            values.append(float(np.mean(np.sqrt(np.maximum(frame.variance, 0)) / (np.abs(frame.color) + SMAPE_EPS))))
+    return float(np.mean(values)) if values else float("nan")
 
 
 # --- inputs: built-in scenes rendered here -------------------------------------------------------
@@ -713,6 +728,10 @@ Held-out data: `{data_dir}`, split `heldout`: {n_held} windows of {window} frame
 {held_entry['scenes']} procedural scenes ({held_entry['frames']} frames each, {held_entry['size']}²,
 reference {held_entry['reference_spp']} spp, uniform input levels 16/32/64/128 spp total),
 built by `{held_entry.get('command', '?')}`{complete}. Held-out seeds are disjoint from training seeds.{low_reference}
+The held-out references' own noise, as the mean relative standard error of their pixels (same ε):
+{fmt(held_entry.get('reference_noise', float('nan')), '.4f')}. Against a reference with relative standard error σ, even the exact image
+scores a SMAPE of about 0.4·σ (|d − r| / 2r with gaussian noise: √(2/π) / 2 ≈ 0.4), so held-out SMAPE
+figures near {fmt(0.4 * held_entry.get('reference_noise', float('nan')), '.4f')} are the references' noise, not the denoiser's error.
 
 Built-in scenes: {', '.join(builtin_scenes) or 'none'} at {builtin_size}², rendered here with the
 loop's renderer and integrator; inputs 16 → 32 → 64 → 128 spp progressively, reference

@@ -131,3 +131,8 @@ def test_rank_correlation_matches_a_monotone_map() -> None:
     a = torch.rand(1, 1, 8, 8).numpy()
     assert quality.spearman(a, a ** 3) == pytest.approx(1)
     assert quality.pearson(a, -a) == pytest.approx(-1)
+
+
+def test_report_states_the_held_out_references_own_noise(report: Path) -> None:
+    match = re.search(r"relative standard error of their pixels \(same ε\):\n([\d.]+)\.", report.read_text())
+    assert match and 0 < float(match.group(1)) < 1
