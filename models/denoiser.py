@@ -35,8 +35,8 @@ LAMBDA_MIN, LAMBDA_MAX = 1.0, 10.0   # range of the asymmetric loss weight λ (e
 @dataclass
 class DenoiserConfig:
     source: str = "mitsuba-path"   # render source → encoder input (models.features.FEATURE_SETS)
-    width: int = 24                # feature channels everywhere between encoder and kernel head
-    spatial_blocks: int = 1        # residual blocks of the spatial feature extractor
+    width: int = 32                # feature channels everywhere between encoder and kernel head
+    spatial_blocks: int = 2        # residual blocks of the spatial feature extractor
     temporal_blocks: int = 3       # residual blocks of the temporal feature extractor (paper: 3)
     kernel_size: int = 5           # k; per level, so the 3-level pyramid reaches 5·4 = 20 px
     levels: int = 3                # pyramid levels (paper: 3)

@@ -716,8 +716,9 @@ These are **ablations of the one trained network**, not separately trained model
 row uses the same weights, with stages switched off. The trainer cuts half of its windows to
 the centre frame, so the one-frame multi-scale row is a setting the network was trained for.
 The single-scale row is not: in training the finest level's result always went through the
-compositor, so a network trained single-scale would likely beat that row, and the gap from it
-to the multi-scale rows overstates what compositing adds.
+compositor, and the trunk it shares with the coarse levels was also trained for them. The
+README's "Shipped weights" compares the separately trained stage networks (single-scale,
++ compositor, + temporal), which is the cleaner measure of what each stage adds.
 {"" if OIDN in names else f"OIDN: {oidn_note}"}
 
 Metrics per image, then the mean over images at each level: SMAPE (ε = 0.01, Vogels et al.
