@@ -635,6 +635,8 @@ def _run(data_dir: Path, out_dir: Path, weights_dir: Path, builtin_scenes: Seque
             "built_error": markdown_error("Built-in scenes", error_predictor_table(built)) if built else "",
         }
         crops = []
+        for stale in crops_dir.glob("*.png"):   # the example images change with the data: no orphans
+            stale.unlink()
         for group, outs, prefer in (("heldout", held, None), ("builtin", built, "fireflies")):
             example = pick_example(outs, prefer)
             if example is not None:

@@ -32,6 +32,9 @@ def report(tmp_path_factory) -> Path:
     build_dataset(data, scenes=2, size=16, frames=3, seed=0, split="heldout", reference_spp=64, progress=False)
     save_checkpoint(weights / "denoiser.pt", tiny_denoiser(), extra={"command": "tiny untrained"})
     save_checkpoint(weights / "error_predictor.pt", ErrorPredictor(ErrorPredictorConfig(width=8, blocks=1)))
+    crops = root / "docs" / quality.CROPS_DIR
+    crops.mkdir(parents=True)
+    (crops / "heldout_scene_of_an_older_data_set_reference.png").write_bytes(b"stale")
     return quality.run_quality_report(data, root / "docs", weights_dir=weights, builtin_scenes=("cornell-box",),
                                       builtin_size=16, reference_spp=64, lambdas=(1.0, 10.0))
 
@@ -104,6 +107,8 @@ def test_crops_are_written_and_linked(report: Path) -> None:
     assert any("temporal" in link for link in links) and any("true-SMAPE" in link for link in links)
     for link in links:
         assert (report.parent / link).stat().st_size > 0
+    written = {f"{quality.CROPS_DIR}/{p.name}" for p in (report.parent / quality.CROPS_DIR).glob("*.png")}
+    assert written == set(links)        # crops of an earlier run's example images are gone
 
 
 def test_ablation_reuses_the_trained_weights() -> None:
