@@ -14,9 +14,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.denoiser import LAMBDA_MAX, Denoiser, down, pad_to
-from models.features import demodulate
+from models.denoiser import LAMBDA_MAX, Denoiser, DenoiserCache, down, pad_to
 from models.error_predictor import ErrorPredictor
+from models.features import demodulate
 from models.frames import FrameTensors
 from models.losses import asymmetric_loss, l1, smape, smape_map
 
@@ -72,7 +72,7 @@ def denoiser_loss(model: Denoiser, frames: list[FrameTensors], centre: int, refe
     return loss
 
 
-def coarse_levels_loss(model: Denoiser, cache, levels: list[Tensor], noisy: Tensor, reference: Tensor,
+def coarse_levels_loss(model: Denoiser, cache: DenoiserCache, levels: list[Tensor], noisy: Tensor, reference: Tensor,
                        lam: Tensor) -> Tensor:
     """Mean of eq. 6 over the coarse levels, in the demodulated space the levels filter, with
     reference, noisy input and λ pooled like the pyramid pools its inputs."""

@@ -263,9 +263,10 @@ def train_error_predictor(args, device) -> dict:
 def run_train(args) -> int:
     import torch
 
-    for name in ("steps", "batch", "crop", "val_every"):
-        if getattr(args, name) < 1:
-            print(f"renderloop train: error: --{name.replace('_', '-')} must be >= 1", file=sys.stderr)
+    for name, least in (("steps", 1), ("batch", 1), ("crop", 1), ("val_every", 1), ("width", 1), ("spatial_blocks", 0)):
+        value = getattr(args, name)
+        if value is not None and value < least:
+            print(f"renderloop train: error: --{name.replace('_', '-')} must be >= {least}", file=sys.stderr)
             return 2
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     args.command_line = "renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:])
