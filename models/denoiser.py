@@ -165,9 +165,15 @@ class ScaleCompositor(nn.Module):
         super().__init__()
         self.alpha = nn.Sequential(conv3x3(6, width), nn.ReLU(), conv3x3(width, 1))
 
-    def forward(self, fine: Tensor, coarse: Tensor) -> Tensor:
+    def blend_weight(self, fine_low: Tensor, coarse: Tensor) -> Tensor:
+        """α ∈ (0, 1) at the coarse resolution (N,1,h,w)."""
+        return torch.sigmoid(self.alpha(torch.cat([log_transform(fine_low), log_transform(coarse)], 1)))
+
+    def forward(self, fine: Tensor, coarse: Tensor, alphas: list[Tensor] | None = None) -> Tensor:
         fine_low = down(fine)
-        a = torch.sigmoid(self.alpha(torch.cat([log_transform(fine_low), log_transform(coarse)], 1)))
+        a = self.blend_weight(fine_low, coarse)
+        if alphas is not None:
+            alphas.append(a)
         # Swapping bands can undershoot below 0 next to a firefly; radiance cannot be negative,
         # and the next level's log transform needs x > -1.
         return torch.addcmul(fine, up(a), up(coarse - fine_low)).clamp_min_(0)
@@ -280,11 +286,12 @@ class Denoiser(nn.Module):
             results.append(filter_padded(level.padded, weights, k))             # eq. 3
         return results
 
-    def merge_levels(self, cache: DenoiserCache, results: list[Tensor]) -> Tensor:
-        """Scale compositor coarse → fine (eq. 5), albedo back in, crop to the input size."""
+    def merge_levels(self, cache: DenoiserCache, results: list[Tensor], alphas: list[Tensor] | None = None) -> Tensor:
+        """Scale compositor coarse → fine (eq. 5), albedo back in, crop to the input size.
+        alphas: a list to receive each step's α (coarsest step first), for diagnostics."""
         out = results[-1]
         for fine in reversed(results[:-1]):
-            out = self.composite(fine, out)
+            out = self.composite(fine, out, alphas)
         h, w = cache.size
         return remodulate(out, cache.albedo)[..., :h, :w]
 

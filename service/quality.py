@@ -36,7 +36,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from models.checkpoint import load_checkpoint
-from models.denoiser import Denoiser
+from models.denoiser import Denoiser, DenoiserCache, down, pad_to
+from models.features import demodulate
 from models.error_predictor import ErrorPredictor
 from models.frames import FrameTensors
 from models.losses import SMAPE_EPS, smape, smape_map
@@ -102,6 +103,7 @@ class Outputs:
     results: dict[str, Tensor]               # method → (1,3,H,W)
     predicted_error: Tensor | None = None    # (1,1,H,W), for the temporal result
     lambda_results: dict[float, Tensor] = field(default_factory=dict)
+    pyramid: list[dict[str, float]] = field(default_factory=list)   # per coarse level, see pyramid_levels
 
 
 Method = Callable[[EvalImage], Tensor]
@@ -372,10 +374,35 @@ def evaluate(images: list[EvalImage], methods: dict[str, Method], denoiser: Deno
         if image.spp == HEADLINE_SPP:
             cache = denoiser.prepare(image.window, image.centre)
             out.lambda_results = {lam: denoiser.apply(cache, lam) for lam in lambdas}
+            out.pyramid = pyramid_levels(denoiser, cache, image)
         outputs.append(out)
         if n % 8 == 0 or n == len(images):
             log(f"{image.group}: {n}/{len(images)} images denoised")
     return outputs
+
+
+def pyramid_levels(denoiser: Denoiser, cache: DenoiserCache, image: EvalImage) -> list[dict[str, float]]:
+    """Per coarse level l (λ = 1, demodulated, against the reference pooled l times): SMAPE of the
+    level's own result, of the finest result pooled l times, of the noisy input pooled l times;
+    and the compositor's mean α where the level's result enters the next finer one.
+
+    A coarse level helps only where its own result beats the pooled finest one; when it is no
+    better than the pooled noisy input it was never trained, and α goes to 0 (the failure the
+    coarse-level loss in models/training.py fixed)."""
+    if denoiser.composite is None:
+        return []
+    levels, alphas = denoiser.filter_levels(cache, 1.0), []
+    denoiser.merge_levels(cache, levels, alphas)
+    alphas.reverse()                                   # finest step first: alphas[l-1] joins level l
+    align = denoiser.config.alignment
+    reference = demodulate(pad_to(clean(image.reference), align), cache.albedo)
+    noisy = demodulate(pad_to(clean(image.frame.color), align), cache.albedo)
+    finest, rows = levels[0], []
+    for level, alpha in zip(levels[1:], alphas):
+        reference, noisy, finest = down(reference), down(noisy), down(finest)
+        rows.append({"own": float(smape(level, reference)), "pooled_finest": float(smape(finest, reference)),
+                     "pooled_noisy": float(smape(noisy, reference)), "alpha": float(alpha.mean())})
+    return rows
 
 
 def quality_table(outputs: list[Outputs], methods: Sequence[str]) -> dict[tuple[int, str], dict[str, float]]:
@@ -523,6 +550,20 @@ def markdown_lambda(title: str, table: dict[float, dict[str, float]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def markdown_pyramid(outputs: list[Outputs]) -> str:
+    """Mean of `pyramid_levels` over the images that have it, one row per coarse level."""
+    rows = [out.pyramid for out in outputs if out.pyramid]
+    if not rows:
+        return "The network has no coarse levels (single-scale)."
+    lines = ["| level (resolution) | SMAPE of its own result | finest result pooled | noisy input pooled | mean α joining the finer level |",
+             "|---|---:|---:|---:|---:|"]
+    for level in range(len(rows[0])):
+        mean = {key: float(np.mean([r[level][key] for r in rows])) for key in rows[0][level]}
+        lines.append(f"| {level + 1} (1/{2 ** (level + 1)}) | {fmt(mean['own'])} | {fmt(mean['pooled_finest'])} "
+                     f"| {fmt(mean['pooled_noisy'])} | {fmt(mean['alpha'], '.3f')} |")
+    return "\n".join(lines)
+
+
 def markdown_error(title: str, table: dict[int, dict[str, tuple]]) -> str:
     lines = [f"### {title}", "",
              "| spp | images | Pearson mean [min, max] | Spearman mean [min, max] | mean predicted SMAPE | mean true SMAPE |",
@@ -632,6 +673,7 @@ def _run(data_dir: Path, out_dir: Path, weights_dir: Path, builtin_scenes: Seque
             "held_lambda": markdown_lambda(f"Held-out scenes, {HEADLINE_SPP} spp", lambda_table(held)),
             "built_lambda": markdown_lambda(f"Built-in scenes, {HEADLINE_SPP} spp", lambda_table(built)) if built else "",
             "held_error": markdown_error("Held-out scenes", error_predictor_table(held)),
+            "pyramid": markdown_pyramid(held),
             "built_error": markdown_error("Built-in scenes", error_predictor_table(built)) if built else "",
         }
         crops = []
@@ -755,6 +797,16 @@ other camera positions, warped along motion vectors.
 | image | SMAPE noisy | SMAPE temporal | reduction |
 |---|---:|---:|---:|
 {per_scene_rows}
+
+## Pyramid levels
+
+Held-out scenes, {HEADLINE_SPP} spp, λ = 1, temporal window: each coarse level's own filtered
+result against the reference pooled to its resolution (all demodulated by albedo), next to
+the finest result and the noisy input pooled the same way, and the scale compositor's mean α
+(eq. 5) where the level's result enters the next finer one. A coarse level earns its α where
+its own result beats the pooled finest result.
+
+{sections['pyramid']}
 
 ## Temporal flicker
 

@@ -141,3 +141,12 @@ def test_rank_correlation_matches_a_monotone_map() -> None:
 def test_report_states_the_held_out_references_own_noise(report: Path) -> None:
     match = re.search(r"relative standard error of their pixels \(same ε\):\n([\d.]+)\.", report.read_text())
     assert match and 0 < float(match.group(1)) < 1
+
+
+def test_pyramid_section_reports_each_coarse_level_and_its_alpha(report: Path) -> None:
+    rows = re.findall(r"^\| (\d) \(1/(\d+)\) \| ([\d.]+) \| ([\d.]+) \| ([\d.]+) \| ([\d.]+) \|$",
+                      section(report.read_text(), "## Pyramid levels"), re.M)
+    assert [(int(level), int(scale)) for level, scale, *_ in rows] == [(1, 2), (2, 4)]   # 3-level pyramid
+    for *_, own, pooled_finest, pooled_noisy, alpha in rows:
+        assert float(pooled_noisy) > 0 and float(own) > 0 and float(pooled_finest) > 0
+        assert 0 < float(alpha) < 1
