@@ -25,6 +25,15 @@ def frame_path(out: Path, frame: int, frames: int) -> Path:
     return out if frames == 1 else out.with_name(f"{out.stem}_{frame:04d}{out.suffix}")
 
 
+def load_cli_networks(weights: Path | None):
+    """Torch threads and networks, chosen once per command and passed down (DESIGN.md)."""
+    from models.pretrained import load_networks
+    from service.loop.denoise import configure_torch_threads
+
+    configure_torch_threads()
+    return load_networks(weights)
+
+
 # -- render -----------------------------------------------------------------------------------
 
 def add_render_parser(sub) -> None:
@@ -47,6 +56,8 @@ def add_render_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--png", action="store_true", help="also write a tonemapped PNG beside each EXR")
     p.add_argument("-o", "--output", type=Path, help="output EXR path")
+    p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
+                   "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
     p.set_defaults(handler=run_render)
 
 
@@ -94,7 +105,7 @@ def run_render(args) -> int:
     from service.images import tonemap, write_png
     from service.loop.loop import RenderLoop
 
-    loop = RenderLoop(spec)
+    loop = RenderLoop(spec, load_cli_networks(args.weights) if spec.denoise else None)
     bar = tqdm(total=spec.max_iterations, unit="it", desc=Path(spec.scene).stem, file=sys.stderr)
     record = None
     for record in loop.run():
@@ -120,6 +131,8 @@ def add_serve_parser(sub) -> None:
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--data-dir", type=Path, default=Path(os.environ.get("RENDERLOOP_DATA_DIR", "data")))
     p.add_argument("--concurrency", type=int, default=1, help="jobs rendered at once (default 1)")
+    p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
+                   "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
     p.set_defaults(handler=run_serve)
 
 
@@ -133,7 +146,7 @@ def run_serve(args) -> int:
     print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir})")
     print(f"try: curl -X POST http://{args.host}:{args.port}/jobs -H 'content-type: application/json' "
           "-d '{\"scene\": \"cornell-box\", \"width\": 64, \"height\": 64, \"max_iterations\": 3}'")
-    serve(args.host, args.port, args.data_dir, args.concurrency)
+    serve(args.host, args.port, args.data_dir, args.concurrency, networks=load_cli_networks(args.weights))
     return 0
 
 

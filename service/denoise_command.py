@@ -23,6 +23,8 @@ def add_parser(sub) -> None:
     p.add_argument("--frames", type=Path, nargs="+", default=[],
                    help="neighbour frames in sequence order, the input among them or not (temporal window)")
     p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
+                   "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
     p.set_defaults(handler=run_denoise)
 
 
@@ -64,7 +66,8 @@ def load_lambda(args, shape: tuple[int, int]) -> np.ndarray:
 def run_denoise(args) -> int:
     import torch
 
-    from models.pretrained import load_default_denoiser, load_default_error_predictor
+    from models.pretrained import load_networks
+    from service.loop.denoise import configure_torch_threads
     from service.loop.denoise import lam_tensor, to_image
 
     centre_frame = read_exr(args.input)
@@ -80,7 +83,9 @@ def run_denoise(args) -> int:
     window = [frame_from_exr(p, f) for p, f in zip(paths, frames)]
     lam = load_lambda(args, centre_frame.shape)
 
-    denoiser, error_predictor = load_default_denoiser(), load_default_error_predictor()
+    configure_torch_threads()
+    networks = load_networks(args.weights)
+    denoiser, error_predictor = networks.denoiser, networks.error_predictor
     with torch.no_grad():
         denoised = denoiser(window, centre, lam_tensor(lam))
         error = error_predictor(window[centre], denoised)

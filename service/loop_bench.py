@@ -213,7 +213,7 @@ def load_networks(weights_dir: Path | None) -> Networks:
     import models.pretrained as pretrained
     from models.checkpoint import load_checkpoint, read_checkpoint
 
-    directory = Path(weights_dir) if weights_dir is not None else pretrained.DEFAULT_WEIGHTS_DIR
+    directory = pretrained.weights_dir(weights_dir)
     paths = [directory / pretrained.DENOISER_FILE, directory / pretrained.ERROR_PREDICTOR_FILE]
     denoiser, error_predictor = (load_checkpoint(p) for p in paths)
     parts = []
@@ -355,11 +355,11 @@ def _loop_spec(scene: BenchScene, method: Method, settings: BenchSettings, itera
 
 
 def _make_loop(scene: BenchScene, method: Method, settings: BenchSettings, nets: Networks, iterations: int):
+    from models.pretrained import Networks as LoopNetworks
     from service.loop.loop import RenderLoop
 
     error_predictor = nets.error_predictor if method.predicts_error else _no_error_prediction()
-    return RenderLoop(_loop_spec(scene, method, settings, iterations), denoiser=nets.denoiser,
-                      error_predictor=error_predictor)
+    return RenderLoop(_loop_spec(scene, method, settings, iterations), LoopNetworks(nets.denoiser, error_predictor))
 
 
 def warm_up(scene: BenchScene, settings: BenchSettings, nets: Networks) -> None:
@@ -463,7 +463,7 @@ def serve_for_bench(port: int, data_dir: str, weights_dir: str) -> None:
     import torch
 
     torch.set_num_threads(TORCH_THREADS)
-    pretrained.DEFAULT_WEIGHTS_DIR = Path(weights_dir)
+    os.environ[pretrained.WEIGHTS_DIR_ENV] = weights_dir
     os.environ[DATA_DIR_ENV] = data_dir
     uvicorn.run(app_from_env(), host="127.0.0.1", port=port, log_level="warning")
 

@@ -42,7 +42,7 @@ from models.error_predictor import ErrorPredictor
 from models.frames import FrameTensors
 from models.losses import SMAPE_EPS, smape, smape_map
 from models.metrics import psnr, relmse, ssim
-from models.pretrained import DEFAULT_WEIGHTS_DIR, DENOISER_FILE, ERROR_PREDICTOR_FILE
+from models.pretrained import SHIPPED_WEIGHTS_DIR, DENOISER_FILE, ERROR_PREDICTOR_FILE
 from service.images import false_colour, linear_to_srgb, tonemap, write_png
 
 REPORT_COMMAND = "renderloop bench --denoiser --data {data}"
@@ -610,7 +610,7 @@ def run_quality_report(
     data_dir: str | Path,
     out_dir: str | Path,
     *,
-    weights_dir: str | Path = DEFAULT_WEIGHTS_DIR,
+    weights_dir: str | Path = SHIPPED_WEIGHTS_DIR,
     builtin_scenes: Sequence[str] = ("cornell-box", "glossy-spheres", "fireflies"),
     builtin_size: int = 64,
     reference_spp: int = 2048,

@@ -20,7 +20,7 @@ from service.loop_bench import METRICS, STAGES, run_loop_benchmark, time_to_reac
 def weights_dir(tmp_path: Path) -> Path | None:
     """The shipped weights when they exist; otherwise tiny untrained networks (speed and
     plumbing are what this test checks, not quality)."""
-    shipped = pretrained.DEFAULT_WEIGHTS_DIR
+    shipped = pretrained.SHIPPED_WEIGHTS_DIR
     if all((shipped / name).is_file() for name in (pretrained.DENOISER_FILE, pretrained.ERROR_PREDICTOR_FILE)):
         return None
     torch.manual_seed(0)

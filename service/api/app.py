@@ -18,6 +18,7 @@ from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 
+from models.pretrained import Networks
 from service.api import imaging
 from service.images import png_bytes
 from service.api.errors import BodySizeLimit, install_error_handlers
@@ -76,9 +77,9 @@ def _uploads(form, name: str) -> list[UploadFile]:
     return [item for item in form.getlist(name) if isinstance(item, UploadFile)]
 
 
-def create_app(data_dir: Path, *, concurrency: int = 1) -> FastAPI:
+def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1) -> FastAPI:
     store = JobStore(Path(data_dir))
-    worker = JobWorker(store, concurrency=concurrency)
+    worker = JobWorker(store, networks, concurrency=concurrency)
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:

@@ -25,6 +25,7 @@ from service.jobs.latest import LatestWins
 from service.jobs.store import CANCELED, COMPLETED, FAILED, QUEUED, JobRecord, JobStore
 
 if TYPE_CHECKING:  # the loop pulls in Mitsuba and torch: import it only where a job runs
+    from models.pretrained import Networks
     from service.loop.loop import RenderLoop
     from service.loop.spec import IterationRecord, LoopSpec
 
@@ -80,10 +81,11 @@ def _add_timings(total: dict[str, float], more: dict[str, float]) -> dict[str, f
 
 
 class JobWorker:
-    def __init__(self, store: JobStore, concurrency: int = 1) -> None:
+    def __init__(self, store: JobStore, networks: "Networks", concurrency: int = 1) -> None:
         if concurrency < 1:
             raise ValueError("concurrency must be >= 1")
         self.store = store
+        self.networks = networks  # loaded once at start-up, shared by every job's loop
         self._pool = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="render")
         self._lock = threading.Lock()
         self._cancel: dict[str, threading.Event] = {}
@@ -170,7 +172,7 @@ class JobWorker:
         from service.loop.state import LoopState
 
         state = LoopState.load(files.state_dir) if files.has_checkpoint() else None
-        loop = RenderLoop(loop_spec(record.spec, files), state=state)
+        loop = RenderLoop(loop_spec(record.spec, files), self.networks, state=state)
         if state is not None:
             self.store.set_resumed_from(job_id, state.iteration)
         with self._lock:
@@ -314,6 +316,6 @@ class JobWorker:
         from service.loop.loop import RenderLoop
         from service.loop.state import LoopState
 
-        loop = RenderLoop(loop_spec(record.spec, files), state=LoopState.load(files.state_dir))
+        loop = RenderLoop(loop_spec(record.spec, files), self.networks, state=LoopState.load(files.state_dir))
         self._keep_idle(job_id, loop)
         return loop

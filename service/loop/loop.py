@@ -14,9 +14,10 @@ from typing import Callable, Iterator
 import numpy as np
 import torch
 
+from models.pretrained import Networks
 from service.exr import ExrFrame
 from service.loop.allocate import allocate_samples, allocation_weights, iteration_budget
-from service.loop.denoise import configure_torch_threads, frame_tensors, lam_tensor, temporal_window, to_image
+from service.loop.denoise import frame_tensors, lam_tensor, temporal_window, to_image
 from service.loop.spec import ALLOCATORS, IterationRecord, LoopSpec
 from service.loop.state import LoopState
 from service.render.effects import inspect_frames, load_frames, make_integrator
@@ -50,9 +51,11 @@ def validate_spec(spec: LoopSpec) -> None:
 
 
 class RenderLoop:
-    def __init__(self, spec: LoopSpec, *, state: LoopState | None = None, denoiser=None, error_predictor=None):
+    def __init__(self, spec: LoopSpec, networks: Networks | None = None, *, state: LoopState | None = None):
+        """`networks`: loaded once by the caller (CLI, server, benchmark); needed when denoising."""
         validate_spec(spec)
-        configure_torch_threads()
+        if spec.denoise and networks is None:
+            raise LoopSpecError("denoising needs the networks: pass them (models.pretrained.load_networks)")
         self.spec = spec
         # Each frame is loaded once; the effects report reads the loaded frames.
         loaded = load_frames(spec.scene, frames=spec.frames, width=spec.width, height=spec.height)
@@ -63,11 +66,8 @@ class RenderLoop:
         self.state = state or LoopState.new(spec.frames, int(height), int(width), spec.lam)
         if self.state.buffers[0].shape != (height, width) or len(self.state.buffers) != spec.frames:
             raise LoopSpecError("checkpoint does not match the job's resolution or frame count")
-        self.denoiser, self.error_predictor = denoiser, error_predictor
-        if spec.denoise and denoiser is None:
-            from models.pretrained import load_default_denoiser, load_default_error_predictor
-
-            self.denoiser, self.error_predictor = load_default_denoiser(), load_default_error_predictor()
+        self.denoiser = networks.denoiser if networks is not None else None
+        self.error_predictor = networks.error_predictor if networks is not None else None
         self._caches: list = [None] * spec.frames  # pre-λ features per frame (models.Denoiser.prepare)
         self._denoised: list[np.ndarray | None] = [None] * spec.frames
         self._lock = threading.RLock()

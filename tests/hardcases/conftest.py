@@ -71,7 +71,7 @@ SCENES: dict[str, tuple[str, dict, str]] = {
 
 @pytest.fixture(scope="session")
 def weights_dir(tmp_path_factory) -> Path:
-    shipped = pretrained.DEFAULT_WEIGHTS_DIR
+    shipped = pretrained.SHIPPED_WEIGHTS_DIR
     if (shipped / pretrained.DENOISER_FILE).is_file() and (shipped / pretrained.ERROR_PREDICTOR_FILE).is_file():
         return shipped
     folder = tmp_path_factory.mktemp("untrained-weights")

@@ -10,6 +10,7 @@ import torch
 
 from hardcase_checks import assert_finite_frame, doubling_totals, run_checked
 from service.loop.allocate import ALLOCATORS, DEFAULT_CAP_MULTIPLE, allocate_samples, allocation_weights
+from models.pretrained import Networks
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
 
@@ -20,7 +21,7 @@ PIXELS = SIZE * SIZE
 def make_loop(nets, error_predictor=None, **spec) -> RenderLoop:
     spec = {"max_iterations": 3, "allocator": "error", **spec}
     return RenderLoop(LoopSpec(scene="fireflies", width=SIZE, height=SIZE, **spec),
-                      denoiser=nets[0], error_predictor=error_predictor or nets[1])
+                      Networks(nets[0], error_predictor or nets[1]))
 
 
 def test_nan_and_inf_injected_into_the_accumulators(nets):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from hardcase_checks import doubling_totals, run_checked
+from models.pretrained import Networks
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
 
@@ -15,7 +16,7 @@ ITERATIONS = 3
 def loop_for(source: str, nets, size: int = 16, **spec) -> RenderLoop:
     spec = {"max_iterations": ITERATIONS, "allocator": "error", **spec}
     return RenderLoop(LoopSpec(scene=str(source), width=size, height=size, **spec),
-                      denoiser=nets[0], error_predictor=nets[1])
+                      Networks(nets[0], nets[1]))
 
 
 def test_tiny_very_bright_light(nets):
@@ -58,7 +59,7 @@ def test_sequence_whose_camera_moves_off_the_previous_frame(nets, hard_scene):
 @pytest.mark.parametrize("width, height", [(1, 1), (7, 13), (1024, 16)])
 def test_odd_image_sizes(nets, width, height):
     loop = RenderLoop(LoopSpec(scene="cornell-box", width=width, height=height, max_iterations=2, allocator="error"),
-                      denoiser=nets[0], error_predictor=nets[1])
+                      Networks(nets[0], nets[1]))
     records = run_checked(loop, doubling_totals(width * height, 16, 2))
     assert records[-1].denoised[0].shape == (height, width, 3)
     assert records[-1].error[0].shape == (height, width)

@@ -5,6 +5,7 @@ import torch
 
 from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from models.pretrained import Networks
 from service.loop.loop import LoopSpecError, RenderLoop
 from service.loop.spec import LoopSpec
 from service.loop.state import LoopState
@@ -25,7 +26,7 @@ def nets():
 
 def make_loop(nets, **overrides) -> RenderLoop:
     spec = LoopSpec(scene="cornell-box", width=SIZE, height=SIZE, **{"max_iterations": 3, **overrides})
-    return RenderLoop(spec, denoiser=nets[0], error_predictor=nets[1])
+    return RenderLoop(spec, Networks(nets[0], nets[1]))
 
 
 def test_every_iteration_doubles_the_total_sample_count(nets):
@@ -62,7 +63,7 @@ def test_should_stop_cancels_between_iterations(nets):
 
 def test_no_denoise_returns_the_monte_carlo_mean(nets):
     loop = RenderLoop(LoopSpec(scene="cornell-box", width=SIZE, height=SIZE, max_iterations=2,
-                               denoise=False, allocator="uniform"))
+                               denoise=False, allocator="uniform"), None)
     records = list(loop.run())
     np.testing.assert_array_equal(records[-1].denoised[0], records[-1].buffers[0].mean)
     assert records[-1].predicted_error is None and records[-1].spp_mean == 32
@@ -98,7 +99,7 @@ def test_resume_from_checkpoint_continues_the_doubling(nets, tmp_path):
     first.state.save(tmp_path / "state")
     state = LoopState.load(tmp_path / "state")
     assert state.iteration == 1 and (state.lam_map == 3.0).all()
-    resumed = RenderLoop(first.spec, state=state, denoiser=nets[0], error_predictor=nets[1])
+    resumed = RenderLoop(first.spec, Networks(nets[0], nets[1]), state=state)
     records = list(resumed.run())
     assert [r.spp_mean for r in records] == [32, 64]
     np.testing.assert_array_equal(resumed.state.buffers[0].spp.sum(), 64 * SIZE * SIZE)
@@ -108,7 +109,7 @@ def test_a_finished_checkpoint_does_not_render_again(nets, tmp_path):
     loop = make_loop(nets, max_iterations=1)
     list(loop.run())
     loop.state.save(tmp_path / "s")
-    again = RenderLoop(loop.spec, state=LoopState.load(tmp_path / "s"), denoiser=nets[0], error_predictor=nets[1])
+    again = RenderLoop(loop.spec, Networks(nets[0], nets[1]), state=LoopState.load(tmp_path / "s"))
     assert list(again.run()) == []
     assert again.state.spp_mean == 16
 
@@ -122,7 +123,7 @@ def test_bad_specs_are_rejected_with_a_message():
 
 def test_a_moving_sequence_advances_every_frame_with_motion_vectors(nets):
     loop = RenderLoop(LoopSpec(scene="cornell-box-orbit", width=SIZE, height=SIZE, frames=3, max_iterations=2),
-                      denoiser=nets[0], error_predictor=nets[1])
+                      Networks(nets[0], nets[1]))
     assert loop.effects.temporal and loop.effects.motion_vectors
     records = list(loop.run())
     assert records[-1].spp_mean == 32 and len(records[-1].denoised) == 3

@@ -50,12 +50,19 @@ def test_shape_mismatch_raises_checkpoint_error_naming_the_tensor(tmp_path):
         load_checkpoint(path)
 
 
-def test_missing_default_weights_say_how_to_produce_them(tmp_path, monkeypatch):
-    monkeypatch.setattr(pretrained, "DEFAULT_WEIGHTS_DIR", tmp_path)
+def test_missing_weights_say_how_to_produce_them(tmp_path):
     with pytest.raises(CheckpointError, match="renderloop train"):
-        pretrained.load_default_denoiser()
+        pretrained.load_denoiser(tmp_path)
     with pytest.raises(CheckpointError, match="renderloop train"):
-        pretrained.load_default_error_predictor()
+        pretrained.load_error_predictor(tmp_path)
+
+
+def test_weights_dir_follows_the_environment_unless_named(tmp_path, monkeypatch):
+    monkeypatch.delenv(pretrained.WEIGHTS_DIR_ENV, raising=False)
+    assert pretrained.weights_dir() == pretrained.SHIPPED_WEIGHTS_DIR
+    monkeypatch.setenv(pretrained.WEIGHTS_DIR_ENV, str(tmp_path))
+    assert pretrained.weights_dir() == tmp_path
+    assert pretrained.weights_dir(tmp_path / "other") == tmp_path / "other"
 
 
 

@@ -2,7 +2,7 @@
 
 It runs exactly what `uvicorn --factory service.api.serve:app_from_env` runs. The one
 difference: while the shipped weights (models/weights/*.pt) do not exist yet, it points
-`models.pretrained` at small *untrained* networks saved under $RENDERLOOP_DATA_DIR/weights,
+$RENDERLOOP_WEIGHTS_DIR at small *untrained* networks saved under $RENDERLOOP_DATA_DIR/weights,
 so the denoiser path (features cache, λ re-denoise) is exercised by real networks. Once the
 trained weights ship, they are used as they are.
 """
@@ -37,9 +37,9 @@ def untrained_weights(directory: Path) -> Path:
 
 
 def main(port: int) -> None:
-    shipped = pretrained.DEFAULT_WEIGHTS_DIR
+    shipped = pretrained.SHIPPED_WEIGHTS_DIR
     if not (shipped / pretrained.DENOISER_FILE).is_file():
-        pretrained.DEFAULT_WEIGHTS_DIR = untrained_weights(Path(os.environ[DATA_DIR_ENV]) / "weights")
+        os.environ[pretrained.WEIGHTS_DIR_ENV] = str(untrained_weights(Path(os.environ[DATA_DIR_ENV]) / "weights"))
     uvicorn.run(app_from_env(), host="127.0.0.1", port=port, log_level="warning")
 
 
