@@ -67,8 +67,8 @@ def run_denoise(args) -> int:
     import torch
 
     from models.pretrained import load_networks
-    from service.loop.denoise import configure_torch_threads
-    from service.loop.denoise import lam_tensor, to_image
+    from service.loop.tensors import configure_torch_threads
+    from service.loop.tensors import lam_tensor, to_image
 
     centre_frame = read_exr(args.input)
     paths = [Path(p) for p in args.frames]

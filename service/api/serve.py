@@ -26,7 +26,7 @@ def default_data_dir() -> Path:
 def app_from_env() -> FastAPI:
     from models.pretrained import load_networks
     from service.api.app import create_app
-    from service.loop.denoise import configure_torch_threads
+    from service.loop.tensors import configure_torch_threads
 
     configure_torch_threads()
     return create_app(default_data_dir(), networks=load_networks(),

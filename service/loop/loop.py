@@ -17,7 +17,7 @@ import torch
 from models.pretrained import Networks
 from service.exr import ExrFrame
 from service.loop.allocate import allocate_samples, allocation_weights, iteration_budget
-from service.loop.denoise import frame_tensors, lam_tensor, temporal_window, to_image
+from service.loop.tensors import frame_tensors, lam_tensor, temporal_window, to_image
 from service.loop.spec import ALLOCATORS, IterationRecord, LoopSpec
 from service.loop.state import LoopState
 from service.render.effects import inspect_frames, load_frames, make_integrator

@@ -79,7 +79,7 @@ def test_lambda_change_uses_cached_features_and_changes_the_image(nets):
     assert loop.full_calls == full and loop.tail_calls == 1 and loop.uses_cached_features
     assert not np.allclose(before, after)
     # The cached tail gives exactly what a full forward pass with that λ gives.
-    from service.loop.denoise import frame_tensors, lam_tensor, to_image
+    from service.loop.tensors import frame_tensors, lam_tensor, to_image
 
     with torch.no_grad():
         direct = to_image(nets[0]([frame_tensors(loop.state.buffers[0])], 0, lam_tensor(lam)))

@@ -12,7 +12,7 @@ import torch
 from models.checkpoint import save_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
-from service import quality
+import bench.quality_report as quality
 
 SPP_LEVELS = (16, 32, 64, 128)
 NETWORK_ROWS = (quality.NOISY, quality.SINGLE, quality.MULTISCALE, quality.TEMPORAL)

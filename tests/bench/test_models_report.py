@@ -1,4 +1,4 @@
-from models.bench import benchmark_models, main
+from bench.models_report import benchmark_models, main
 
 
 def test_benchmark_reports_time_and_memory_per_case():

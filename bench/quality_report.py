@@ -19,10 +19,7 @@ networks, and the report says so.
 from __future__ import annotations
 
 import dataclasses
-import datetime as _dt
 import math
-import os
-import platform
 import sys
 import time
 import warnings
@@ -35,15 +32,25 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from bench.common import (REFERENCE_SEED, cached_reference, display, oidn_denoiser, pinned_torch_threads,
+                          provenance, sanitize as clean, score)
 from models.checkpoint import load_checkpoint
 from models.denoiser import Denoiser, DenoiserCache, down, pad_to
 from models.features import demodulate
 from models.error_predictor import ErrorPredictor
 from models.frames import FrameTensors
 from models.losses import SMAPE_EPS, smape, smape_map
-from models.metrics import psnr, relmse, ssim
 from models.pretrained import SHIPPED_WEIGHTS_DIR, DENOISER_FILE, ERROR_PREDICTOR_FILE
-from service.images import false_colour, linear_to_srgb, tonemap, write_png
+from service.dataset.build import read_manifest
+from service.dataset.loader import DenoiserDataset
+from service.exr import read_exr
+from service.images import false_colour, tonemap, write_png
+from service.loop.tensors import frame_tensors, nchw, to_image
+from service.render.effects import inspect_scene, make_integrator
+from service.render.framebuffer import FrameBuffer
+from service.render.renderer import render_samples
+from service.render.runtime import active_variant
+from service.render.scenes import load_scene
 
 REPORT_COMMAND = "renderloop bench --denoiser --data {data}"
 REPORT_NAME = "denoiser.md"
@@ -64,7 +71,6 @@ NOISY, SINGLE, MULTISCALE, TEMPORAL, OIDN = (
 SEQUENCE_SEEDS = (11, 12, 13)
 FLICKER_SEEDS = (101, 102, 103, 104, 105)
 FLICKER_SPP = 16
-REFERENCE_SEED = 7_777_777  # its own stream: a reference sharing samples with an input flatters it
 
 REC709_LUMA = (0.2126, 0.7152, 0.0722)  # ITU-R BT.709 luminance weights
 FLAT_QUANTILE = 0.5    # pixels whose reference gradient is in the lower half count as "flat"
@@ -109,11 +115,6 @@ class Outputs:
 Method = Callable[[EvalImage], Tensor]
 
 
-def clean(t: Tensor) -> Tensor:
-    """Radiance for scoring: non-finite → 0, negative → 0 (what a display or the loss would see)."""
-    return torch.nan_to_num(t.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0)
-
-
 # --- the networks --------------------------------------------------------------------------------
 
 def ablation(trained: Denoiser, **switches: bool) -> Denoiser:
@@ -131,31 +132,16 @@ def ablation(trained: Denoiser, **switches: bool) -> Denoiser:
 
 
 def oidn_method() -> tuple[Method | None, str]:
-    """Intel Open Image Denoise via pyoidn (HDR colour + albedo + normal), or why it is missing."""
-    try:
-        import pyoidn
-    except Exception as exc:  # not installed, or its shared library does not load here
-        return None, f"`pyoidn` is not available here ({type(exc).__name__}: {exc}); OIDN was skipped."
+    """OIDN (bench.common's one call) on the centre frame's noisy colour, albedo and normal."""
+    denoise, note = oidn_denoiser()
+    if denoise is None:
+        return None, note
 
     def run(image: EvalImage) -> Tensor:
         f = image.frame
+        return nchw(denoise(to_image(f.color), to_image(f.albedo), to_image(f.normal)))
 
-        def hwc(t: Tensor, lo: float, hi: float) -> np.ndarray:
-            a = torch.nan_to_num(t[0].float(), nan=0.0, posinf=hi, neginf=lo).clamp(lo, hi)
-            return np.ascontiguousarray(a.permute(1, 2, 0).numpy(), dtype=np.float32)
-
-        out = pyoidn.denoise(hwc(f.color, 0.0, 1e6), hwc(f.albedo, 0.0, 1.0), hwc(f.normal, -1.0, 1.0),
-                             hdr=True, quality="high")
-        return torch.from_numpy(np.asarray(out, dtype=np.float32)).permute(2, 0, 1)[None]
-
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        installed = f" {version('pyoidn')}"
-    except PackageNotFoundError:  # imported from a source tree rather than installed
-        installed = ""
-    return run, (f"Intel Open Image Denoise through `pyoidn`{installed} (RT filter, `hdr=True`, quality high, "
-                 "noisy colour + albedo + normal of the centre frame).")
+    return run, note
 
 
 def make_methods(denoiser: Denoiser, use_oidn: bool) -> tuple[dict[str, Method], str | None]:
@@ -181,8 +167,6 @@ def make_methods(denoiser: Denoiser, use_oidn: bool) -> tuple[dict[str, Method],
 
 def heldout_images(data_dir: Path, radius: int) -> tuple[list[EvalImage], dict]:
     """Every full window of the held-out split at each uniform level; and the split's manifest entry."""
-    from service.dataset.build import read_manifest
-    from service.dataset.loader import DenoiserDataset
 
     entry = read_manifest(data_dir)["splits"].get("heldout")
     if entry is None:
@@ -207,7 +191,6 @@ def heldout_images(data_dir: Path, radius: int) -> tuple[list[EvalImage], dict]:
 def reference_noise(paths: Sequence[Path]) -> float:
     """Mean relative standard error of the references' pixels (same ε as SMAPE): the exact image
     scores about 0.4× this in SMAPE against them, so it bounds what the scores resolve."""
-    from service.exr import read_exr
 
     values = []
     for path in paths:
@@ -227,49 +210,35 @@ class BuiltinRenderer:
     size: int
 
     def __post_init__(self) -> None:
-        from service.render.effects import inspect_scene, make_integrator
-        from service.render.scenes import load_scene
 
         self.scene = load_scene(self.name, width=self.size, height=self.size)
         self.integrator = make_integrator(inspect_scene(self.name, width=self.size, height=self.size))
 
     def render(self, buffer, spp: int, seed: int) -> None:
-        from service.render.renderer import render_samples
 
         render_samples(self.scene, np.full((self.size, self.size), spp), buffer, integrator=self.integrator, seed=seed)
 
     def fresh(self):
-        from service.render.framebuffer import FrameBuffer
 
         return FrameBuffer.empty(self.size, self.size)
 
 
-def cached_reference(renderer: BuiltinRenderer, spp: int, cache_dir: Path) -> tuple[Tensor, float]:
-    """The high-spp reference, rendered once and kept as .npz (rerunning the report is cheap);
-    and its own noise level, the mean relative standard error of its pixels."""
-    from service.render.runtime import active_variant
-
+def builtin_reference(renderer: BuiltinRenderer, spp: int, cache_dir: Path) -> tuple[Tensor, float]:
+    """The high-spp reference (bench.common's cache) and its own noise level."""
     path = cache_dir / f"{renderer.name}_{renderer.size}px_{spp}spp_{active_variant()}_seed{REFERENCE_SEED}.npz"
-    if path.is_file():
-        with np.load(path) as stored:
-            mean, variance = stored["mean"], stored["variance"]
-    else:
+
+    def render(seed: int) -> tuple[np.ndarray, np.ndarray]:
         log(f"rendering the {spp}-spp reference of {renderer.name} at {renderer.size}² (cached in {cache_dir})")
         buffer = renderer.fresh()
-        renderer.render(buffer, spp, REFERENCE_SEED)
-        mean, variance = buffer.mean, buffer.variance
-        cache_dir.mkdir(parents=True, exist_ok=True)
-        partial = path.with_name(f".{path.stem}.partial.npz")
-        np.savez(partial, mean=mean, variance=variance)
-        os.replace(partial, path)  # an interrupted run never leaves a torn cache file
-    # Same ε as SMAPE: comparable with the error figures the reference is used to measure.
-    relative_error = float(np.mean(np.sqrt(variance) / (np.abs(mean) + SMAPE_EPS)))
-    return torch.from_numpy(np.ascontiguousarray(mean.transpose(2, 0, 1), dtype=np.float32))[None], relative_error
+        renderer.render(buffer, spp, seed)
+        return buffer.mean, buffer.variance
+
+    reference = cached_reference(path, render)
+    return nchw(reference.mean), reference.relative_error
 
 
 def builtin_images(renderer: BuiltinRenderer, reference: Tensor) -> list[EvalImage]:
     """Three seeds of the static view, accumulated 16 → 32 → 64 → 128 spp; the middle one is 'the' frame."""
-    from service.loop.denoise import frame_tensors
 
     buffers = [renderer.fresh() for _ in SEQUENCE_SEEDS]
     images = []
@@ -282,18 +251,6 @@ def builtin_images(renderer: BuiltinRenderer, reference: Tensor) -> list[EvalIma
 
 
 # --- metrics -------------------------------------------------------------------------------------
-
-def display(t: Tensor) -> Tensor:
-    """Linear HDR → clamped sRGB in [0, 1], where PSNR and SSIM are defined."""
-    return torch.from_numpy(linear_to_srgb(t.numpy()).astype(np.float32))
-
-
-def score(d: Tensor, r: Tensor) -> dict[str, float]:
-    d, r = clean(d), clean(r)
-    sd, sr = display(d), display(r)
-    return {"smape": float(smape(d, r)), "relmse": float(relmse(d, r)),
-            "psnr": float(psnr(sd, sr)), "dssim": float(1 - ssim(sd, sr))}
-
 
 def log_luminance(t: Tensor) -> Tensor:
     """(1,3,H,W) → (1,1,H,W) log(1 + Rec.709 luminance): a scale-tolerant axis for detail measures."""
@@ -450,7 +407,6 @@ def error_predictor_table(outputs: list[Outputs]) -> dict[int, dict[str, tuple]]
 def flicker_rows(renderer: BuiltinRenderer, reference: Tensor, methods: dict[str, Method]) -> dict[str, tuple[float, float]]:
     """Static view, FLICKER_SEEDS renders at FLICKER_SPP; every frame with a full window is denoised
     (its window: the previous, itself, the next) and consecutive results are compared."""
-    from service.loop.denoise import frame_tensors
 
     frames = []
     for seed in FLICKER_SEEDS:
@@ -628,13 +584,9 @@ def run_quality_report(
     build and a training run beside it, two threads made a 64² forward pass 6–16× slower
     (OpenMP workers waiting on busy cores), and these images are too small to need more.
     """
-    previous_threads = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
+    with pinned_torch_threads(threads):  # called in-process by `bench`: leave no global change
         return _run(Path(data_dir), Path(out_dir), Path(weights_dir), builtin_scenes, builtin_size,
                     reference_spp, lambdas, use_oidn, cache_dir)
-    finally:
-        torch.set_num_threads(previous_threads)  # called in-process by `bench`: leave no global change
 
 
 def _run(data_dir: Path, out_dir: Path, weights_dir: Path, builtin_scenes: Sequence[str], builtin_size: int,
@@ -661,7 +613,7 @@ def _run(data_dir: Path, out_dir: Path, weights_dir: Path, builtin_scenes: Seque
         for name in builtin_scenes:
             log(f"built-in scene {name} at {builtin_size}²")
             renderer = BuiltinRenderer(name, builtin_size)
-            reference, reference_noise[name] = cached_reference(renderer, reference_spp, cache)
+            reference, reference_noise[name] = builtin_reference(renderer, reference_spp, cache)
             built += evaluate(builtin_images(renderer, reference), methods, denoiser, predictor, lambdas)
             flicker_tables[name] = flicker_rows(renderer, reference, methods)
 
@@ -707,7 +659,6 @@ def write_report(out_dir: Path, *, data_dir: Path, denoiser: Denoiser, denoiser_
                  flicker_tables: dict[str, dict[str, tuple[float, float]]], reference_noise: dict[str, float],
                  names: list[str],
                  oidn_note: str | None, crops: list[str], seconds: float) -> Path:
-    from service.render.runtime import active_variant
 
     window = 2 * held_entry["radius"] + 1
     verdict = ("meets" if factor >= 3 else "falls short of") if np.isfinite(factor) else "cannot be checked against"
@@ -732,10 +683,8 @@ def write_report(out_dir: Path, *, data_dir: Path, denoiser: Denoiser, denoiser_
     complete = "" if held_entry.get("complete") else " **(the split's build was not complete: finished items only)**"
     text = f"""# Denoiser quality
 
-Command: `{REPORT_COMMAND.format(data=data_dir)}`
-Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__}
-(CPU, {torch.get_num_threads()} thread{'s' if torch.get_num_threads() > 1 else ''}), Mitsuba variant `{active_variant()}`; {_dt.date.today().isoformat()};
-the whole report took {seconds / 60:.1f} minutes.
+{provenance(REPORT_COMMAND.format(data=data_dir), active_variant())}
+The whole report took {seconds / 60:.1f} minutes.
 
 Weights: denoiser {weights_line(denoiser, denoiser_path)}; error predictor {weights_line(predictor, predictor_path)}.
 

@@ -1,4 +1,4 @@
-"""Bridge from frame buffers (numpy, HWC) to the networks (torch, NCHW) and back."""
+"""The one bridge between numpy images (HWC) and the networks' tensors (NCHW), both ways."""
 from __future__ import annotations
 
 import os
@@ -27,7 +27,7 @@ def configure_torch_threads() -> None:
         torch.set_num_threads(threads)
 
 
-def _nchw(array: np.ndarray) -> torch.Tensor:
+def nchw(array: np.ndarray) -> torch.Tensor:
     if array.ndim == 2:
         array = array[..., None]
     return torch.from_numpy(np.ascontiguousarray(array.transpose(2, 0, 1), dtype=np.float32))[None]
@@ -36,12 +36,12 @@ def _nchw(array: np.ndarray) -> torch.Tensor:
 def frame_tensors(buffer: FrameBuffer) -> FrameTensors:
     motion = buffer.motion
     return FrameTensors(
-        color=_nchw(buffer.mean),
-        variance=_nchw(buffer.variance),
-        albedo=_nchw(buffer.albedo),
-        normal=_nchw(buffer.normal),
-        depth=_nchw(buffer.depth),
-        motion=None if motion is None else _nchw(motion),
+        color=nchw(buffer.mean),
+        variance=nchw(buffer.variance),
+        albedo=nchw(buffer.albedo),
+        normal=nchw(buffer.normal),
+        depth=nchw(buffer.depth),
+        motion=None if motion is None else nchw(motion),
     )
 
 

@@ -1,4 +1,4 @@
-"""CPU speed and memory of the default denoiser: `python -m models.bench`.
+"""CPU speed and memory of the default denoiser: `python -m bench.models_report`.
 
 Timing: median wall time of `repeats` runs after one warm-up, under torch.inference_mode,
 plus the process CPU time of the same runs. On a shared machine wall time includes waiting
@@ -85,7 +85,7 @@ def benchmark_models(sizes=(256, 512), repeats: int = 3, threads: int = 2, cases
 
 
 def main(argv: list[str] | None = None) -> None:
-    """python -m models.bench [SIZE ...] [--threads T] [--repeats R] [--width W] [--spatial-blocks B]"""
+    """python -m bench.models_report [SIZE ...] [--threads T] [--repeats R] [--width W] [--spatial-blocks B]"""
     parser = argparse.ArgumentParser(description="CPU benchmark of the default denoiser")
     parser.add_argument("sizes", nargs="*", type=int, default=[256, 512])
     parser.add_argument("--threads", type=int, default=2)

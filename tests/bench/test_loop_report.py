@@ -13,7 +13,7 @@ import models.pretrained as pretrained
 from models.checkpoint import save_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
-from service.loop_bench import METRICS, STAGES, run_loop_benchmark, time_to_reach
+from bench.loop_report import METRICS, STAGES, run_loop_benchmark, time_to_reach
 
 
 @pytest.fixture
@@ -51,7 +51,7 @@ def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, weights_dir
     for png in ("error_vs_time.png", "spp_maps.png", "error_maps.png"):
         assert (tmp_path / "docs" / "benchmarks" / png).stat().st_size > 0
     # References are cached on disk (one per scene), so later runs do not render them again.
-    assert len(list((tmp_path / "cache" / "references").glob("*.npy"))) == 2
+    assert len(list((tmp_path / "cache" / "references").glob("*.npz"))) == 2
 
 
 def test_time_to_reach_interpolates_in_log_log() -> None:

@@ -11,13 +11,12 @@ same renderer and integrator, cached on disk) and its cumulative wall time is re
 stage. The machine is shared, so each loop runs `timing_repeats` times with identical seeds
 (identical images) and each stage keeps its fastest repeat: the least disturbed measurement.
 Micro-benchmarks (renderer throughput, denoiser speed and memory, λ latency in process and over
-HTTP against a real server) reuse `service.bench.bench_sampler` and `models.bench`.
+HTTP against a real server) reuse `bench.sampler_report.bench_sampler` and `bench.models_report`.
 """
 from __future__ import annotations
 
 import argparse
 import csv
-import datetime as _dt
 import hashlib
 import itertools
 import math
@@ -34,21 +33,42 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import httpx
 import numpy as np
+import torch
+import uvicorn
+
+from bench.common import (METRIC_NAMES, BenchNetworks, cached_reference, image_metrics, load_bench_networks,
+                          command_line, oidn_denoiser, pinned_torch_threads, provenance)
+from bench.models_report import CASES, benchmark_models
+from bench.sampler_report import bench_sampler
+from models.losses import smape_map
+from models.pretrained import WEIGHTS_DIR_ENV, Networks
+from service.api.serve import DATA_DIR_ENV, app_from_env
+from service.dataset.procedural import generate_scene
+from service.dataset.splits import scene_seeds
+from service.images import linear_to_srgb
+from service.loop.loop import RenderLoop
+from service.loop.spec import LoopSpec
+from service.loop.tensors import TORCH_THREADS_ENV, nchw
+from service.render.builtin import BUILTIN_BY_NAME
+from service.render.effects import inspect_scene, make_integrator
+from service.render.framebuffer import FrameBuffer
+from service.render.renderer import render_samples
+from service.render.runtime import active_variant, mitsuba
+from service.render.scenes import load_scene
 
 DEFAULT_CACHE_DIR = Path("bench-cache")  # git-ignored (/bench-cache/)
 STAGES = ("render", "denoise", "error", "allocate")
-METRICS = ("smape", "relmse", "psnr", "one_minus_ssim")
+METRICS = METRIC_NAMES
 HELDOUT_DATASET_SEED = 0  # scene_seeds("heldout", n, 0): never a training scene (service.dataset.splits)
-REFERENCE_SEED = 1 << 20  # the loops use seed 0; the reference must not share their samples
 LOOP_SEED = 0
-# Goals from issue 6: time-to-SMAPE speed-ups of (d) and its SMAPE ratio at equal budget.
+# Goals the product is measured against: time-to-SMAPE speed-ups of (d) and its SMAPE ratio at equal budget.
 GOAL_SPEEDUP_VS_A, GOAL_SPEEDUP_VS_B, GOAL_SMAPE_RATIO_D_B = 10.0, 1.3, 0.8
 SERVER_STARTUP_SECONDS = 180.0  # importing torch + Mitsuba on a loaded 2-core machine is slow
-# torch intra-op threads for every timed network call (loop, models.bench, server). Measured on
-# the shared 2-core machine: a 64² denoise took ~13 ms with one thread and 400–600 ms with two
-# (OpenMP workers waiting on cores that other jobs and Dr.Jit's pool hold), so two threads
-# measure the neighbours, not the networks.
+# torch intra-op threads for every timed network call (loop, bench.models_report, server): on a
+# shared 2-core machine two threads measure the neighbours (OpenMP workers waiting on cores that
+# other jobs and Dr.Jit's pool hold), not the networks.
 TORCH_THREADS = 1
 
 
@@ -114,7 +134,6 @@ def _export_bitmaps(description: dict, folder: Path, names: Iterator[int]) -> di
     Mitsuba's XML writer cannot serialise Bitmap objects (procedural textures and skies are
     generated in memory); float EXRs keep them linear, exactly as the in-memory bitmaps are.
     """
-    from service.render.runtime import mitsuba
 
     mi = mitsuba()
     out: dict = {}
@@ -136,8 +155,6 @@ def procedural_scene_xml(seed: int, folder: Path, size: int) -> Path:
     RenderLoop takes names or XML paths, so the generator's dict goes through Mitsuba's own
     parser and writer (`mi.parser.write_file`) instead of a bench-only loop adapter.
     """
-    from service.dataset.procedural import generate_scene
-    from service.render.runtime import mitsuba
 
     mi = mitsuba()
     folder.mkdir(parents=True, exist_ok=True)
@@ -153,7 +170,6 @@ def procedural_scene_xml(seed: int, folder: Path, size: int) -> Path:
 
 
 def prepare_scenes(settings: BenchSettings, cache_dir: Path) -> list[BenchScene]:
-    from service.dataset.splits import scene_seeds
 
     scenes = [BenchScene(name, name, "built-in") for name in settings.builtin_scenes]
     for seed in scene_seeds("heldout", settings.heldout_scenes, HELDOUT_DATASET_SEED):
@@ -164,7 +180,6 @@ def prepare_scenes(settings: BenchSettings, cache_dir: Path) -> list[BenchScene]
 
 def _scene_fingerprint(scene: BenchScene) -> str:
     """Changes whenever the scene description does, so a stale cached reference is never used."""
-    from service.render.builtin import BUILTIN_BY_NAME
 
     builtin = BUILTIN_BY_NAME.get(scene.source)
     text = repr(builtin.build(0)) if builtin is not None else Path(scene.source).read_text()
@@ -174,61 +189,24 @@ def _scene_fingerprint(scene: BenchScene) -> str:
 def reference_image(scene: BenchScene, size: int, spp: int, cache_dir: Path) -> np.ndarray:
     """(H, W, 3) float32 high-spp image of `scene`: rendered once, then read from the cache.
 
-    Same renderer and integrator (path/volpath, max depth) as the loop, so the only
-    difference between a loop image and its reference is noise and denoiser error.
+    Same renderer and integrator as the loop, so the only difference between a loop image and
+    its reference is noise and denoiser error.
     """
-    from service.render.effects import inspect_scene, make_integrator
-    from service.render.framebuffer import FrameBuffer
-    from service.render.renderer import render_samples
-    from service.render.runtime import active_variant
-    from service.render.scenes import load_scene
-
     key = f"{scene.label}_{_scene_fingerprint(scene)}_{size}x{size}_{spp}spp_{active_variant()}"
-    path = cache_dir / "references" / f"{key}.npy"
-    if path.is_file():
-        return np.load(path)
-    effects = inspect_scene(scene.source, width=size, height=size)
-    buffer = FrameBuffer.empty(size, size)
-    render_samples(load_scene(scene.source, width=size, height=size), np.full((size, size), spp), buffer,
-                   integrator=make_integrator(effects), seed=REFERENCE_SEED)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_suffix(".partial.npy")
-    np.save(partial, buffer.mean)
-    partial.replace(path)
-    return buffer.mean
 
+    def render(seed: int) -> tuple[np.ndarray, np.ndarray]:
+        effects = inspect_scene(scene.source, width=size, height=size)
+        buffer = FrameBuffer.empty(size, size)
+        render_samples(load_scene(scene.source, width=size, height=size), np.full((size, size), spp), buffer,
+                       integrator=make_integrator(effects), seed=seed)
+        return buffer.mean, buffer.variance
 
-# --- networks ----------------------------------------------------------------------------------
-
-
-@dataclass
-class Networks:
-    denoiser: object  # models.denoiser.Denoiser
-    error_predictor: object  # models.error_predictor.ErrorPredictor
-    weights_dir: Path
-    description: str  # for the report: where the weights came from and what they are
-
-
-def load_networks(weights_dir: Path | None) -> Networks:
-    import models.pretrained as pretrained
-    from models.checkpoint import load_checkpoint, read_checkpoint
-
-    directory = pretrained.weights_dir(weights_dir)
-    paths = [directory / pretrained.DENOISER_FILE, directory / pretrained.ERROR_PREDICTOR_FILE]
-    denoiser, error_predictor = (load_checkpoint(p) for p in paths)
-    parts = []
-    for path in paths:
-        digest = hashlib.sha1(path.read_bytes()).hexdigest()[:10]
-        extra = read_checkpoint(path).get("extra") or {}
-        summary = ", ".join(f"{k}={v}" for k, v in extra.items() if isinstance(v, (int, float, str)))[:160]
-        parts.append(f"`{path.name}` sha1 {digest}" + (f" ({summary})" if summary else ""))
-    return Networks(denoiser, error_predictor, directory, f"{directory}: " + "; ".join(parts))
+    return cached_reference(cache_dir / "references" / f"{key}.npz", render).mean
 
 
 def _no_error_prediction():
     """Stand-in error network for (b) and (c): they allocate without it, so they must not pay for
     it. The loop still stores an error map per iteration; zeros cost nothing."""
-    import torch
 
     class NoErrorPrediction(torch.nn.Module):
         def forward(self, frame, denoised: torch.Tensor) -> torch.Tensor:
@@ -237,59 +215,8 @@ def _no_error_prediction():
     return NoErrorPrediction()
 
 
-def oidn_denoiser() -> tuple[Callable | None, str]:
-    """OIDN's RT filter (HDR, with albedo and normal) as image → image, or None and why not."""
-    try:
-        import pyoidn
-    except ImportError as exc:
-        return None, f"skipped: pyoidn is not installed ({exc})"
-    try:
-        device = pyoidn.Device()
-        device.commit()
-
-        def denoise(buffer) -> np.ndarray:
-            color = np.ascontiguousarray(buffer.mean, dtype=np.float32)
-            output = np.zeros_like(color)
-            flt = pyoidn.Filter(device, "RT")
-            flt.set_image(pyoidn.OIDN_IMAGE_COLOR, color, pyoidn.OIDN_FORMAT_FLOAT3)
-            flt.set_image(pyoidn.OIDN_IMAGE_ALBEDO, np.ascontiguousarray(buffer.albedo), pyoidn.OIDN_FORMAT_FLOAT3)
-            flt.set_image(pyoidn.OIDN_IMAGE_NORMAL, np.ascontiguousarray(buffer.normal), pyoidn.OIDN_FORMAT_FLOAT3)
-            flt.set_image(pyoidn.OIDN_IMAGE_OUTPUT, output, pyoidn.OIDN_FORMAT_FLOAT3)
-            flt.set_bool("hdr", True)
-            flt.commit()
-            flt.execute()
-            return np.maximum(output, 0.0)
-
-        return denoise, "pyoidn"
-    except Exception as exc:  # an API this code does not know, or no usable device
-        return None, f"skipped: pyoidn imports but could not run ({type(exc).__name__}: {exc})"
-
-
-# --- metrics -----------------------------------------------------------------------------------
-
-
-def _nchw(image: np.ndarray):
-    import torch
-
-    return torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32).transpose(2, 0, 1))[None]
-
-
-def image_metrics(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
-    """SMAPE and relMSE on linear HDR radiance; PSNR and 1−SSIM on clipped sRGB (display values)."""
-    from models.losses import smape
-    from models.metrics import psnr, relmse, ssim
-    from service.images import linear_to_srgb
-
-    d, r = _nchw(image), _nchw(reference)
-    d8, r8 = _nchw(linear_to_srgb(image)), _nchw(linear_to_srgb(reference))
-    return {"smape": float(smape(d, r)), "relmse": float(relmse(d, r)), "psnr": float(psnr(d8, r8)),
-            "one_minus_ssim": float(1.0 - ssim(d8, r8))}
-
-
 def true_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    from models.losses import smape_map
-
-    return smape_map(_nchw(image), _nchw(reference))[0, 0].numpy()
+    return smape_map(nchw(image), nchw(reference))[0, 0].numpy()
 
 
 def time_to_reach(seconds: list[float], errors: list[float], target: float) -> tuple[float, str]:
@@ -348,21 +275,17 @@ class MethodRun:
 
 
 def _loop_spec(scene: BenchScene, method: Method, settings: BenchSettings, iterations: int):
-    from service.loop.spec import LoopSpec
 
     return LoopSpec(scene=scene.source, width=settings.size, height=settings.size, max_iterations=iterations,
                     allocator=method.allocator, denoise=method.denoiser == "kpcn", seed=LOOP_SEED)
 
 
-def _make_loop(scene: BenchScene, method: Method, settings: BenchSettings, nets: Networks, iterations: int):
-    from models.pretrained import Networks as LoopNetworks
-    from service.loop.loop import RenderLoop
-
-    error_predictor = nets.error_predictor if method.predicts_error else _no_error_prediction()
-    return RenderLoop(_loop_spec(scene, method, settings, iterations), LoopNetworks(nets.denoiser, error_predictor))
+def _make_loop(scene: BenchScene, method: Method, settings: BenchSettings, nets: BenchNetworks, iterations: int):
+    error_predictor = nets.networks.error_predictor if method.predicts_error else _no_error_prediction()
+    return RenderLoop(_loop_spec(scene, method, settings, iterations), Networks(nets.networks.denoiser, error_predictor))
 
 
-def warm_up(scene: BenchScene, settings: BenchSettings, nets: Networks) -> None:
+def warm_up(scene: BenchScene, settings: BenchSettings, nets: BenchNetworks) -> None:
     """One untimed iteration of the product per scene: Dr.Jit compiles the scene's kernels and
     oneDNN builds its primitives for this size once, instead of inside whichever method runs first."""
     product = next(m for m in METHODS if m.key == PRODUCT)
@@ -370,7 +293,7 @@ def warm_up(scene: BenchScene, settings: BenchSettings, nets: Networks) -> None:
         pass
 
 
-def run_method(scene: BenchScene, method: Method, settings: BenchSettings, nets: Networks,
+def run_method(scene: BenchScene, method: Method, settings: BenchSettings, nets: BenchNetworks,
                reference: np.ndarray, oidn: Callable | None = None) -> MethodRun:
     repeats: list[list[dict[str, float]]] = []
     first: list[tuple] = []  # (record summary, image) of the first repeat; all repeats are identical
@@ -382,7 +305,8 @@ def run_method(scene: BenchScene, method: Method, settings: BenchSettings, nets:
             image = record.denoised[0]
             if method.denoiser == "oidn":
                 t0 = time.perf_counter()
-                image = oidn(record.buffers[0])
+                buffer = record.buffers[0]
+                image = oidn(buffer.mean, buffer.albedo, buffer.normal)
                 stage["denoise"] = time.perf_counter() - t0
             timings.append(stage)
             if repeat == 0:
@@ -455,15 +379,11 @@ def free_port() -> int:
 def serve_for_bench(port: int, data_dir: str, weights_dir: str) -> None:
     """Server subprocess entry: exactly `service.api.serve.app_from_env` on uvicorn, with the
     default weights pointed at `weights_dir` (a bench or test may run on other weights)."""
-    import uvicorn
 
-    import models.pretrained as pretrained
-    from service.api.serve import DATA_DIR_ENV, app_from_env
 
-    import torch
 
-    torch.set_num_threads(TORCH_THREADS)
-    os.environ[pretrained.WEIGHTS_DIR_ENV] = weights_dir
+    os.environ[TORCH_THREADS_ENV] = str(TORCH_THREADS)  # app_from_env pins them from it
+    os.environ[WEIGHTS_DIR_ENV] = weights_dir
     os.environ[DATA_DIR_ENV] = data_dir
     uvicorn.run(app_from_env(), host="127.0.0.1", port=port, log_level="warning")
 
@@ -471,11 +391,10 @@ def serve_for_bench(port: int, data_dir: str, weights_dir: str) -> None:
 @contextmanager
 def running_server(data_dir: Path, weights_dir: Path) -> Iterator[str]:
     """A real uvicorn server on a free local port in a subprocess; yields its base URL."""
-    import httpx
 
     data_dir.mkdir(parents=True, exist_ok=True)
     port = free_port()
-    code = f"from service.loop_bench import serve_for_bench; serve_for_bench({port}, {str(data_dir)!r}, {str(weights_dir)!r})"
+    code = f"from bench.loop_report import serve_for_bench; serve_for_bench({port}, {str(data_dir)!r}, {str(weights_dir)!r})"
     log = open(data_dir / "server.log", "ab")
     process = subprocess.Popen([sys.executable, "-c", code], stdout=log, stderr=subprocess.STDOUT,
                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
@@ -517,7 +436,6 @@ def wait_for_job(client, job_id: str, timeout: float = 600.0) -> dict:
 def bench_http_lambda(size: int, requests: int, weights_dir: Path) -> dict:
     """p50/p95 of PUT /jobs/{id}/lambda round trips on a finished job (the cached λ tail path),
     alternating a global value and a painted rectangle so every request changes the image."""
-    import httpx
 
     with tempfile.TemporaryDirectory(prefix="renderloop-bench-") as tmp:
         with running_server(Path(tmp) / "data", weights_dir) as url, httpx.Client(base_url=url, timeout=120) as client:
@@ -547,16 +465,15 @@ def bench_http_lambda(size: int, requests: int, weights_dir: Path) -> dict:
             "p95_ms": float(np.percentile(ms, 95)), "max_ms": float(ms.max()), "tail_passes": tail, "full_passes": full}
 
 
-def micro_benchmarks(settings: BenchSettings, nets: Networks) -> dict:
+def micro_benchmarks(settings: BenchSettings, nets: BenchNetworks) -> dict:
     """Each part is independent: one that fails is reported with its error, the rest still run."""
-    from service.bench import bench_sampler
 
     out: dict = {}
     size, spp, repeats = settings.sampler
     parts: list[tuple[str, Callable[[], object]]] = [
         ("sampler", lambda: bench_sampler(size, spp, repeats)),
         ("models", lambda: _bench_models(settings)),
-        ("http", lambda: bench_http_lambda(settings.http_size, settings.http_requests, nets.weights_dir)),
+        ("http", lambda: bench_http_lambda(settings.http_size, settings.http_requests, nets.folder)),
     ]
     for name, run in parts:
         print(f"bench --loop: micro-benchmark {name} …", flush=True)
@@ -568,7 +485,6 @@ def micro_benchmarks(settings: BenchSettings, nets: Networks) -> dict:
 
 
 def _bench_models(settings: BenchSettings) -> list[dict]:
-    from models.bench import CASES, benchmark_models
 
     return benchmark_models(sizes=settings.model_sizes, repeats=settings.model_repeats, threads=TORCH_THREADS,
                             cases=CASES)
@@ -603,7 +519,6 @@ def write_plots(results: list[SceneResult], head: Headline, folder: Path) -> lis
         from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
     except ImportError:
         return []
-    from service.images import linear_to_srgb
 
     folder.mkdir(parents=True, exist_ok=True)
     n = len(results)
@@ -715,7 +630,7 @@ class RunInfo:
     command: str
     settings: BenchSettings
     quick: bool
-    nets: Networks
+    nets: BenchNetworks
     oidn_status: str
     load_before: tuple[float, float, float]
     load_after: tuple[float, float, float] = (math.nan,) * 3
@@ -725,7 +640,6 @@ class RunInfo:
 
 def write_report(path: Path, info: RunInfo, results: list[SceneResult], head: Headline, micro: dict,
                  csv_path: Path, plots: list[Path]) -> Path:
-    from service.render.runtime import active_variant
 
     s = info.settings
     methods = [m for m in METHODS if any(m.key in r.runs for r in results)]
@@ -734,21 +648,20 @@ def write_report(path: Path, info: RunInfo, results: list[SceneResult], head: He
     lines = [
         "# What accuracy costs in time: the render loop benchmark",
         "",
-        f"Command: `{info.command}`  ",
-        f"Machine: {platform.machine()}, {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-        f"Mitsuba variant `{active_variant()}`; load average {_load(info.load_before)} at the start, "
-        f"{_load(info.load_after)} at the end (the machine is shared: other jobs ran alongside).  ",
-        f"Date: {_dt.datetime.now().astimezone().isoformat(timespec='minutes')}; the whole run took {info.seconds / 60:.1f} min.  ",
+        provenance(info.command, active_variant()).replace("\n", "  \n") + "  ",
+        f"CPU: {cpu_name()}; load average {_load(info.load_before)} at the start, "
+        f"{_load(info.load_after)} at the end (the machine is shared: other jobs ran alongside); "
+        f"the whole run took {info.seconds / 60:.1f} min.  ",
         f"Weights: {info.nets.description}.",
         "",
         f"Setup{' (**--quick**: small images, few scenes and iterations; not the real report)' if info.quick else ''}: "
         f"{s.size}×{s.size} pixels, {s.iterations} iterations ({spps} spp mean), references at "
         f"{s.reference_spp} spp rendered once by the same renderer and integrator with another seed and cached "
         f"on disk (`--cache`, default `bench-cache/`). Every method runs through the same `RenderLoop`; wall time is the sum of the "
-        f"loop's stage timings (render, denoise, error prediction, allocation), fastest of {s.timing_repeats} "
-        f"identical repeat(s) per stage; torch runs {TORCH_THREADS} intra-op thread(s) everywhere "
+        f"loop's stage timings (render, denoise, error prediction, allocation), each stage the fastest of {s.timing_repeats} "
+        f"identical repeat(s), so a total is a sum of per-stage minimums, not one measured run; torch runs {TORCH_THREADS} intra-op thread(s) everywhere "
         f"(loop, model micro-benchmarks, server), see Notes. (b) and (c) do not run the error network (they do not need it); (a) "
-        f"runs no network. SMAPE (ε = 0.01) and relMSE on linear HDR, PSNR and 1−SSIM on clipped sRGB.",
+        f"runs no network. SMAPE (ε = 0.01) and relMSE on linear HDR, PSNR and DSSIM (1 − SSIM) on clipped sRGB.",
         "",
         "Methods: " + "; ".join(f"({m.key}) {m.label}" for m in METHODS) + f". (e): {info.oidn_status}.",
         "",
@@ -756,7 +669,7 @@ def write_report(path: Path, info: RunInfo, results: list[SceneResult], head: He
         "",
         f"Target per scene: the SMAPE that (d) reaches after its last iteration. Time to reach it is read off each "
         f"method's error-vs-time curve by log-log interpolation; `~` marks a time extrapolated along the last "
-        f"segment (the method never got there), `≤` one already reached at the first iteration. Speed-up = "
+        f"segment (the method never got there: that time and every speed-up computed from it is a guess, not a measurement), `≤` one already reached at the first iteration. Speed-up = "
         f"time of the method / time of (d). SMAPE ratio = (d)/(b) at equal samples ({spps.split(', ')[-1]} spp).",
         "",
         "| scene | target SMAPE | " + " | ".join(f"({m.key}) s" for m in methods) + " | "
@@ -780,7 +693,7 @@ def write_report(path: Path, info: RunInfo, results: list[SceneResult], head: He
 
     lines += ["## Per scene, after the last iteration", "",
               "Seconds are cumulative over all iterations, split by stage.", "",
-              "| scene | method | spp | total s | render | denoise | error | allocate | SMAPE | relMSE | PSNR dB | 1−SSIM |",
+              "| scene | method | spp | total s | render | denoise | error | allocate | SMAPE | relMSE | PSNR dB | DSSIM |",
               "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for result in results:
         for key, run in result.runs.items():
@@ -789,7 +702,7 @@ def write_report(path: Path, info: RunInfo, results: list[SceneResult], head: He
             m = last.metrics
             lines.append(f"| {result.scene.label} | ({key}) | {last.spp_mean:g} | {last.cumulative_seconds:.2f} | "
                          + " | ".join(f"{totals[st]:.2f}" for st in STAGES)
-                         + f" | {m['smape']:.4f} | {m['relmse']:.4g} | {m['psnr']:.2f} | {m['one_minus_ssim']:.4f} |")
+                         + f" | {m['smape']:.4f} | {m['relmse']:.4g} | {m['psnr']:.2f} | {m['dssim']:.4f} |")
     lines += ["", "## Every iteration: SMAPE @ cumulative seconds", "",
               f"All four metrics and the stage split of every iteration are in [{csv_path.name}]({rel(csv_path)}).", ""]
     for result in results:
@@ -860,13 +773,13 @@ def _micro_lines(micro: dict) -> list[str]:
         lines += [f"Failed: {sampler['failed']}", ""]
     elif sampler:
         lines += [f"{sampler['size']}², {sampler['spp']} spp, median of {len(sampler['ratios'])} interleaved runs "
-                  "(`service.bench.bench_sampler`; ours also computes albedo/normal/depth and per-pixel sums).", "",
+                  "(`bench.sampler_report.bench_sampler`; ours also computes albedo/normal/depth and per-pixel sums).", "",
                   "| renderer | s | M samples/s |", "|---|---:|---:|",
                   f"| `mi.render` | {sampler['mi_render_s']:.3f} | {sampler['mi_render_msps']:.2f} |",
                   f"| `render_samples` | {sampler['ours_s']:.3f} | {sampler['ours_msps']:.2f} |", "",
                   f"Ratio ours / `mi.render`: **{sampler['ratio']:.2f}×**.", ""]
     models = micro.get("models", [])
-    lines += ["### Denoiser speed and memory (`models.bench`, CPU)", ""]
+    lines += ["### Denoiser speed and memory (`bench.models_report`, CPU)", ""]
     if isinstance(models, dict) and "failed" in models:
         lines += [f"Failed: {models['failed']}", ""]
     elif models:
@@ -904,27 +817,21 @@ def run_loop_benchmark(out_dir: Path = Path("docs"), *, quick: bool = False, wei
                        cache_dir: Path = DEFAULT_CACHE_DIR, command: str | None = None) -> Path:
     """Run the loop benchmark and write `out_dir/benchmarks.md` (+ CSV and PNGs in
     `out_dir/benchmarks/`); returns the markdown path."""
-    import torch
 
     started = time.perf_counter()
     settings = QUICK if quick else FULL
-    threads = torch.get_num_threads()
-    torch.set_num_threads(TORCH_THREADS)
-    try:
+    with pinned_torch_threads(TORCH_THREADS):
         return _run(settings, Path(out_dir), Path(cache_dir), weights_dir, quick, command, started)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _run(settings: BenchSettings, out_dir: Path, cache_dir: Path, weights_dir: Path | None, quick: bool,
          command: str | None, started: float) -> Path:
-    nets = load_networks(weights_dir)
+    nets = load_bench_networks(weights_dir)
     oidn, oidn_status = oidn_denoiser()
-    info = RunInfo(command or "renderloop " + " ".join(sys.argv[1:]), settings, quick, nets, oidn_status,
-                   os.getloadavg())
-    info.notes.append(f"torch.set_num_threads({TORCH_THREADS}): on this shared 2-core machine a 64² denoise took "
-                      "~13 ms with one thread and 400–600 ms with two (OpenMP workers waiting for cores held by "
-                      "other jobs and by Dr.Jit's pool). A service on a busy host should pin its torch threads.")
+    info = RunInfo(command or command_line(), settings, quick, nets, oidn_status, os.getloadavg())
+    info.notes.append(f"Every timed network call ran with torch.set_num_threads({TORCH_THREADS}): on a shared host "
+                      "more threads measure the neighbours (OpenMP workers waiting for busy cores). The model "
+                      "micro-benchmarks above give this run's own one-thread timings.")
     methods = [m for m in METHODS if m.denoiser != "oidn" or oidn is not None]
     results = []
     for scene in prepare_scenes(settings, cache_dir):

@@ -1,0 +1,59 @@
+"""The measurement wing's shared pieces: metric names and values, the reference cache, thread pinning."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from bench.common import (METRIC_NAMES, REFERENCE_SEED, cached_reference, image_metrics, pinned_torch_threads,
+                          provenance)
+
+
+def test_identical_images_score_perfectly_under_every_metric_name():
+    image = np.random.default_rng(0).random((16, 16, 3), dtype=np.float32)
+    metrics = image_metrics(image, image)
+    assert tuple(metrics) == METRIC_NAMES
+    assert metrics["smape"] == pytest.approx(0.0, abs=1e-7)
+    assert metrics["relmse"] == pytest.approx(0.0, abs=1e-7)
+    assert metrics["dssim"] == pytest.approx(0.0, abs=1e-4)
+
+
+def test_metrics_sanitise_non_finite_pixels_instead_of_propagating_them():
+    reference = np.ones((8, 8, 3), dtype=np.float32)
+    image = reference.copy()
+    image[0, 0] = np.nan
+    image[1, 1] = np.inf
+    metrics = image_metrics(image, reference)
+    assert all(np.isfinite(value) for value in metrics.values())
+    assert metrics["smape"] > 0  # the two bad pixels count as black, not as matches
+
+
+def test_reference_is_rendered_once_with_the_reference_seed_then_read_from_the_cache(tmp_path: Path):
+    seeds = []
+
+    def render(seed: int):
+        seeds.append(seed)
+        return np.full((4, 4, 3), 0.5, np.float32), np.full((4, 4, 3), 0.01, np.float32)
+
+    path = tmp_path / "ref.npz"
+    first = cached_reference(path, render)
+    second = cached_reference(path, render)
+    assert seeds == [REFERENCE_SEED]
+    np.testing.assert_array_equal(first.mean, second.mean)
+    assert second.relative_error == pytest.approx(0.1 / 0.51, rel=1e-5)
+
+
+def test_pinned_threads_are_restored_even_when_the_body_raises():
+    before = torch.get_num_threads()
+    with pytest.raises(RuntimeError):
+        with pinned_torch_threads(1):
+            assert torch.get_num_threads() == 1
+            raise RuntimeError("boom")
+    assert torch.get_num_threads() == before
+
+
+def test_provenance_names_command_variant_and_commit():
+    text = provenance("renderloop bench --sampler", "llvm_ad_rgb")
+    assert "Command: `renderloop bench --sampler`" in text and "`llvm_ad_rgb`" in text and "Date:" in text and "commit" in text
