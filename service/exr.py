@@ -6,11 +6,14 @@ variance of the mean; `albedo.*`; `N.X/Y/Z`; `Z`; `motion.X/Y` when the scene mo
 """
 from __future__ import annotations
 
+import tempfile
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 import OpenEXR
+
+from service.render.framebuffer import FrameBuffer
 
 # Multi-channel layers: dataclass field -> (EXR layer prefix, channel suffixes).
 VECTOR_LAYERS: dict[str, tuple[str, tuple[str, ...]]] = {
@@ -53,6 +56,16 @@ class ExrFrame:
             if isinstance(value, np.ndarray):
                 return value.shape[:2]
         raise ExrError("frame holds no layers")
+
+
+def result_frame(buffer: FrameBuffer, color: np.ndarray, *, error: np.ndarray | None, lam: np.ndarray | None,
+                 header: dict) -> ExrFrame:
+    """A rendered frame in the project layout: final colour, the buffer's statistics and AOVs."""
+    return ExrFrame(
+        color=color, noisy=buffer.mean, variance=buffer.variance, albedo=buffer.albedo, normal=buffer.normal,
+        depth=buffer.depth, motion=buffer.motion, spp=buffer.spp.astype(np.uint32), error=error, lam=lam,
+        header={**header, "total_samples": int(buffer.spp.sum())},
+    )
 
 
 def _channel(array: np.ndarray, dtype) -> np.ndarray:
@@ -112,3 +125,33 @@ def read_exr(path: str | Path) -> ExrFrame:
     if all(getattr(frame, f) is None for f in list(VECTOR_LAYERS) + list(SCALAR_LAYERS)):
         raise ExrError(f"{path}: no renderloop layers (expected R,G,B or noisy.R/G/B)")
     return frame
+
+
+# OpenEXR's Python binding reads and writes named files only: bytes go through one private
+# temporary file, here and nowhere else.
+
+def exr_to_bytes(frame: ExrFrame) -> bytes:
+    with tempfile.TemporaryDirectory(prefix="renderloop-exr-") as folder:
+        path = write_exr(Path(folder) / "frame.exr", frame)
+        return path.read_bytes()
+
+
+def exr_channels_from_bytes(data: bytes, *, max_pixels: int) -> dict[str, np.ndarray]:
+    """Every channel of an EXR held in memory, (H, W) each. The header is read first and an
+    image over `max_pixels` is refused before any pixel is decoded (a small file can declare a
+    huge image)."""
+    with tempfile.TemporaryDirectory(prefix="renderloop-exr-") as folder:
+        path = Path(folder) / "upload.exr"
+        path.write_bytes(data)
+        try:
+            with OpenEXR.File(str(path), header_only=True) as exr:
+                (x0, y0), (x1, y1) = (tuple(int(v) for v in corner) for corner in exr.header()["dataWindow"])
+            width, height = x1 - x0 + 1, y1 - y0 + 1
+            if width < 1 or height < 1 or width * height > max_pixels:
+                raise ExrError(f"the EXR declares a {width}x{height} image; at most {max_pixels} pixels are accepted")
+            with OpenEXR.File(str(path), separate_channels=True) as exr:
+                return {name: np.array(ch.pixels) for name, ch in exr.channels().items()}
+        except ExrError:
+            raise
+        except Exception as exc:  # OpenEXR raises plain RuntimeError on corrupt input
+            raise ExrError(f"not a readable EXR file ({exc})") from exc

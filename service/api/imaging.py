@@ -2,16 +2,13 @@
 or the raw float values as a single-layer EXR."""
 from __future__ import annotations
 
-import os
-import tempfile
-from pathlib import Path
-
 import numpy as np
 
+from service.exr import ExrFrame, exr_to_bytes
 from service.images import colormap, tonemap
+from service.loop.spec import LAMBDA_RANGE
 
 RADIANCE_LAYERS = ("denoised", "noisy")
-LAMBDA_RANGE = (1.0, 10.0)
 
 
 def _scalar_range(layer: str, values: np.ndarray) -> tuple[float, float]:
@@ -34,16 +31,7 @@ def to_rgb8(layer: str, values: np.ndarray, exposure: float = 0.0) -> np.ndarray
 
 def exr_bytes(layer: str, values: np.ndarray) -> bytes:
     """The raw layer as an EXR in the project layout (radiance as R,G,B; scalars by name)."""
-    from service.exr import ExrFrame, write_exr
-
     field = {"denoised": "color", "noisy": "noisy", "error": "error", "lambda": "lam"}.get(layer, layer)
     if layer == "spp":
         values = values.astype(np.uint32)
-    frame = ExrFrame(**{field: values}, header={"layer": layer})
-    handle, name = tempfile.mkstemp(suffix=".exr")
-    os.close(handle)
-    try:
-        write_exr(name, frame)
-        return Path(name).read_bytes()
-    finally:
-        os.unlink(name)
+    return exr_to_bytes(ExrFrame(**{field: values}, header={"layer": layer}))

@@ -2,13 +2,13 @@
 from __future__ import annotations
 
 import io
-import os
-import tempfile
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from service.api.schemas import LAMBDA_MAX, LAMBDA_MIN, LambdaRect
+from service.api.schemas import LambdaRect
+from service.exr import ExrError, exr_channels_from_bytes
+from service.loop.spec import lambda_problem
 
 MAX_MAP_BYTES = 64 * 1024 * 1024
 EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -33,20 +33,11 @@ def paint_rects(base: np.ndarray, rects: list[LambdaRect]) -> np.ndarray:
     return lam
 
 
-def _decode_exr(data: bytes) -> np.ndarray:
-    import OpenEXR
-
-    handle, name = tempfile.mkstemp(suffix=".exr")
+def _decode_exr(data: bytes, max_pixels: int) -> np.ndarray:
     try:
-        with os.fdopen(handle, "wb") as out:
-            out.write(data)
-        try:
-            with OpenEXR.File(name, separate_channels=True) as exr:
-                channels = {key: np.array(ch.pixels) for key, ch in exr.channels().items()}
-        except Exception as exc:  # OpenEXR raises bare RuntimeErrors on bad input
-            raise LambdaMapError(f"λ map is not a readable EXR ({exc})") from exc
-    finally:
-        os.unlink(name)
+        channels = exr_channels_from_bytes(data, max_pixels=max_pixels)
+    except ExrError as exc:
+        raise LambdaMapError(f"λ map: {exc}") from exc
     if "lambda" in channels:
         return channels["lambda"]
     if len(channels) == 1:
@@ -54,11 +45,14 @@ def _decode_exr(data: bytes) -> np.ndarray:
     raise LambdaMapError(f"λ map EXR must have one channel or a 'lambda' channel, found {sorted(channels)}")
 
 
-def _decode_image(data: bytes) -> np.ndarray:
+def _decode_image(data: bytes, max_pixels: int) -> np.ndarray:
     try:
-        image = Image.open(io.BytesIO(data))
+        image = Image.open(io.BytesIO(data))  # reads the header only
+        if image.width * image.height > max_pixels:
+            raise LambdaMapError(f"λ map declares a {image.width}x{image.height} image; "
+                                 f"at most {max_pixels} pixels are accepted")
         image.load()
-    except (UnidentifiedImageError, OSError) as exc:
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as exc:
         raise LambdaMapError("λ map is neither a PNG nor an EXR image") from exc
     if image.mode not in ("L", "I", "I;16", "F"):
         raise LambdaMapError(f"λ map must be single-channel (grey), got image mode {image.mode}")
@@ -69,7 +63,10 @@ def decode_map(data: bytes, shape: tuple[int, int]) -> np.ndarray:
     """An uploaded single-channel image whose pixel values are λ, checked against the job."""
     if len(data) > MAX_MAP_BYTES:
         raise LambdaMapError(f"λ map upload exceeds {MAX_MAP_BYTES // (1024 * 1024)} MiB")
-    values = _decode_exr(data) if data[:4] == EXR_MAGIC else _decode_image(data)
+    # Header first: a few hundred KB can declare gigapixels. Nothing larger than the job's
+    # own image can be right, so that is the cap.
+    max_pixels = shape[0] * shape[1]
+    values = _decode_exr(data, max_pixels) if data[:4] == EXR_MAGIC else _decode_image(data, max_pixels)
     values = np.asarray(values, dtype=np.float32)
     if values.ndim != 2:
         raise LambdaMapError(f"λ map must be single-channel, got shape {values.shape}")
@@ -77,9 +74,7 @@ def decode_map(data: bytes, shape: tuple[int, int]) -> np.ndarray:
         raise LambdaMapError(
             f"λ map is {values.shape[1]}×{values.shape[0]}, the job's image is {shape[1]}×{shape[0]}"
         )
-    if not np.isfinite(values).all() or values.min() < LAMBDA_MIN or values.max() > LAMBDA_MAX:
-        raise LambdaMapError(
-            f"λ map values must lie in [{LAMBDA_MIN:g}, {LAMBDA_MAX:g}]; "
-            f"got [{float(np.nanmin(values)):g}, {float(np.nanmax(values)):g}]"
-        )
+    problem = lambda_problem(values)
+    if problem:
+        raise LambdaMapError(f"λ map: {problem}; got [{float(np.nanmin(values)):g}, {float(np.nanmax(values)):g}]")
     return values

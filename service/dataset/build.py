@@ -17,13 +17,13 @@ temporary name and renamed, so an interrupted write never looks finished.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from service.atomic import atomic_write, atomic_write_text
 from service.dataset.procedural import SceneSpec, sample_spec, scene_dict, sensor_dict
 from service.dataset.splits import SPLITS, scene_seeds
 from service.exr import ExrError, ExrFrame, read_exr, write_exr
@@ -102,9 +102,7 @@ def is_finished(path: Path) -> bool:
 
 
 def _write_atomic(path: Path, frame: ExrFrame) -> None:
-    partial = path.with_name(f".{path.stem}.partial.exr")
-    write_exr(partial, frame)
-    os.replace(partial, path)  # atomic on POSIX: readers see the old state or the whole file
+    atomic_write(path, lambda tmp: write_exr(tmp, frame))
 
 
 def render_seed(scene_seed: int, frame: int, stream: int) -> int:
@@ -228,9 +226,7 @@ def read_manifest(root: Path) -> dict:
 
 def _write_manifest(root: Path, manifest: dict) -> None:
     path = Path(root) / MANIFEST
-    partial = path.with_name(f".{MANIFEST}.partial")
-    partial.write_text(json.dumps(manifest, indent=1))
-    os.replace(partial, path)
+    atomic_write_text(path, json.dumps(manifest, indent=1))
 
 
 def _check_compatible(root: Path, manifest: dict, settings: DatasetSettings) -> None:

@@ -12,11 +12,14 @@ restart after `kill -9`) sees either the old or the new file, never half of one.
 from __future__ import annotations
 
 import io
-import os
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
+
 import numpy as np
+
+from service.atomic import atomic_write, atomic_write_bytes
+from service.exr import ExrFrame, write_exr
+from service.loop.state import LoopState
 
 PREVIEW_LAYERS = ("denoised", "noisy", "error", "spp", "lambda")
 
@@ -27,16 +30,6 @@ class Preview:
 
     version: int
     layers: dict[str, np.ndarray | None]
-
-
-def _atomic_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.tmp")  # unique: writers may overlap
-    with open(tmp, "wb") as handle:
-        handle.write(data)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
 
 
 class JobFiles:
@@ -66,15 +59,14 @@ class JobFiles:
     # -- checkpoint (LoopState.save swaps it in atomically itself) ----------------------------
 
     def has_checkpoint(self) -> bool:
-        old = self.root / "state.old"  # a kill between LoopState.save's two renames leaves this
-        return (self.state_dir / "state.json").is_file() or (old / "state.json").is_file()
+        return LoopState.exists(self.state_dir)
 
     # -- λ map ----------------------------------------------------------------------------------
 
     def save_lambda(self, lam: np.ndarray) -> None:
         buffer = io.BytesIO()
         np.save(buffer, np.ascontiguousarray(lam, dtype=np.float32))
-        _atomic_bytes(self.lambda_path, buffer.getvalue())
+        atomic_write_bytes(self.lambda_path, buffer.getvalue())
 
     def load_lambda(self) -> np.ndarray | None:
         if not self.lambda_path.is_file():
@@ -87,7 +79,7 @@ class JobFiles:
         arrays = {name: value for name, value in preview.layers.items() if value is not None}
         buffer = io.BytesIO()
         np.savez(buffer, version=np.int64(preview.version), **arrays)
-        _atomic_bytes(self.preview_path(frame), buffer.getvalue())
+        atomic_write_bytes(self.preview_path(frame), buffer.getvalue())
 
     def load_preview(self, frame: int) -> Preview | None:
         path = self.preview_path(frame)
@@ -97,12 +89,7 @@ class JobFiles:
             layers = {name: (data[name] if name in data.files else None) for name in PREVIEW_LAYERS}
             return Preview(version=int(data["version"]), layers=layers)
 
-    def save_results(self, frames: list) -> None:
-        """Write one EXR per frame (`service.exr.ExrFrame`s), each renamed into place."""
-        from service.exr import write_exr  # OpenEXR only where results are written
-
+    def save_results(self, frames: list[ExrFrame]) -> None:
+        """Write one EXR per frame, each renamed into place."""
         for index, frame in enumerate(frames):
-            path = self.result_path(index)
-            tmp = path.with_name(f"{path.stem}.{uuid.uuid4().hex}.tmp.exr")
-            write_exr(tmp, frame)
-            os.replace(tmp, path)
+            atomic_write(self.result_path(index), lambda tmp, frame=frame: write_exr(tmp, frame))

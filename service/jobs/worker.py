@@ -289,9 +289,11 @@ class JobWorker:
         loop = self._loop_for_lambda(job_id, record)
         if loop is None:
             return LambdaApplied(record.preview_version)  # nothing rendered yet: used from iteration 1
-        full_before, tail_before = loop.full_calls, loop.tail_calls
+        session = loop.session
+        full_before, tail_before = (session.full_calls, session.tail_calls) if session else (0, 0)
         images = loop.set_lambda(lam)
-        passes = {"full_passes": loop.full_calls - full_before, "tail_passes": loop.tail_calls - tail_before}
+        passes = ({"full_passes": session.full_calls - full_before, "tail_passes": session.tail_calls - tail_before}
+                  if session else {})
         if not images:
             return LambdaApplied(record.preview_version, **passes)
         frames = []

@@ -61,6 +61,14 @@ class LoopState:
         shutil.rmtree(old, ignore_errors=True)
         return directory
 
+    @staticmethod
+    def exists(directory: str | Path) -> bool:
+        """Whether `directory` holds a checkpoint `load` can read (a kill between `save`'s two
+        renames leaves only the `.old` copy)."""
+        directory = Path(directory)
+        old = directory.with_name(directory.name + ".old")
+        return (directory / "state.json").is_file() or (old / "state.json").is_file()
+
     @classmethod
     def load(cls, directory: str | Path) -> "LoopState":
         directory = Path(directory)

@@ -72,11 +72,11 @@ def test_no_denoise_returns_the_monte_carlo_mean(nets):
 def test_lambda_change_uses_cached_features_and_changes_the_image(nets):
     loop = make_loop(nets, max_iterations=1)
     before = list(loop.run())[-1].denoised[0]
-    full = loop.full_calls
+    full = loop.session.full_calls
     lam = np.ones((SIZE, SIZE), np.float32)
     lam[:, SIZE // 2:] = 10.0
     after = loop.set_lambda(lam)[0]
-    assert loop.full_calls == full and loop.tail_calls == 1 and loop.uses_cached_features
+    assert loop.session.full_calls == full and loop.session.tail_calls == 1
     assert not np.allclose(before, after)
     # The cached tail gives exactly what a full forward pass with that λ gives.
     from service.loop.tensors import frame_tensors, lam_tensor, to_image
