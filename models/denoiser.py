@@ -29,7 +29,7 @@ from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
 from models.layers import Pointwise, cat_channels_last, conv3x3, res_blocks
 from models.warp import flow_to_center, warp
 
-LAMBDA_MIN, LAMBDA_MAX = 1.0, 10.0   # range of the asymmetric loss weight λ (eq. 6, Vogels §6)
+from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN  # noqa: F401  (re-exported: eq. 6 range)
 
 
 @dataclass

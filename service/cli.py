@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from service import denoise_command, train_command
+from service.loop.spec import ALLOCATORS, DEFAULT_ITERATIONS, DEFAULT_SPP_FIRST, LAMBDA_RANGE, LoopSpec, LoopSpecError
 from service.dataset import command as dataset_command
 
 EXIT_USAGE = 2
@@ -44,16 +45,20 @@ def add_render_parser(sub) -> None:
     p.add_argument("--height", type=int)
     p.add_argument("--frames", type=int, default=1, help="frames of the scene's animation (default 1)")
     p.add_argument("--spp", type=int, help="one uniform pass of N samples per pixel, no adaptive iterations")
-    p.add_argument("--spp-first", type=int, default=16, help="samples per pixel of iteration 0 (default 16)")
-    stop = p.add_argument_group("stopping rules (whichever comes first; default --iterations 4)")
+    p.add_argument("--spp-first", type=int, default=DEFAULT_SPP_FIRST,
+                   help=f"samples per pixel of iteration 0 (default {DEFAULT_SPP_FIRST})")
+    stop = p.add_argument_group(f"stopping rules (whichever comes first; default --iterations {DEFAULT_ITERATIONS})")
     stop.add_argument("--iterations", type=int, help="maximum iterations")
     stop.add_argument("--spp-budget", type=float, help="mean samples per pixel, all iterations together")
     stop.add_argument("--time-limit", type=float, help="seconds")
     stop.add_argument("--target-error", type=float, help="stop when the mean predicted SMAPE is at most this")
-    p.add_argument("--allocator", default="error", help="error (default) | variance | uniform")
+    p.add_argument("--allocator", default="error", help=" | ".join(ALLOCATORS) + " (default error)")
     p.add_argument("--no-denoise", action="store_true", help="write the plain Monte Carlo estimate")
-    p.add_argument("--lambda", dest="lam", type=float, default=1.0, help="λ in [1, 10] (default 1)")
+    p.add_argument("--lambda", dest="lam", type=float, default=1.0,
+                   help=f"λ in [{LAMBDA_RANGE[0]:g}, {LAMBDA_RANGE[1]:g}] (default 1)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="set the scene's $NAME parameter, like Mitsuba's -D (repeatable)")
     p.add_argument("--png", action="store_true", help="also write a tonemapped PNG beside each EXR")
     p.add_argument("-o", "--output", type=Path, help="output EXR path")
     p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
@@ -61,9 +66,17 @@ def add_render_parser(sub) -> None:
     p.set_defaults(handler=run_render)
 
 
-def render_spec(args):
-    from service.loop.spec import LoopSpec
+def scene_params(pairs: list[str]) -> dict[str, str]:
+    params = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        if not sep or not name:
+            raise CliError(f"--param takes NAME=VALUE, got {pair!r}")
+        params[name] = value
+    return params
 
+
+def render_spec(args) -> LoopSpec:
     if args.spp is not None:
         if args.spp < 1:
             raise CliError(f"--spp must be >= 1 (got {args.spp})")
@@ -73,7 +86,7 @@ def render_spec(args):
             raise CliError(f"--spp-first must be >= 1 (got {args.spp_first})")
         first = args.spp_first
         no_rule = all(v is None for v in (args.iterations, args.spp_budget, args.time_limit, args.target_error))
-        iterations = 4 if no_rule else args.iterations
+        iterations = DEFAULT_ITERATIONS if no_rule else args.iterations
     for name in ("width", "height"):
         value = getattr(args, name)
         if value is not None and value < 1:
@@ -82,7 +95,7 @@ def render_spec(args):
         scene=args.scene, width=args.width, height=args.height, frames=args.frames, spp_first=first,
         max_iterations=iterations, spp_budget=args.spp_budget, time_limit=args.time_limit,
         target_error=args.target_error, allocator=args.allocator, denoise=not args.no_denoise,
-        lam=args.lam, seed=args.seed,
+        lam=args.lam, seed=args.seed, params=scene_params(args.param),
     )
 
 
@@ -170,7 +183,6 @@ def user_errors() -> tuple[type[BaseException], ...]:
     from models.checkpoint import CheckpointError
     from service.dataset.build import DatasetError
     from service.exr import ExrError
-    from service.loop.loop import LoopSpecError
     from service.render.runtime import RuntimeSetupError
     from service.render.scenes import SceneError
 

@@ -1,85 +1,88 @@
 """Request and response bodies of the HTTP API, with the limits a job may ask for."""
 from __future__ import annotations
 
+import dataclasses
 from datetime import datetime, timezone
-from typing import Literal
+from typing import Any, Literal, get_type_hints
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
 from service.jobs.store import JobRecord
+from service.loop.spec import (ALLOCATORS, LAMBDA_RANGE, MAX_SEED, SERVICE_LIMITS, LoopSpec, LoopSpecError,
+                               validate_spec)
 
-MAX_SIDE = 4096
-MAX_PIXELS = 2048 * 2048  # per frame
-MAX_FRAMES = 16
-MAX_ITERATIONS = 12
-MAX_SPP_FIRST = 1024
-MAX_TOTAL_SAMPLES = 2**33  # pixels × frames × mean spp over the whole job
-MAX_TIME_LIMIT = 7 * 24 * 3600.0
-LAMBDA_MIN, LAMBDA_MAX = 1.0, 10.0
 MAX_RECTS = 1024
 # A JSON body may only name a built-in scene: no dots or slashes, so never a server path.
 BUILTIN_SCENE_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_\-]*$"
 BUNDLE_SCENE_PATTERN = r"^[^\x00]+\.[xX][mM][lL]$"  # checked for escapes by service.jobs.bundle
 
-Allocator = Literal["error", "variance", "uniform"]
+Allocator = Literal[ALLOCATORS]  # type: ignore[valid-type]
 Layer = Literal["denoised", "noisy", "error", "spp", "lambda"]
 ImageFormat = Literal["png", "exr"]
+LAMBDA_MIN, LAMBDA_MAX = LAMBDA_RANGE
+
+# Field bounds the schema states (and OpenAPI documents); all come from loop/spec.py.
+_BOUNDS: dict[str, dict[str, Any]] = {
+    "width": {"ge": 1, "le": SERVICE_LIMITS.max_side, "description": "null: the scene's own film size"},
+    "height": {"ge": 1, "le": SERVICE_LIMITS.max_side},
+    "frames": {"ge": 1, "le": SERVICE_LIMITS.max_frames},
+    "spp_first": {"ge": 1, "le": SERVICE_LIMITS.max_spp_first},
+    "max_iterations": {"ge": 1, "le": SERVICE_LIMITS.max_iterations},
+    "spp_budget": {"gt": 0, "description": "mean samples per pixel, all iterations"},
+    "time_limit": {"gt": 0, "le": SERVICE_LIMITS.max_time_limit, "description": "seconds"},
+    "target_error": {"gt": 0, "description": "stop at this mean predicted SMAPE"},
+    # The range is documented here but checked by validate_spec, so every way in gives the same message.
+    "lam": {"alias": "lambda", "json_schema_extra": {"minimum": LAMBDA_MIN, "maximum": LAMBDA_MAX}},
+    "seed": {"ge": 0, "le": MAX_SEED},
+    "params": {"description": "the scene's $name parameters, like Mitsuba's -D name=value"},
+}
+# Strict: "32" is not a width and "yes" not a boolean; NaN and ±Infinity are no numbers here.
+_STRICT = ConfigDict(extra="forbid", populate_by_name=True, strict=True, allow_inf_nan=False)
 
 
-class JobCreate(BaseModel):
-    """POST /jobs as JSON: `scene` names a built-in scene."""
+def _spec_fields() -> dict[str, tuple[Any, Any]]:
+    """Every LoopSpec field but `scene`, with its type, default and bounds."""
+    hints = get_type_hints(LoopSpec)
+    hints["allocator"] = Allocator
+    out = {}
+    for f in dataclasses.fields(LoopSpec):
+        if f.name == "scene":
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else None
+        factory = f.default_factory if f.default_factory is not dataclasses.MISSING else None
+        bounds = _BOUNDS.get(f.name, {})
+        info = Field(default_factory=factory, **bounds) if factory else Field(default, **bounds)
+        out[f.name] = (hints[f.name], info)
+    return out
 
-    model_config = ConfigDict(extra="forbid", populate_by_name=True)
 
-    scene: str = Field(min_length=1, max_length=128, pattern=BUILTIN_SCENE_PATTERN)
-    width: int | None = Field(None, ge=1, le=MAX_SIDE, description="None: the scene's own film size")
-    height: int | None = Field(None, ge=1, le=MAX_SIDE)
-    frames: int = Field(1, ge=1, le=MAX_FRAMES)
-    spp_first: int = Field(16, ge=1, le=MAX_SPP_FIRST)
-    max_iterations: int | None = Field(4, ge=1, le=MAX_ITERATIONS)
-    spp_budget: float | None = Field(None, gt=0, description="mean samples per pixel, all iterations")
-    time_limit: float | None = Field(None, gt=0, le=MAX_TIME_LIMIT, description="seconds")
-    target_error: float | None = Field(None, gt=0, description="stop at this mean predicted SMAPE")
-    allocator: Allocator = "error"
-    denoise: bool = True
-    lam: float = Field(1.0, alias="lambda", ge=LAMBDA_MIN, le=LAMBDA_MAX)
-    seed: int = Field(0, ge=0, le=2**31 - 1)
+class _SpecBody(BaseModel):
+    model_config = _STRICT
+
+    def loop_spec(self, scene: str) -> LoopSpec:
+        values = self.model_dump(exclude={"scene"})
+        return LoopSpec(scene=scene, **values)
 
     @model_validator(mode="after")
-    def _check_together(self) -> "JobCreate":
-        if (self.width is None) != (self.height is None):
-            raise ValueError("give both width and height, or neither (the scene's own size)")
-        if self.width is not None and self.width * self.height > MAX_PIXELS:
-            raise ValueError(f"width × height = {self.width * self.height} exceeds the cap of {MAX_PIXELS} pixels")
-        if self.max_iterations is None and self.spp_budget is None:
-            # Every iteration doubles the samples: without one of these the job never ends cheaply.
-            raise ValueError("give max_iterations or spp_budget to bound the total samples")
-        if not self.denoise and self.allocator == "error" and self.max_iterations != 1:
-            raise ValueError("allocator 'error' needs the denoiser; use 'variance' or 'uniform' with denoise=false")
-        if self.width is not None and self.planned_samples() > MAX_TOTAL_SAMPLES:
-            raise ValueError(f"the job would take {self.planned_samples():.3g} samples, over the cap of {MAX_TOTAL_SAMPLES:.3g}")
+    def _check_spec(self):
+        # The same rules as every other way in (CLI, worker): loop/spec.py's validate_spec.
+        try:
+            validate_spec(self.loop_spec(getattr(self, "scene", None) or "bundle"))
+        except LoopSpecError as exc:
+            raise ValueError(str(exc)) from exc
         return self
 
-    def planned_mean_spp(self) -> float:
-        """Upper bound on the final mean spp: the first pass doubled each later iteration."""
-        by_iterations = self.spp_first * 2.0 ** (self.max_iterations - 1) if self.max_iterations else float("inf")
-        return min(by_iterations, self.spp_budget or float("inf"))
 
-    def planned_samples(self) -> float:
-        return (self.width or 0) * (self.height or 0) * self.frames * self.planned_mean_spp()
-
-    def stored_spec(self, bundle_scene: str | None = None) -> dict:
-        """The spec as kept in the job record (`lambda` under its public name)."""
-        spec = self.model_dump(by_alias=True)
-        spec["bundle_scene"] = bundle_scene
-        return spec
-
-
-class BundleJobCreate(JobCreate):
-    """The `spec` field of a multipart bundle upload: `scene` is the XML inside the bundle
-    (optional when the bundle has exactly one top-level XML)."""
-
-    scene: str | None = Field(None, min_length=1, max_length=512, pattern=BUNDLE_SCENE_PATTERN)
+JobCreate = create_model(
+    "JobCreate", __base__=_SpecBody, __doc__="POST /jobs as JSON: `scene` names a built-in scene.",
+    scene=(str, Field(min_length=1, max_length=128, pattern=BUILTIN_SCENE_PATTERN)), **_spec_fields(),
+)
+BundleJobCreate = create_model(
+    "BundleJobCreate", __base__=_SpecBody,
+    __doc__="The `spec` field of a multipart bundle upload: `scene` is the XML inside the bundle "
+            "(optional when the bundle has exactly one top-level XML).",
+    scene=(str | None, Field(None, min_length=1, max_length=512, pattern=BUNDLE_SCENE_PATTERN)), **_spec_fields(),
+)
 
 
 class JobCreated(BaseModel):

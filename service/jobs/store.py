@@ -12,11 +12,23 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-QUEUED, RUNNING, COMPLETED, FAILED, CANCELED = "queued", "running", "completed", "failed", "canceled"
-STATES = (QUEUED, RUNNING, COMPLETED, FAILED, CANCELED)
+
+class JobState(StrEnum):
+    """A job's life: queued → running → one of the three terminal states (stored as text)."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    COMPLETED = "completed"
+    FAILED = "failed"
+    CANCELED = "canceled"
+
+
+QUEUED, RUNNING, COMPLETED, FAILED, CANCELED = JobState
+STATES = tuple(state.value for state in JobState)
 TERMINAL_STATES = frozenset({COMPLETED, FAILED, CANCELED})
 DB_NAME = "jobs.sqlite"
 

@@ -15,19 +15,19 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
 
 import numpy as np
 
 from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
+from models.pretrained import Networks
 from service.jobs.store import CANCELED, COMPLETED, FAILED, QUEUED, JobRecord, JobStore
+from service.loop.loop import RenderLoop
+from service.loop.spec import IterationRecord, LoopSpec
+from service.loop.state import LoopState
 
-if TYPE_CHECKING:  # the loop pulls in Mitsuba and torch: import it only where a job runs
-    from models.pretrained import Networks
-    from service.loop.loop import RenderLoop
-    from service.loop.spec import IterationRecord, LoopSpec
 
 log = logging.getLogger(__name__)
 
@@ -35,27 +35,13 @@ IDLE_LOOPS_KEPT = 2  # finished loops kept in memory so λ changes after the run
 LAMBDA_WAIT_SECONDS = 300.0
 
 
-def loop_spec(spec: dict[str, Any], files: JobFiles) -> "LoopSpec":
-    """The stored job spec as the loop's LoopSpec; bundle scenes resolve inside the job folder."""
-    from service.loop.spec import LoopSpec
-
-    bundle_scene = spec.get("bundle_scene")
-    scene = str(files.bundle_dir / bundle_scene) if bundle_scene else spec["scene"]
-    return LoopSpec(
-        scene=scene,
-        width=spec.get("width"),
-        height=spec.get("height"),
-        frames=spec.get("frames", 1),
-        spp_first=spec.get("spp_first", 16),
-        max_iterations=spec.get("max_iterations"),
-        spp_budget=spec.get("spp_budget"),
-        time_limit=spec.get("time_limit"),
-        target_error=spec.get("target_error"),
-        allocator=spec.get("allocator", "error"),
-        denoise=spec.get("denoise", True),
-        lam=spec.get("lambda", 1.0),
-        seed=spec.get("seed", 0),
-    )
+def job_spec(record: JobRecord, bundle_dir: Path | None = None) -> LoopSpec:
+    """A job record's stored spec as the loop's LoopSpec; a bundle's scene resolves inside
+    `bundle_dir` (left relative without it)."""
+    values = dict(record.spec)
+    bundle_scene = values.pop("bundle_scene", None)
+    scene = str(bundle_dir / bundle_scene) if (bundle_scene and bundle_dir is not None) else None
+    return LoopSpec.from_stored(values, scene=scene)
 
 
 @dataclass(frozen=True)
@@ -81,7 +67,7 @@ def _add_timings(total: dict[str, float], more: dict[str, float]) -> dict[str, f
 
 
 class JobWorker:
-    def __init__(self, store: JobStore, networks: "Networks", concurrency: int = 1) -> None:
+    def __init__(self, store: JobStore, networks: Networks, concurrency: int = 1) -> None:
         if concurrency < 1:
             raise ValueError("concurrency must be >= 1")
         self.store = store
@@ -89,8 +75,8 @@ class JobWorker:
         self._pool = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="render")
         self._lock = threading.Lock()
         self._cancel: dict[str, threading.Event] = {}
-        self._live: dict[str, "RenderLoop"] = {}  # jobs rendering right now
-        self._idle: OrderedDict[str, "RenderLoop"] = OrderedDict()  # finished, kept for λ
+        self._live: dict[str, RenderLoop] = {}  # jobs rendering right now
+        self._idle: OrderedDict[str, RenderLoop] = OrderedDict()  # finished, kept for λ
         self._publish_locks: dict[str, threading.Lock] = {}
         self._lambda: dict[str, LatestWins[tuple[np.ndarray, float | None], LambdaApplied]] = {}
         self._stopping = threading.Event()
@@ -167,12 +153,9 @@ class JobWorker:
             return
         self._complete(job_id, loop, files, last, canceled=cancel.is_set())
 
-    def _open_loop(self, job_id: str, record: JobRecord, files: JobFiles) -> "RenderLoop":
-        from service.loop.loop import RenderLoop
-        from service.loop.state import LoopState
-
+    def _open_loop(self, job_id: str, record: JobRecord, files: JobFiles) -> RenderLoop:
         state = LoopState.load(files.state_dir) if files.has_checkpoint() else None
-        loop = RenderLoop(loop_spec(record.spec, files), self.networks, state=state)
+        loop = RenderLoop(job_spec(record, files.bundle_dir), self.networks, state=state)
         if state is not None:
             self.store.set_resumed_from(job_id, state.iteration)
         with self._lock:
@@ -185,7 +168,7 @@ class JobWorker:
         return loop
 
     def _finish_iteration(
-        self, job_id: str, loop: "RenderLoop", files: JobFiles, record: "IterationRecord", timings: dict[str, float]
+        self, job_id: str, loop: RenderLoop, files: JobFiles, record: IterationRecord, timings: dict[str, float]
     ) -> dict[str, float]:
         started = time.perf_counter()
         loop.state.save(files.state_dir)
@@ -198,7 +181,7 @@ class JobWorker:
         return timings
 
     @staticmethod
-    def _preview_layers(loop: "RenderLoop", record: "IterationRecord") -> list[dict[str, np.ndarray | None]]:
+    def _preview_layers(loop: RenderLoop, record: IterationRecord) -> list[dict[str, np.ndarray | None]]:
         lam = loop.state.lam_map
         return [
             {
@@ -224,7 +207,7 @@ class JobWorker:
             return self._publish_locks.setdefault(job_id, threading.Lock())
 
     def _complete(
-        self, job_id: str, loop: "RenderLoop", files: JobFiles, last: "IterationRecord | None", canceled: bool
+        self, job_id: str, loop: RenderLoop, files: JobFiles, last: IterationRecord | None, canceled: bool
     ) -> None:
         stop_reason = last.stop_reason if last is not None else ("canceled" if canceled else None)
         if loop.state.iteration > 0:
@@ -235,7 +218,7 @@ class JobWorker:
         self._keep_idle(job_id, loop)
         self.store.finish(job_id, COMPLETED, stop_reason=stop_reason)
 
-    def _keep_idle(self, job_id: str, loop: "RenderLoop") -> None:
+    def _keep_idle(self, job_id: str, loop: RenderLoop) -> None:
         with self._lock:
             self._idle[job_id] = loop
             self._idle.move_to_end(job_id)
@@ -246,10 +229,9 @@ class JobWorker:
 
     def image_size(self, job_id: str) -> tuple[int, int] | None:
         """(H, W) of the job's images, once known (spec, or the first preview)."""
-        record = self._require(job_id)
-        width, height = record.spec.get("width"), record.spec.get("height")
-        if width and height:
-            return int(height), int(width)
+        spec = job_spec(self._require(job_id))
+        if spec.width and spec.height:
+            return spec.height, spec.width
         preview = self.files(job_id).load_preview(0)
         if preview is not None and preview.layers.get("noisy") is not None:
             return preview.layers["noisy"].shape[:2]
@@ -260,7 +242,7 @@ class JobWorker:
         lam = self.files(job_id).load_lambda()
         if lam is not None and lam.shape == shape:
             return lam
-        return np.full(shape, float(record.spec.get("lambda", 1.0)), dtype=np.float32)
+        return np.full(shape, job_spec(record).lam, dtype=np.float32)
 
     def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None) -> LambdaApplied:
         """Keep `lam` with the job and re-denoise from cached features. Under a burst only the
@@ -306,7 +288,7 @@ class JobWorker:
             files.save_results(loop.result_frames())  # the result follows λ after the run too
         return LambdaApplied(version, **passes)
 
-    def _loop_for_lambda(self, job_id: str, record: JobRecord) -> "RenderLoop | None":
+    def _loop_for_lambda(self, job_id: str, record: JobRecord) -> RenderLoop | None:
         with self._lock:
             loop = self._live.get(job_id) or self._idle.get(job_id)
         if loop is not None or record.state != COMPLETED:
@@ -315,9 +297,6 @@ class JobWorker:
         if not files.has_checkpoint():
             return None
         # After a restart: rebuild from the checkpoint; set_lambda recomputes the cache once.
-        from service.loop.loop import RenderLoop
-        from service.loop.state import LoopState
-
-        loop = RenderLoop(loop_spec(record.spec, files), self.networks, state=LoopState.load(files.state_dir))
+        loop = RenderLoop(job_spec(record, files.bundle_dir), self.networks, state=LoopState.load(files.state_dir))
         self._keep_idle(job_id, loop)
         return loop

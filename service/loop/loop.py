@@ -33,7 +33,7 @@ class RenderLoop:
             raise LoopSpecError("denoising needs the networks: pass them (models.pretrained.load_networks)")
         self.spec = spec
         # Each frame is loaded once; the effects report reads the loaded frames.
-        loaded = load_frames(spec.scene, frames=spec.frames, width=spec.width, height=spec.height)
+        loaded = load_frames(spec.scene, frames=spec.frames, width=spec.width, height=spec.height, params=spec.params)
         self.effects = inspect_frames(loaded)
         self.scenes = [frame.scene for frame in loaded]
         self.integrator = make_integrator(self.effects)

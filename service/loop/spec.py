@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from models.denoiser import LAMBDA_MAX, LAMBDA_MIN
+from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN
 from service.render.framebuffer import FrameBuffer
 
 ALLOCATORS = ("error", "variance", "uniform")

@@ -48,16 +48,18 @@ class SceneEffects:
 
 
 def load_frames(
-    source: str | Path, *, frames: int = 1, width: int | None = None, height: int | None = None
+    source: str | Path, *, frames: int = 1, width: int | None = None, height: int | None = None,
+    params: dict[str, str] | None = None,
 ) -> list[LoadedScene]:
     """Every frame of a sequence, each loaded once; a file without `$frame` is one scene
     shared by all frames (it cannot change between them)."""
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise SceneError(f"frames must be an integer >= 1, got {frames!r}")
-    first = load_scene_info(source, width=width, height=height, frame=0)
+    first = load_scene_info(source, width=width, height=height, frame=0, params=params)
     if not first.declares_frame:
         return [first] * frames
-    return [first] + [load_scene_info(source, width=width, height=height, frame=f) for f in range(1, frames)]
+    return [first] + [load_scene_info(source, width=width, height=height, frame=f, params=params)
+                      for f in range(1, frames)]
 
 
 def inspect_frames(loaded: list[LoadedScene]) -> SceneEffects:

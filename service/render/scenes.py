@@ -76,22 +76,62 @@ def load_scene_info(
     width: int | None = None,
     height: int | None = None,
     frame: int = 0,
+    params: dict[str, str] | None = None,
 ) -> LoadedScene:
-    """Like `load_scene`, also returning the declared max_depth (used by the effects report)."""
+    """Like `load_scene`, also returning the declared max_depth (used by the effects report).
+    `params` sets the scene's `<default>` parameters, like Mitsuba's `-D name=value`."""
+    mi = mitsuba()
+    parsed = _parse_scene(mi, source, width, height, frame, params)
+    max_depth = _conform(mi, parsed.state, width, height, parsed.label)
+    scene = _instantiate(mi, parsed.config, parsed.state, parsed.asset_root, parsed.label)
+    if not isinstance(scene, mi.Scene):
+        raise SceneError(f"{parsed.label}: the file describes a {type(scene).__name__}, not a <scene>")
+    if not scene.sensors():
+        raise SceneError(f"{parsed.label}: the scene declares no <sensor> (camera) to render from")
+    return LoadedScene(scene=scene, max_depth=max_depth, declares_frame=parsed.declares_frame)
+
+
+def film_size(source: str | Path, *, width: int | None = None, height: int | None = None,
+              params: dict[str, str] | None = None) -> tuple[int, int]:
+    """(width, height) the scene renders at — the request's size, else its film's — read from
+    the parsed description without instantiating anything (no meshes or textures loaded)."""
+    mi = mitsuba()
+    parsed = _parse_scene(mi, source, width, height, 0, params)
+    _conform(mi, parsed.state, width, height, parsed.label)
+    films = [node for node in parsed.state.nodes if node.type == mi.ObjectType.Film]
+    if not films:
+        return MITSUBA_DEFAULT_FILM
+    props = films[0].props
+    size = [int(props[key]) if key in props else default for key, default in zip(("width", "height"), MITSUBA_DEFAULT_FILM)]
+    crop = [int(props[key]) if key in props else full for key, full in zip(("crop_width", "crop_height"), size)]
+    return crop[0], crop[1]
+
+
+@dataclass
+class _Parsed:
+    config: object  # mi.parser.ParserConfig
+    state: object  # mi.parser.ParserState, transformed
+    asset_root: Path | None
+    label: str
+    declares_frame: bool
+
+
+def _parse_scene(mi, source: str | Path, width: int | None, height: int | None, frame: int,
+                 user_params: dict[str, str] | None = None) -> _Parsed:
     width, height = _check_override(width, height)
     if isinstance(frame, bool) or not isinstance(frame, numbers.Integral) or frame < 0:
         raise SceneError(f"frame must be an integer >= 0, got {frame!r}")
     frame = int(frame)
-    mi = mitsuba()
     config = mi.parser.ParserConfig(mi.variant())
     # Mitsuba rejects a passed parameter that the file declares but never uses as `$name`
     # (e.g. a leftover <default name="frame">); that is no reason to refuse the scene.
     config.unused_parameters = mi.LogLevel.Debug
     builtin = BUILTIN_BY_NAME.get(str(source)) if not isinstance(source, Path) else None
     if builtin is not None:
+        if user_params:
+            raise SceneError(f"{builtin.name}: built-in scenes take no parameters (got {', '.join(sorted(user_params))})")
         state = _parse(lambda: mi.parser.parse_dict(config, builtin.build(frame)), builtin.name)
-        asset_root = None
-        declares_frame = True
+        asset_root, label, declares_frame = None, builtin.name, True
     else:
         path = _scene_path(source)
         declared = _declared_parameters(path)
@@ -101,18 +141,15 @@ def load_scene_info(
         for name, value in zip(RESOLUTION_PARAMETERS, (width, height)):
             if value is not None and name in declared:
                 params[name] = str(value)
+        unknown = sorted(set(user_params or {}) - declared)
+        if unknown:
+            known = ", ".join(sorted(declared)) or "none"
+            raise SceneError(f"{path.name}: unknown scene parameter(s) {', '.join(unknown)}; its <default> names: {known}")
+        params.update(user_params or {})
         state = _parse(lambda: mi.parser.parse_file(config, str(path), **params), path.name)
-        asset_root = path.parent
-        declares_frame = FRAME_PARAMETER in declared
-    label = builtin.name if builtin is not None else Path(source).name
+        asset_root, label, declares_frame = path.parent, path.name, FRAME_PARAMETER in declared
     _parse(lambda: mi.parser.transform_all(config, state), label)
-    max_depth = _conform(mi, state, width, height, label)
-    scene = _instantiate(mi, config, state, asset_root, label)
-    if not isinstance(scene, mi.Scene):
-        raise SceneError(f"{label}: the file describes a {type(scene).__name__}, not a <scene>")
-    if not scene.sensors():
-        raise SceneError(f"{label}: the scene declares no <sensor> (camera) to render from")
-    return LoadedScene(scene=scene, max_depth=max_depth, declares_frame=declares_frame)
+    return _Parsed(config, state, asset_root, label, declares_frame)
 
 
 def _check_override(width: int | None, height: int | None) -> tuple[int | None, int | None]:

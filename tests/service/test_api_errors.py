@@ -63,7 +63,11 @@ def test_unknown_job_is_404(client):
         ({"scene": "../../etc/passwd"}, "scene"),
         ({"scene": "no-such-scene"}, "scene"),
         ({"colour": "red"}, "colour"),
-        ({"max_iterations": None}, "max_iterations or spp_budget"),
+        ({"max_iterations": None}, "stopping rule"),
+        ({"max_iterations": None, "time_limit": 10}, "max_iterations or spp_budget"),
+        ({"width": "32"}, "width"),
+        ({"denoise": "yes"}, "denoise"),
+        ({"lambda": 11}, "[1, 10]"),
     ],
 )
 def test_bad_job_bodies_are_422(client, change, field):
@@ -136,3 +140,31 @@ def test_bad_query_and_lambda_bodies(client):
 def test_healthz(client):
     body = client.get("/healthz").json()
     assert body["status"] == "ok" and set(body["jobs"]) == {"queued", "running", "completed", "failed", "canceled"}
+
+
+@pytest.mark.parametrize("body", [
+    {"scene": "cornell-box", "max_iterations": None, "spp_budget": 1e30},
+    {"scene": "cornell-box", "frames": 16, "spp_first": 1024, "max_iterations": 12},
+])
+def test_api_rejects_a_job_whose_scene_film_exceeds_the_sample_cap_without_width_height(client, body):
+    # No width/height: the cap applies to the scene's own film (256² for the built-in box).
+    response = client.post("/jobs", json=body)
+    assert response.status_code == 422, response.text
+    assert "over the cap" in response.json()["detail"] and "256x256" in response.json()["detail"]
+
+
+@pytest.mark.parametrize("raw", ['{"scene": "cornell-box", "max_iterations": 1, "spp_budget": Infinity}',
+                                 '{"scene": "cornell-box", "max_iterations": 1, "target_error": NaN}'])
+def test_non_finite_numbers_are_422(client, raw):
+    response = client.post("/jobs", content=raw, headers={"content-type": "application/json"})
+    assert response.status_code == 422, response.text
+
+
+def test_a_json_integer_of_thousands_of_digits_is_422_not_500(client):
+    raw = '{"scene": "cornell-box", "seed": ' + "9" * 5000 + "}"
+    response = client.post("/jobs", content=raw, headers={"content-type": "application/json"})
+    assert response.status_code == 422, response.text
+
+
+def test_job_list_offset_beyond_sqlite_integers_is_422_not_500(client):
+    assert client.get("/jobs", params={"offset": 9223372036854775808}).status_code == 422
