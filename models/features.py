@@ -88,14 +88,9 @@ def normalize_depth(depth: Tensor) -> Tensor:
 
 # --- encoder inputs, one builder per render source ----------------------------------------
 
-def network_input(frame: FrameTensors) -> Tensor:
-    """(N,13,H,W) encoder input for the Mitsuba path tracer: log demodulated radiance,
-    log(1+relative variance), log(1+albedo), normal, normalised depth."""
-    return path_features(sanitize_frame(frame)[0])
-
-
 def path_features(f: FrameTensors) -> Tensor:
-    """network_input for an already sanitised frame (the denoiser sanitises once up front)."""
+    """(N,13,H,W) encoder input for the Mitsuba path tracer from an already sanitised frame: log
+    demodulated radiance, log(1+relative variance), log(1+albedo), normal, normalised depth."""
     return torch.cat([
         log_transform(demodulate(f.color, f.albedo)),
         log_transform(relative_variance(f.variance, f.color)),

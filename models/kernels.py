@@ -15,12 +15,6 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
-def kernel_weights(logits: Sequence[Tensor]) -> list[Tensor]:
-    """Joint softmax over all frames' k² logits at each pixel (eq. 4), one tensor per frame."""
-    joint = torch.softmax(torch.cat(list(logits), dim=1), dim=1)
-    return list(torch.split(joint, [l.shape[1] for l in logits], dim=1))
-
-
 def pad_for_kernel(image: Tensor, k: int) -> Tensor:
     """Replicate border of k//2 so every tap reads a real pixel (any size, even 1×1)."""
     r = k // 2
@@ -60,18 +54,3 @@ def filter_padded(padded: Sequence[Tensor], weights: Tensor, k: int) -> Tensor:
                     tap = (f * k + dy) * k + dx
                     acc.addcmul_(weights[:, tap:tap + 1, y0:y1], image[:, :, y0 + dy:y1 + dy, dx:dx + w])
     return out / weights.sum(dim=1, keepdim=True)
-
-
-def apply_kernels(images: Tensor | Sequence[Tensor], logits: Tensor | Sequence[Tensor], k: int) -> Tensor:
-    """Filter image(s) (N,C,H,W) with per-pixel kernels from logits (N,k²,H,W) (eq. 3); with
-    lists, one kernel per frame and one softmax over all of them (eq. 4).
-    Tap index dy·k + dx weights pixel (y + dy − k//2, x + dx − k//2)."""
-    if isinstance(images, Tensor):
-        images, logits = [images], [logits]
-    if len(images) != len(logits):
-        raise ValueError(f"{len(images)} images but {len(logits)} logit maps")
-    for l in logits:
-        if l.shape[1] != k * k:
-            raise ValueError(f"logits have {l.shape[1]} channels, expected k²={k * k}")
-    weights = unnormalised_weights(torch.cat(list(logits), dim=1))   # cat: a fresh tensor, safe in place
-    return filter_padded([pad_for_kernel(i, k) for i in images], weights, k)

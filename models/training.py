@@ -8,7 +8,6 @@ trained denoiser's output (§7).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -23,17 +22,6 @@ from models.losses import asymmetric_loss, l1, smape, smape_map
 LAMBDA_BLOCK = 8  # per-pixel λ maps are drawn on a coarse grid: painted maps are piecewise smooth
 VALIDATION_LAMBDAS = (2.0, 4.0, 10.0)  # λ-stage validation: spread over log λ ∈ (0, log 10]
 COARSE_LEVEL_WEIGHT = 0.5  # weight of the coarse levels' own loss next to the composited result's
-
-
-@dataclass
-class TrainSettings:
-    steps: int = 2000
-    lr: float = 1e-3
-    batch: int = 8
-    crop: int = 48
-    val_every: int = 200
-    seed: int = 0
-    single_frame_fraction: float = 0.5  # windows cut to the centre frame, so F = 1 jobs are trained too
 
 
 def sample_lambda(n: int, height: int, width: int, generator: torch.Generator) -> Tensor:
@@ -110,8 +98,3 @@ def denoiser_lambda_loss(model: Denoiser, frames: list[FrameTensors], centre: in
     cache = model.prepare(frames, centre)
     noisy = frames[centre].color
     return sum(float(asymmetric_loss(model.apply(cache, lam), reference, noisy, lam)) for lam in lambdas) / len(lambdas)
-
-
-def grad_norm(model: torch.nn.Module) -> float:
-    norms = [p.grad.detach().norm() for p in model.parameters() if p.grad is not None]
-    return float(torch.stack(norms).norm()) if norms else 0.0

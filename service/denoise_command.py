@@ -8,8 +8,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from models.frames import FrameTensors
+from models.pretrained import load_networks
 from service.exr import ExrError, ExrFrame, read_exr, write_exr
+from service.loop.spec import LAMBDA_RANGE, lambda_problem
+from service.loop.tensors import configure_torch_threads, lam_tensor, nchw, to_image
 
 REQUIRED_LAYERS = ("noisy", "variance", "albedo", "normal", "depth")
 
@@ -18,7 +23,8 @@ def add_parser(sub) -> None:
     p = sub.add_parser("denoise", help="denoise an EXR in the renderloop layout")
     p.add_argument("input", type=Path, help="EXR with noisy.*, variance.*, albedo.*, N.*, Z layers")
     lam = p.add_mutually_exclusive_group()
-    lam.add_argument("--lambda", dest="lam", type=float, default=1.0, help="global λ in [1, 10] (default 1)")
+    lam.add_argument("--lambda", dest="lam", type=float, default=1.0,
+                     help=f"global λ in [{LAMBDA_RANGE[0]:g}, {LAMBDA_RANGE[1]:g}] (default 1)")
     lam.add_argument("--lambda-map", type=Path, help="single-channel EXR (layer `lambda` or R) of per-pixel λ")
     p.add_argument("--frames", type=Path, nargs="+", default=[],
                    help="neighbour frames in sequence order, the input among them or not (temporal window)")
@@ -30,27 +36,19 @@ def add_parser(sub) -> None:
 
 def frame_from_exr(path: Path, frame: ExrFrame):
     """ExrFrame → models.frames.FrameTensors (1, C, H, W)."""
-    import torch
-
-    from models.frames import FrameTensors
-
     missing = [name for name in REQUIRED_LAYERS if getattr(frame, name) is None]
     if missing:
         raise ExrError(f"{path}: missing layers {', '.join(missing)} (render with --no-denoise to get them)")
 
-    def t(a: np.ndarray) -> torch.Tensor:
-        a = a[..., None] if a.ndim == 2 else a
-        return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1), dtype=np.float32))[None]
-
-    return FrameTensors(color=t(frame.noisy), variance=t(frame.variance), albedo=t(frame.albedo),
-                        normal=t(frame.normal), depth=t(frame.depth),
-                        motion=None if frame.motion is None else t(frame.motion))
+    return FrameTensors(color=nchw(frame.noisy), variance=nchw(frame.variance), albedo=nchw(frame.albedo),
+                        normal=nchw(frame.normal), depth=nchw(frame.depth),
+                        motion=None if frame.motion is None else nchw(frame.motion))
 
 
 def load_lambda(args, shape: tuple[int, int]) -> np.ndarray:
     if args.lambda_map is None:
-        if not 1.0 <= args.lam <= 10.0:
-            raise ExrError(f"--lambda must lie in [1, 10] (got {args.lam})")
+        if lambda_problem(args.lam):
+            raise ExrError(f"--lambda: {lambda_problem(args.lam)} (got {args.lam})")
         return np.full(shape, args.lam, dtype=np.float32)
     m = read_exr(args.lambda_map)
     lam = m.lam if m.lam is not None else (m.color[..., 0] if m.color is not None else None)
@@ -58,18 +56,12 @@ def load_lambda(args, shape: tuple[int, int]) -> np.ndarray:
         raise ExrError(f"{args.lambda_map}: no `lambda` or R layer")
     if lam.shape != shape:
         raise ExrError(f"{args.lambda_map}: λ map is {lam.shape[1]}x{lam.shape[0]}, the image is {shape[1]}x{shape[0]}")
-    if not np.isfinite(lam).all() or lam.min() < 1 or lam.max() > 10:
-        raise ExrError(f"{args.lambda_map}: λ values must be finite and lie in [1, 10]")
+    if lambda_problem(lam):
+        raise ExrError(f"{args.lambda_map}: {lambda_problem(lam)}")
     return lam.astype(np.float32)
 
 
 def run_denoise(args) -> int:
-    import torch
-
-    from models.pretrained import load_networks
-    from service.loop.tensors import configure_torch_threads
-    from service.loop.tensors import lam_tensor, to_image
-
     centre_frame = read_exr(args.input)
     paths = [Path(p) for p in args.frames]
     if paths and args.input.resolve() not in [p.resolve() for p in paths]:

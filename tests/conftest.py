@@ -6,6 +6,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+import torch
+
+from models.denoiser import Denoiser, DenoiserConfig
+from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from models.pretrained import Networks
 
 # The suite runs on shared 2-core machines, where torch's one-thread-per-core default makes
 # small denoises 30× slower (docs/benchmarks.md); servers started by tests inherit this.
@@ -36,3 +41,16 @@ def write_scene_xml(tmp_path: Path) -> Callable[..., Path]:
         return path
 
     return write
+
+
+@pytest.fixture(scope="session")
+def tiny_networks() -> Networks:
+    """Small untrained networks, seeded: the loop's plumbing (features cache, λ tail, error
+    maps) runs through real networks at a fraction of the shipped ones' cost."""
+    torch.manual_seed(0)
+    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1)).eval()
+    # The λ module starts as "no specialisation"; perturb it so λ visibly matters.
+    with torch.no_grad():
+        for parameter in denoiser.specialise.parameters():
+            parameter.add_(torch.randn_like(parameter) * 0.5)
+    return Networks(denoiser, ErrorPredictor(ErrorPredictorConfig(width=8)).eval())

@@ -96,10 +96,6 @@ class SceneSpec:
     lights: tuple[LightSpec, ...]
     camera: CameraSpec
 
-    @property
-    def has_media(self) -> bool:
-        return False  # media are kept out: volpath on a CPU is too slow for data generation
-
 
 # --- sampling the spec ---------------------------------------------------------------------
 
@@ -429,7 +425,7 @@ def scene_dict(spec: SceneSpec, *, size: int, frame: int = 0) -> dict:
         raise ValueError(f"size must be >= 1, got {size}")
     mi = mitsuba()
     scene = {"type": "scene",
-             "integrator": {"type": "volpath" if spec.has_media else "path", "max_depth": MAX_DEPTH},
+             "integrator": {"type": "path", "max_depth": MAX_DEPTH},
              "sensor": sensor_dict(spec.camera, size=size, frame=frame)}
     scene.update(_surfaces(mi, spec))
     for i, o in enumerate(spec.objects):
@@ -439,12 +435,7 @@ def scene_dict(spec: SceneSpec, *, size: int, frame: int = 0) -> dict:
     return scene
 
 
-def generate_scene(seed: int, *, size: int, frame: int = 0, frames: int = 1) -> dict:
-    """Scene `seed` at `size`×`size`, camera at `frame` of a `frames`-long sequence.
-
-    A single-frame scene (`frames` = 1) is frame 0 of its path. `frame` may lie outside
-    [0, frames) — frame −1 is the previous camera that motion vectors of frame 0 refer to.
-    """
-    if frames < 1:
-        raise ValueError(f"frames must be >= 1, got {frames}")
+def generate_scene(seed: int, *, size: int, frame: int = 0) -> dict:
+    """Scene `seed` at `size`×`size`, camera at `frame` of its path. A single-frame scene is
+    frame 0; `frame` may be −1, the previous camera that motion vectors of frame 0 refer to."""
     return scene_dict(sample_spec(seed), size=size, frame=frame)

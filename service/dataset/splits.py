@@ -14,12 +14,7 @@ SPLIT_BASES = {"train": TRAIN_SEED_BASE, "heldout": HELDOUT_SEED_BASE}
 SPLITS = tuple(SPLIT_BASES)
 
 
-def split_of(scene_seed: int) -> str:
-    """The split a scene seed belongs to; ValueError outside every split's range."""
-    for split, base in SPLIT_BASES.items():
-        if base <= scene_seed < base + SPLIT_SIZE:
-            return split
-    raise ValueError(f"scene seed {scene_seed} belongs to no split")
+
 
 
 def scene_seeds(split: str, n: int, seed: int) -> list[int]:

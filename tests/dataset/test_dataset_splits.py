@@ -1,6 +1,11 @@
 import pytest
 
-from service.dataset.splits import HELDOUT_SEED_BASE, SPLIT_SIZE, TRAIN_SEED_BASE, scene_seeds, split_of
+from service.dataset.splits import HELDOUT_SEED_BASE, SPLIT_BASES, SPLIT_SIZE, TRAIN_SEED_BASE, scene_seeds
+
+
+
+def split_of(scene_seed: int) -> str:
+    return next(split for split, base in SPLIT_BASES.items() if base <= scene_seed < base + SPLIT_SIZE)
 
 
 def test_train_and_heldout_seeds_are_disjoint_whatever_the_dataset_seed():

@@ -9,7 +9,7 @@ import torch
 from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.frames import FrameTensors
-from models.training import denoiser_loss, error_predictor_loss, grad_norm, sample_lambda
+from models.training import denoiser_loss, error_predictor_loss, sample_lambda
 
 N, H, W = 2, 12, 16  # a size the 3-level pyramid must pad
 
@@ -32,6 +32,12 @@ def finite_step(model: torch.nn.Module, optimiser: torch.optim.Optimizer, loss: 
     assert math.isfinite(grad_norm(model)) and grad_norm(model) > 0
     optimiser.step()
     assert all(torch.isfinite(p).all() for p in model.parameters())
+
+
+
+def grad_norm(model: torch.nn.Module) -> float:
+    norms = [p.grad.detach().norm() for p in model.parameters() if p.grad is not None]
+    return float(torch.stack(norms).norm()) if norms else 0.0
 
 
 def test_denoiser_and_error_predictor_train_finitely_on_hdr_data():

@@ -3,8 +3,6 @@ import numpy as np
 import pytest
 import torch
 
-from models.denoiser import Denoiser, DenoiserConfig
-from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.pretrained import Networks
 from service.loop.loop import LoopSpecError, RenderLoop
 from service.loop.spec import LoopSpec
@@ -13,24 +11,13 @@ from service.loop.state import LoopState
 SIZE = 16
 
 
-@pytest.fixture(scope="module")
-def nets():
-    torch.manual_seed(0)
-    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1)).eval()
-    # The λ module starts as "no specialisation"; perturb it so λ visibly matters.
-    with torch.no_grad():
-        for p in denoiser.specialise.parameters():
-            p.add_(torch.randn_like(p) * 0.5)
-    return denoiser, ErrorPredictor(ErrorPredictorConfig(width=8)).eval()
-
-
-def make_loop(nets, **overrides) -> RenderLoop:
+def make_loop(nets: Networks, **overrides) -> RenderLoop:
     spec = LoopSpec(scene="cornell-box", width=SIZE, height=SIZE, **{"max_iterations": 3, **overrides})
-    return RenderLoop(spec, Networks(nets[0], nets[1]))
+    return RenderLoop(spec, nets)
 
 
-def test_every_iteration_doubles_the_total_sample_count(nets):
-    records = list(make_loop(nets).run())
+def test_every_iteration_doubles_the_total_sample_count(tiny_networks):
+    records = list(make_loop(tiny_networks).run())
     assert [r.spp_mean for r in records] == [16, 32, 64]
     assert records[-1].stop_reason == "max_iterations"
     for r in records:
@@ -39,29 +26,29 @@ def test_every_iteration_doubles_the_total_sample_count(nets):
         assert {"render", "denoise", "error", "allocate"} <= set(r.timings)
 
 
-def test_spp_budget_stops_exactly_at_the_budget(nets):
-    records = list(make_loop(nets, max_iterations=None, spp_budget=40, allocator="variance").run())
+def test_spp_budget_stops_exactly_at_the_budget(tiny_networks):
+    records = list(make_loop(tiny_networks, max_iterations=None, spp_budget=40, allocator="variance").run())
     assert records[-1].spp_mean == 40 and records[-1].stop_reason == "spp_budget"
     assert [r.spp_mean for r in records] == [16, 32, 40]
 
 
-def test_target_error_stops_when_prediction_is_low_enough(nets):
-    records = list(make_loop(nets, max_iterations=5, target_error=1e9).run())
+def test_target_error_stops_when_prediction_is_low_enough(tiny_networks):
+    records = list(make_loop(tiny_networks, max_iterations=5, target_error=1e9).run())
     assert len(records) == 1 and records[0].stop_reason == "target_error"
 
 
-def test_time_limit_stops_before_overrunning(nets):
-    records = list(make_loop(nets, max_iterations=None, time_limit=1e-6).run())
+def test_time_limit_stops_before_overrunning(tiny_networks):
+    records = list(make_loop(tiny_networks, max_iterations=None, time_limit=1e-6).run())
     assert len(records) == 1 and records[0].stop_reason == "time_limit"
 
 
-def test_should_stop_cancels_between_iterations(nets):
+def test_should_stop_cancels_between_iterations(tiny_networks):
     calls = iter([False, True, True, True])
-    records = list(make_loop(nets).run(should_stop=lambda: next(calls)))
+    records = list(make_loop(tiny_networks).run(should_stop=lambda: next(calls)))
     assert len(records) == 1 and records[0].stop_reason == "canceled"
 
 
-def test_no_denoise_returns_the_monte_carlo_mean(nets):
+def test_no_denoise_returns_the_monte_carlo_mean(tiny_networks):
     loop = RenderLoop(LoopSpec(scene="cornell-box", width=SIZE, height=SIZE, max_iterations=2,
                                denoise=False, allocator="uniform"), None)
     records = list(loop.run())
@@ -69,8 +56,8 @@ def test_no_denoise_returns_the_monte_carlo_mean(nets):
     assert records[-1].predicted_error is None and records[-1].spp_mean == 32
 
 
-def test_lambda_change_uses_cached_features_and_changes_the_image(nets):
-    loop = make_loop(nets, max_iterations=1)
+def test_lambda_change_uses_cached_features_and_changes_the_image(tiny_networks):
+    loop = make_loop(tiny_networks, max_iterations=1)
     before = list(loop.run())[-1].denoised[0]
     full = loop.session.full_calls
     lam = np.ones((SIZE, SIZE), np.float32)
@@ -82,7 +69,7 @@ def test_lambda_change_uses_cached_features_and_changes_the_image(nets):
     from service.loop.tensors import frame_tensors, lam_tensor, to_image
 
     with torch.no_grad():
-        direct = to_image(nets[0]([frame_tensors(loop.state.buffers[0])], 0, lam_tensor(lam)))
+        direct = to_image(tiny_networks.denoiser([frame_tensors(loop.state.buffers[0])], 0, lam_tensor(lam)))
     np.testing.assert_allclose(after, direct, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(loop.state.lam_map, lam)
     with pytest.raises(LoopSpecError, match="λ"):
@@ -91,25 +78,25 @@ def test_lambda_change_uses_cached_features_and_changes_the_image(nets):
         loop.set_lambda(np.ones((3, 3), np.float32))
 
 
-def test_resume_from_checkpoint_continues_the_doubling(nets, tmp_path):
-    first = make_loop(nets, max_iterations=3)
+def test_resume_from_checkpoint_continues_the_doubling(tiny_networks, tmp_path):
+    first = make_loop(tiny_networks, max_iterations=3)
     run = first.run()
     next(run)
     first.state.lam_map[:] = 3.0
     first.state.save(tmp_path / "state")
     state = LoopState.load(tmp_path / "state")
     assert state.iteration == 1 and (state.lam_map == 3.0).all()
-    resumed = RenderLoop(first.spec, Networks(nets[0], nets[1]), state=state)
+    resumed = RenderLoop(first.spec, tiny_networks, state=state)
     records = list(resumed.run())
     assert [r.spp_mean for r in records] == [32, 64]
     np.testing.assert_array_equal(resumed.state.buffers[0].spp.sum(), 64 * SIZE * SIZE)
 
 
-def test_a_finished_checkpoint_does_not_render_again(nets, tmp_path):
-    loop = make_loop(nets, max_iterations=1)
+def test_a_finished_checkpoint_does_not_render_again(tiny_networks, tmp_path):
+    loop = make_loop(tiny_networks, max_iterations=1)
     list(loop.run())
     loop.state.save(tmp_path / "s")
-    again = RenderLoop(loop.spec, Networks(nets[0], nets[1]), state=LoopState.load(tmp_path / "s"))
+    again = RenderLoop(loop.spec, tiny_networks, state=LoopState.load(tmp_path / "s"))
     assert list(again.run()) == []
     assert again.state.spp_mean == 16
 
@@ -121,9 +108,9 @@ def test_bad_specs_are_rejected_with_a_message():
             RenderLoop(LoopSpec(scene="cornell-box", width=8, height=8, **{"max_iterations": 2, **overrides}))
 
 
-def test_a_moving_sequence_advances_every_frame_with_motion_vectors(nets):
+def test_a_moving_sequence_advances_every_frame_with_motion_vectors(tiny_networks):
     loop = RenderLoop(LoopSpec(scene="cornell-box-orbit", width=SIZE, height=SIZE, frames=3, max_iterations=2),
-                      Networks(nets[0], nets[1]))
+                      tiny_networks)
     assert loop.effects.temporal and loop.effects.motion_vectors
     records = list(loop.run())
     assert records[-1].spp_mean == 32 and len(records[-1].denoised) == 3
@@ -133,8 +120,8 @@ def test_a_moving_sequence_advances_every_frame_with_motion_vectors(nets):
     assert all(np.isfinite(d).all() for d in records[-1].denoised)
 
 
-def test_single_frame_jobs_do_no_temporal_work(nets):
-    loop = make_loop(nets, max_iterations=1)
+def test_single_frame_jobs_do_no_temporal_work(tiny_networks):
+    loop = make_loop(tiny_networks, max_iterations=1)
     assert not loop.effects.temporal and not loop.effects.motion_vectors
     record = list(loop.run())[-1]
     assert record.buffers[0].motion is None and len(record.denoised) == 1

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from models.features import (FEATURE_SETS, HDR_MAX, demodulate, feature_set, sanitize_frame, inverse_log_transform,
-                             log_transform, network_input, remodulate, sanitize)
+                             log_transform, path_features, remodulate, sanitize)
 from tests.models.conftest import make_frame
 
 
@@ -27,7 +27,7 @@ def test_network_input_is_finite_with_hostile_buffers():
     f.variance[0, 1, 1, 1] = float("inf")
     f.albedo.zero_()
     f.depth.zero_()
-    x = network_input(f)
+    x = path_features(sanitize_frame(f)[0])
     assert x.shape == (1, FEATURE_SETS["mitsuba-path"].channels, 12, 16)
     assert x.isfinite().all()
 

@@ -1,6 +1,28 @@
 import torch
 
-from models.kernels import apply_kernels, kernel_weights
+from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
+
+
+# eqs. 3–4 composed from the primitives the denoiser uses (it pads once and reuses the padding).
+def kernel_weights(logits: list[torch.Tensor]) -> list[torch.Tensor]:
+    """Joint softmax over all frames' k² logits at each pixel (eq. 4), one tensor per frame."""
+    joint = torch.softmax(torch.cat(list(logits), dim=1), dim=1)
+    return list(torch.split(joint, [l.shape[1] for l in logits], dim=1))
+
+
+def apply_kernels(images, logits, k: int) -> torch.Tensor:
+    """Filter image(s) (N,C,H,W) with per-pixel kernels from logits (N,k²,H,W) (eq. 3); with
+    lists, one kernel per frame and one softmax over all of them (eq. 4).
+    Tap index dy·k + dx weights pixel (y + dy − k//2, x + dx − k//2)."""
+    if isinstance(images, torch.Tensor):
+        images, logits = [images], [logits]
+    if len(images) != len(logits):
+        raise ValueError(f"{len(images)} images but {len(logits)} logit maps")
+    for l in logits:
+        if l.shape[1] != k * k:
+            raise ValueError(f"logits have {l.shape[1]} channels, expected k²={k * k}")
+    weights = unnormalised_weights(torch.cat(list(logits), dim=1))   # cat: a fresh tensor, safe in place
+    return filter_padded([pad_for_kernel(i, k) for i in images], weights, k)
 
 
 def test_kernel_weights_are_non_negative_and_sum_to_one_jointly_across_frames():
