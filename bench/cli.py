@@ -48,7 +48,8 @@ def run_bench(args) -> int:
         print(f"sampler: ours {result['ours_msps']:.2f} M samples/s, mi.render {result['mi_render_msps']:.2f}"
               f" → ratio {result['ratio']:.2f}x; wrote {write_sampler_report(result, args.out)}")
     if args.models:
-        models_bench([])   # the defaults; `python -m bench.models_report --help` has the options
+        # The defaults (256² and 512², 2 threads); `python -m bench.models_report --help` has the options.
+        print(f"wrote {models_bench([], out=args.out)}")
     if args.denoiser:
         if args.data is None:
             print("renderloop bench: error: --denoiser needs --data DIR with a held-out split", file=sys.stderr)

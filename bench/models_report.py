@@ -18,9 +18,12 @@ import resource
 import statistics
 import time
 from dataclasses import replace
+from pathlib import Path
+from string import Template
 
 import torch
 
+from bench.common import provenance
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
 
@@ -84,23 +87,49 @@ def benchmark_models(sizes=(256, 512), repeats: int = 3, threads: int = 2, cases
     return rows
 
 
-def main(argv: list[str] | None = None) -> None:
-    """python -m bench.models_report [SIZE ...] [--threads T] [--repeats R] [--width W] [--spatial-blocks B]"""
+def write_models_report(rows: list[dict], config: DenoiserConfig, out: Path) -> Path:
+    """docs/models-speed.md: this run's table, with the command, machine and date."""
+    table = "\n".join(
+        f"| {r['model']} | {r['size']}² | {r['threads']} | {r['ms_median']:.0f} | {r['ms_min']:.0f} | "
+        f"{r['cpu_ms_median']:.0f} | {r['peak_rss_growth_mb']:.0f} | {r['load_avg_1min']:.1f} |" for r in rows)
+    path = out / "models-speed.md"
+    out.mkdir(parents=True, exist_ok=True)
+    path.write_text(MODELS_REPORT.substitute(provenance=provenance(), config=config, table=table))
+    return path
+
+
+MODELS_REPORT = Template("""# Denoiser speed and memory (CPU)
+
+$provenance
+
+Config: `$config`. Random inputs, weights untrained (speed does not depend on them). Each case
+runs in a fresh spawned process: median and minimum wall time of the repeats after one warm-up,
+median process CPU time, and the growth of peak RSS the timed runs caused. `lambda-tail` is
+`Denoiser.apply` alone on cached features (what a λ edit costs); `lambda-tail-map` the same with
+a per-pixel λ map. The load average is the machine's when the case finished.
+
+| model | size | threads | median wall ms | min wall ms | median CPU ms | peak RSS growth MB | load avg |
+|---|---|---|---|---|---|---|---|
+$table
+""")
+
+
+def main(argv: list[str] | None = None, out: Path | None = None) -> Path | None:
+    """python -m bench.models_report [SIZE ...] [--threads T] [--repeats R] [--width W] [--spatial-blocks B] [-o DIR]"""
     parser = argparse.ArgumentParser(description="CPU benchmark of the default denoiser")
     parser.add_argument("sizes", nargs="*", type=int, default=[256, 512])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--width", type=int, default=DenoiserConfig.width)
     parser.add_argument("--spatial-blocks", type=int, default=DenoiserConfig.spatial_blocks)
+    parser.add_argument("-o", "--out", type=Path, default=out, help="write DIR/models-speed.md")
     args = parser.parse_args(argv)
-    sizes, threads, repeats = tuple(args.sizes), args.threads, args.repeats
     config = DenoiserConfig(width=args.width, spatial_blocks=args.spatial_blocks)
-    print(f"config: {config}")
-    print("| model | size | threads | median wall ms | min wall ms | median CPU ms | peak RSS growth MB | load avg |")
-    print("|---|---|---|---|---|---|---|---|")
-    for r in benchmark_models(sizes, repeats, threads, config=config):
-        print(f"| {r['model']} | {r['size']}² | {r['threads']} | {r['ms_median']:.0f} | {r['ms_min']:.0f} | {r['cpu_ms_median']:.0f} "
-              f"| {r['peak_rss_growth_mb']:.0f} | {r['load_avg_1min']:.1f} |")
+    rows = benchmark_models(tuple(args.sizes), args.repeats, args.threads, config=config)
+    for r in rows:
+        print(f"{r['model']} {r['size']}² {r['threads']} thread(s): {r['ms_median']:.0f} ms median, "
+              f"{r['peak_rss_growth_mb']:.0f} MB peak RSS growth")
+    return write_models_report(rows, config, args.out) if args.out is not None else None
 
 
 if __name__ == "__main__":

@@ -8,9 +8,10 @@ def test_benchmark_reports_time_and_memory_per_case():
     assert row["ms_median"] > 0 and row["cpu_ms_median"] >= 0 and row["peak_rss_growth_mb"] >= 0
 
 
-def test_bench_main_reads_its_own_arguments_not_the_cli_ones(monkeypatch, capsys):
+def test_bench_main_reads_its_own_arguments_and_writes_the_report(monkeypatch, tmp_path):
     """`renderloop bench --models` calls main() with sys.argv = [renderloop, bench, --models]."""
     monkeypatch.setattr("sys.argv", ["renderloop", "bench", "--models"])
-    main(["8", "--threads", "1", "--repeats", "1", "--width", "8", "--spatial-blocks", "1"])
-    out = capsys.readouterr().out
-    assert "width=8" in out and "| temporal-3 | 8² | 1 |" in out
+    path = main(["8", "--threads", "1", "--repeats", "1", "--width", "8", "--spatial-blocks", "1"], out=tmp_path)
+    text = path.read_text()
+    assert "width=8" in text and "| temporal-3 | 8² | 1 |" in text
+    assert "Command: `renderloop bench --models`" in text and "Date:" in text
