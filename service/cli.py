@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from service import denoise_command, train_command
+from service.api.security import LOOPBACK_HOSTS, SecuritySettings, is_loopback
 from service.loop.spec import ALLOCATORS, DEFAULT_ITERATIONS, DEFAULT_SPP_FIRST, LAMBDA_RANGE, LoopSpec, LoopSpecError
 from service.dataset import command as dataset_command
 
@@ -146,20 +147,42 @@ def add_serve_parser(sub) -> None:
     p.add_argument("--concurrency", type=int, default=1, help="jobs rendered at once (default 1)")
     p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
                    "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
+    p.add_argument("--token", default=os.environ.get("RENDERLOOP_TOKEN"),
+                   help="bearer token every request but /healthz must carry (default: $RENDERLOOP_TOKEN)")
+    p.add_argument("--allowed-host", action="append", default=[], metavar="NAME",
+                   help="a Host header name to serve besides the loopback names (repeatable; '*' for any)")
+    p.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",
+                   help="a web origin allowed to call the API from a browser (repeatable; default: none)")
+    p.add_argument("--insecure-no-auth", action="store_true",
+                   help="allow binding a non-loopback address without a token")
     p.set_defaults(handler=run_serve)
 
 
+def serve_security(args) -> SecuritySettings:
+    """Refuse to expose an unauthenticated server: a non-loopback bind needs a token."""
+    if not is_loopback(args.host) and not args.token and not args.insecure_no_auth:
+        raise CliError(f"binding {args.host} exposes the service: give --token (or RENDERLOOP_TOKEN), "
+                       "or --insecure-no-auth if something in front of it authenticates")
+    hosts = list(LOOPBACK_HOSTS) + list(args.allowed_host)
+    if not is_loopback(args.host) and args.host not in ("0.0.0.0", "::"):
+        hosts.append(args.host)
+    return SecuritySettings(token=args.token or None, allowed_hosts=tuple(hosts), cors_origins=tuple(args.cors_origin))
+
+
 def run_serve(args) -> int:
-    from service.api.serve import serve
+    from service.api.serve import serve  # uvicorn, the app, the loop: only when serving
 
     if not 0 < args.port < 65536:
         raise CliError(f"--port must be in 1..65535 (got {args.port})")
     if args.concurrency < 1:
         raise CliError("--concurrency must be >= 1")
+    security = serve_security(args)
+    auth = " -H 'authorization: Bearer $RENDERLOOP_TOKEN'" if security.token else ""
     print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir})")
-    print(f"try: curl -X POST http://{args.host}:{args.port}/jobs -H 'content-type: application/json' "
+    print(f"try: curl -X POST http://{args.host}:{args.port}/jobs{auth} -H 'content-type: application/json' "
           "-d '{\"scene\": \"cornell-box\", \"width\": 64, \"height\": 64, \"max_iterations\": 3}'")
-    serve(args.host, args.port, args.data_dir, args.concurrency, networks=load_cli_networks(args.weights))
+    serve(args.host, args.port, args.data_dir, args.concurrency, networks=load_cli_networks(args.weights),
+          security=security)
     return 0
 
 

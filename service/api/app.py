@@ -7,10 +7,12 @@ from pathlib import Path
 from typing import AsyncIterator
 
 from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
 
 from models.pretrained import Networks
 from service.api.errors import BodySizeLimit, install_error_handlers
 from service.api.routes import router
+from service.api.security import RequestGuard, SecuritySettings
 from service.jobs import bundle
 from service.jobs.store import JobStore
 from service.jobs.worker import JobWorker
@@ -18,7 +20,8 @@ from service.jobs.worker import JobWorker
 MAX_UPLOAD_BYTES = bundle.MAX_BUNDLE_BYTES + 1024 * 1024  # the bundle plus form overhead
 
 
-def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1) -> FastAPI:
+def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
+               security: SecuritySettings = SecuritySettings()) -> FastAPI:
     store = JobStore(Path(data_dir))
     worker = JobWorker(store, networks, concurrency=concurrency)
 
@@ -31,6 +34,10 @@ def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1) -> F
     app = FastAPI(title="renderloop", version="0.1.0", lifespan=lifespan)
     app.state.store, app.state.worker = store, worker
     app.add_middleware(BodySizeLimit, max_bytes=MAX_UPLOAD_BYTES)
+    if security.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=list(security.cors_origins), allow_credentials=False,
+                           allow_methods=["GET", "POST", "PUT", "DELETE"], allow_headers=["Authorization", "Content-Type"])
+    app.add_middleware(RequestGuard, settings=security)  # added last: runs first
     install_error_handlers(app)
     app.include_router(router)
     return app

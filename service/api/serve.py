@@ -2,7 +2,8 @@
 
 `app_from_env` is a uvicorn factory (`uvicorn --factory service.api.serve:app_from_env`)
 reading RENDERLOOP_DATA_DIR / RENDERLOOP_CONCURRENCY / RENDERLOOP_WEIGHTS_DIR /
-RENDERLOOP_TORCH_THREADS. `renderloop serve` (service/cli.py) is the one command line.
+RENDERLOOP_TORCH_THREADS / RENDERLOOP_TOKEN / RENDERLOOP_ALLOWED_HOSTS / RENDERLOOP_CORS_ORIGINS.
+`renderloop serve` (service/cli.py) is the one command line.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from fastapi import FastAPI
 
 from models.pretrained import Networks, load_networks
 from service.api.app import create_app
+from service.api.security import SecuritySettings
 from service.loop.tensors import configure_torch_threads
 
 DATA_DIR_ENV = "RENDERLOOP_DATA_DIR"
@@ -28,11 +30,12 @@ def default_data_dir() -> Path:
 def app_from_env() -> FastAPI:
     configure_torch_threads()
     return create_app(default_data_dir(), networks=load_networks(),
-                      concurrency=int(os.environ.get(CONCURRENCY_ENV, "1")))
+                      concurrency=int(os.environ.get(CONCURRENCY_ENV, "1")), security=SecuritySettings.from_env())
 
 
 def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | None = None, concurrency: int = 1,
-          *, networks: Networks) -> None:
+          *, networks: Networks, security: SecuritySettings = SecuritySettings()) -> None:
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
-    uvicorn.run(create_app(data_dir, networks=networks, concurrency=concurrency), host=host, port=port, log_level="info")
+    app = create_app(data_dir, networks=networks, concurrency=concurrency, security=security)
+    uvicorn.run(app, host=host, port=port, log_level="info")

@@ -29,7 +29,8 @@ def free_port() -> int:
 
 
 class Server:
-    def __init__(self, data_dir: Path, log_path: Path) -> None:
+    def __init__(self, data_dir: Path, log_path: Path, env: dict[str, str] | None = None) -> None:
+        self.env = env or {}
         self.data_dir = data_dir
         self.log_path = log_path
         self.port = free_port()
@@ -40,7 +41,7 @@ class Server:
         return f"http://127.0.0.1:{self.port}"
 
     def start(self) -> "Server":
-        env = {**os.environ, "RENDERLOOP_DATA_DIR": str(self.data_dir), "PYTHONUNBUFFERED": "1"}
+        env = {**os.environ, "RENDERLOOP_DATA_DIR": str(self.data_dir), "PYTHONUNBUFFERED": "1", **self.env}
         command = [sys.executable, str(LAUNCHER), str(self.port)]
         log = open(self.log_path, "ab")
         self.process = subprocess.Popen(command, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
