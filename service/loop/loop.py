@@ -244,7 +244,7 @@ class RenderLoop:
                 color=images[f] if images else buf.mean,
                 noisy=buf.mean, variance=buf.variance, albedo=buf.albedo, normal=buf.normal,
                 depth=buf.depth, motion=buf.motion, spp=buf.spp.astype(np.uint32),
-                error=self.state.error_maps[f],
+                error=self.state.error_maps[f], extra=buf.aov_layers(),
                 lam=self.state.lam_map if self.spec.denoise else None,
                 header={"scene": self.spec.scene, "iteration": self.state.iteration,
                         "total_samples": int(buf.spp.sum()), "variant": active_variant(), "frame": f},
