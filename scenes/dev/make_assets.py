@@ -95,7 +95,7 @@ def blob(subdiv_u: int = 96, subdiv_v: int = 48, seed: int = 7):
         k = rng.normal(size=3)
         k /= np.linalg.norm(k)
         freq = rng.uniform(1.5, 4.0)
-        r += 0.06 * np.sin(freq * (d @ k) * np.pi + rng.uniform(0, 2 * np.pi))
+        r += 0.035 * np.sin(freq * (d @ k) * np.pi + rng.uniform(0, 2 * np.pi))
     pos = (d * r[..., None] * np.array([1.0, 0.8, 0.9])).reshape(-1, 3)
     faces = grid_faces(subdiv_u, subdiv_v, True, False)
     # Remove degenerate triangles at the poles.
