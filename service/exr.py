@@ -26,7 +26,9 @@ VECTOR_LAYERS: dict[str, tuple[str, tuple[str, ...]]] = {
 }
 # Single-channel layers: dataclass field -> EXR channel name.
 SCALAR_LAYERS: dict[str, str] = {"depth": "Z", "spp": "spp", "error": "error", "lam": "lambda"}
-HEADER_KEYS = ("scene", "iteration", "total_samples", "variant")
+HEADER_KEYS = ("scene", "iteration", "total_samples", "variant", "frame")
+# Provenance a reference image carries (bench/dev_references.py).
+REFERENCE_HEADER_KEYS = ("content_hash", "spp", "passes", "seeds")
 # Optional extra channels (an integrator's AOVs, named as Mitsuba names them) live under this
 # prefix so they can never clobber the layers above (`albedo.R` vs `aov.albedo.R`).
 EXTRA_PREFIX = "aov."
@@ -122,7 +124,7 @@ def read_exr(path: str | Path) -> ExrFrame:
             raw_header = dict(exr.header())
     except Exception as exc:  # OpenEXR raises plain RuntimeError on corrupt input
         raise ExrError(f"{path}: not a readable EXR file ({exc})") from exc
-    frame = ExrFrame(header={k: raw_header[k] for k in HEADER_KEYS if k in raw_header})
+    frame = ExrFrame(header={k: raw_header[k] for k in HEADER_KEYS + REFERENCE_HEADER_KEYS if k in raw_header})
     for name, (prefix, suffixes) in VECTOR_LAYERS.items():
         names = [prefix + s for s in suffixes]
         if all(n in channels for n in names):
