@@ -9,11 +9,12 @@ import sys
 
 import uvicorn
 
-from service.api.serve import app_from_env
+from service.api.serve import SHUTDOWN_GRACE_SECONDS, app_from_env
 
 
 def main(port: int) -> None:
-    uvicorn.run(app_from_env(), host="127.0.0.1", port=port, log_level="warning")
+    uvicorn.run(app_from_env(), host="127.0.0.1", port=port, log_level="warning",
+                timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS)
 
 
 if __name__ == "__main__":
