@@ -45,12 +45,11 @@ def denoiser_loss(model: Denoiser, frames: list[FrameTensors], centre: int, refe
     own result against the pooled reference.
 
     Why the per-level term: a coarse result reaches the output only through the compositor's α
-    (eq. 5), so its gradient is scaled by α. In every run without this term α fell to ~0 within
-    the first few hundred steps and the coarse kernels stopped learning: with the first shipped
-    weights the coarsest level scored SMAPE 0.0167 against 0.0174 for plain pooling of the noisy
-    input (held-out, 16 spp; the "Pyramid levels" table of `renderloop bench --denoiser`) — the
-    multi-scale network was single-scale with extra work. Training each
-    level on its own target keeps the coarse path useful, so α has something to choose.
+    (eq. 5), so its gradient is scaled by α. Without this term α falls to ~0 within the first few
+    hundred steps and the coarse kernels stop learning: the coarsest level then scores barely
+    better than plain pooling of the noisy input (the "Pyramid levels" table of the quality
+    report shows both), and the multi-scale network is single-scale with extra work. Training
+    each level on its own target keeps the coarse path useful, so α has something to choose.
     """
     cache = model.prepare(frames, centre)
     levels = model.filter_levels(cache, lam)

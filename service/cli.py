@@ -12,7 +12,7 @@ from pathlib import Path
 
 from service import denoise_command, train_command
 from service.api.security import LOOPBACK_HOSTS, SecuritySettings, is_loopback
-from service.loop.spec import ALLOCATORS, DEFAULT_ITERATIONS, DEFAULT_SPP_FIRST, LAMBDA_RANGE, LoopSpec, LoopSpecError
+from service.loop.spec import ALLOCATORS, DEFAULT_ITERATIONS, LAMBDA_RANGE, LoopSpec, LoopSpecError
 from service.dataset import command as dataset_command
 
 EXIT_USAGE = 2
@@ -39,25 +39,26 @@ def load_cli_networks(weights: Path | None):
 # -- render -----------------------------------------------------------------------------------
 
 def add_render_parser(sub) -> None:
+    d = LoopSpec(scene="")  # the job spec's defaults (service/loop/spec.py) are the CLI's
     p = sub.add_parser("render", help="render a scene with the adaptive loop (or one uniform pass)")
     p.add_argument("scene", nargs="?", help="Mitsuba 3 XML file or built-in scene name (see --list)")
     p.add_argument("--list", action="store_true", help="print the built-in scenes and exit")
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
-    p.add_argument("--frames", type=int, default=1, help="frames of the scene's animation (default 1)")
+    p.add_argument("--frames", type=int, default=d.frames, help=f"frames of the scene's animation (default {d.frames})")
     p.add_argument("--spp", type=int, help="one uniform pass of N samples per pixel, no adaptive iterations")
-    p.add_argument("--spp-first", type=int, default=DEFAULT_SPP_FIRST,
-                   help=f"samples per pixel of iteration 0 (default {DEFAULT_SPP_FIRST})")
+    p.add_argument("--spp-first", type=int, default=d.spp_first,
+                   help=f"samples per pixel of iteration 0 (default {d.spp_first})")
     stop = p.add_argument_group(f"stopping rules (whichever comes first; default --iterations {DEFAULT_ITERATIONS})")
     stop.add_argument("--iterations", type=int, help="maximum iterations")
     stop.add_argument("--spp-budget", type=float, help="mean samples per pixel, all iterations together")
     stop.add_argument("--time-limit", type=float, help="seconds")
     stop.add_argument("--target-error", type=float, help="stop when the mean predicted SMAPE is at most this")
-    p.add_argument("--allocator", default="error", help=" | ".join(ALLOCATORS) + " (default error)")
+    p.add_argument("--allocator", default=d.allocator, help=" | ".join(ALLOCATORS) + f" (default {d.allocator})")
     p.add_argument("--no-denoise", action="store_true", help="write the plain Monte Carlo estimate")
-    p.add_argument("--lambda", dest="lam", type=float, default=1.0,
-                   help=f"λ in [{LAMBDA_RANGE[0]:g}, {LAMBDA_RANGE[1]:g}] (default 1)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--lambda", dest="lam", type=float, default=d.lam,
+                   help=f"λ in [{LAMBDA_RANGE[0]:g}, {LAMBDA_RANGE[1]:g}] (default {d.lam:g})")
+    p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="set the scene's $NAME parameter, like Mitsuba's -D (repeatable)")
     p.add_argument("--png", action="store_true", help="also write a tonemapped PNG beside each EXR")

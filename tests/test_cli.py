@@ -93,3 +93,13 @@ def test_default_render_runs_the_adaptive_loop_with_the_shipped_weights(tmp_path
     frame = read_exr(out)
     assert frame.spp.sum() == 64 * 24 * 24 and frame.spp.min() < frame.spp.max()  # adaptive, exact budget
     assert np.isfinite(frame.color).all() and np.isfinite(frame.error).all()
+
+
+def test_help_loads_no_heavy_module():
+    # `renderloop --help` (and every parser) must stay fast: torch, Mitsuba, FastAPI and OpenEXR
+    # load only when a command that needs them runs.
+    probe = ("import sys; from service.cli import build_parser; build_parser(); "
+             "print(sorted(m for m in ('torch', 'mitsuba', 'fastapi', 'OpenEXR', 'uvicorn') if m in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"

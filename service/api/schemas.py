@@ -3,13 +3,13 @@ from __future__ import annotations
 
 import dataclasses
 from datetime import datetime, timezone
-from typing import Any, Literal, get_type_hints
+from typing import Annotated, Any, Literal, get_type_hints
 
-from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, create_model, model_validator
 
 from service.jobs.store import JobRecord
 from service.loop.spec import (ALLOCATORS, LAMBDA_RANGE, MAX_SEED, SERVICE_LIMITS, LoopSpec, LoopSpecError,
-                               validate_spec)
+                               lambda_problem, validate_spec)
 
 MAX_RECTS = 1024
 # A JSON body may only name a built-in scene: no dots or slashes, so never a server path.
@@ -136,22 +136,34 @@ class JobList(BaseModel):
     jobs: list[JobStatus]
 
 
+def _lambda_value(value: float | None) -> float | None:
+    # loop/spec.py's check, so a λ out of range reads the same here as in the loop and the CLI.
+    problem = None if value is None else lambda_problem(value)
+    if problem:
+        raise ValueError(problem)
+    return value
+
+
+LambdaValue = Annotated[float, AfterValidator(_lambda_value),
+                        Field(json_schema_extra={"minimum": LAMBDA_MIN, "maximum": LAMBDA_MAX})]
+
+
 class LambdaRect(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
 
     x: int = Field(ge=0)
     y: int = Field(ge=0)
     w: int = Field(ge=1)
     h: int = Field(ge=1)
-    value: float = Field(ge=LAMBDA_MIN, le=LAMBDA_MAX)
+    value: LambdaValue
 
 
 class LambdaUpdate(BaseModel):
     """PUT /jobs/{id}/lambda as JSON: a global λ, or rectangles painted over the current map."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
 
-    value: float | None = Field(None, ge=LAMBDA_MIN, le=LAMBDA_MAX)
+    value: LambdaValue | None = None
     rects: list[LambdaRect] | None = Field(None, min_length=1, max_length=MAX_RECTS)
 
     @model_validator(mode="after")

@@ -9,7 +9,7 @@ import os
 from dataclasses import dataclass
 from urllib.parse import parse_qs
 
-from fastapi.responses import JSONResponse
+from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 TOKEN_ENV = "RENDERLOOP_TOKEN"

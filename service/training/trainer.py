@@ -11,8 +11,8 @@ import copy
 import dataclasses
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import torch
 from torch.utils.data import DataLoader
@@ -25,55 +25,9 @@ from models.losses import smape_map
 from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, denoiser_smape, error_predictor_loss,
                              sample_lambda)
 from service.dataset.loader import DenoiserDataset, collate_samples
+from service.training.config import DENOISER_STAGES, TrainConfig
 
-# Vogels et al. train in stages, each starting from the previous one's weights: a single-frame
-# single-scale KPCN, then the scale compositor, then the temporal extractor, then the λ
-# specialisation; the error network last, on the frozen denoiser. `denoiser` trains the full
-# network end to end instead (λ = 1 for `symmetric_fraction` of the steps, then random λ).
-DENOISER_STAGES: dict[str, tuple[dict, str]] = {   # stage → (DenoiserConfig switches, λ schedule)
-    "single": ({"multiscale": False, "temporal": False}, "symmetric"),
-    "multiscale": ({"temporal": False}, "symmetric"),
-    "temporal": ({}, "symmetric"),
-    "lambda": ({}, "random"),
-}
-STAGES = (*DENOISER_STAGES, "staged", "denoiser", "error", "all")
 VALIDATION_EVERY_NTH_SCENE = 8  # scenes with index % 8 == 7 are held back for validation
-
-
-class TrainConfigError(ValueError):
-    """A training setting is out of range; the message names it."""
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    data: Path
-    out: Path = Path("models/weights")
-    stage: str = "all"
-    steps: int = 1500  # optimiser steps per stage
-    batch: int = 8
-    crop: int = 48
-    lr: float = 1e-3
-    val_every: int = 150
-    seed: int = 0
-    width: int | None = None  # denoiser feature width (None: the model's default)
-    spatial_blocks: int | None = None  # residual blocks of the spatial extractor (None: default)
-    symmetric_fraction: float = 0.5  # end to end: first fraction of steps at λ = 1
-    init: Path | None = None  # start the denoiser from this checkpoint's weights
-    resume: bool = False  # continue from OUT/.train_<stage>.pt
-    device: str | None = None  # cpu | cuda (None: cuda when available)
-    quiet: bool = False
-    command_line: str = ""  # recorded in every checkpoint
-
-    def validate(self) -> None:
-        if self.stage not in STAGES:
-            raise TrainConfigError(f"unknown stage {self.stage!r}; choose one of {', '.join(STAGES)}")
-        for name, least in (("steps", 1), ("batch", 1), ("crop", 1), ("val_every", 1), ("width", 1),
-                            ("spatial_blocks", 0)):
-            value = getattr(self, name)
-            if value is not None and value < least:
-                raise TrainConfigError(f"--{name.replace('_', '-')} must be >= {least}")
-        if not 0.0 <= self.symmetric_fraction <= 1.0:
-            raise TrainConfigError("--symmetric-fraction must lie in [0, 1]")
 
 
 def _split_items(dataset):
@@ -216,8 +170,8 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
     """Start the error network at the median true SMAPE of a batch, with a quiet output layer.
 
     Softplus has a vanishing gradient below zero: from the default init the first steps of L1
-    overshoot into that region and the network dies at ~0 for every pixel (seen in the first
-    run: predictions of 1e-17). Starting at the L1 optimum of a constant avoids the overshoot.
+    overshoot into that region and the network dies at ~0 for every pixel (predictions of
+    1e-17). Starting at the L1 optimum of a constant avoids the overshoot.
     """
     with torch.no_grad():
         frame = batch.frames[0].to(device)
@@ -253,25 +207,31 @@ def train_error_predictor(config, device) -> dict:
     return _fit("error", model, loss_fn, val_fn, config, device, {"command": config.command_line, "stage": "error"})
 
 
-def run_training(config: TrainConfig) -> list[str]:
-    """Train what `config.stage` names; returns one summary line per trained network."""
+def run_training(config: TrainConfig, report: Callable[[str], None] = lambda line: None) -> list[str]:
+    """Train what `config.stage` names; returns one summary line per trained network, each also
+    handed to `report` as soon as that network is done (a staged run takes hours)."""
     config.validate()
     device = torch.device(config.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     config.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     lines = []
+
+    def report_line(line: str) -> str:
+        report(line)
+        return line
+
     if config.stage in ("denoiser", "all"):
         result = train_denoiser(config, device)
-        lines.append(f"denoiser: best validation SMAPE {result['best_val']:.4f} → {result['checkpoint']}")
+        lines.append(report_line(f"denoiser: best validation SMAPE {result['best_val']:.4f} → {result['checkpoint']}"))
     stages = list(DENOISER_STAGES) if config.stage == "staged" else [config.stage] if config.stage in DENOISER_STAGES else []
     for stage in stages:
         switches, schedule = DENOISER_STAGES[stage]
         result = train_denoiser(config, device, stage, switches, schedule)
         metric = "eq. 6 loss at λ = 2, 4, 10" if schedule == "random" else "SMAPE"
-        lines.append(f"stage {stage}: best validation {metric} {result['best_val']:.4f} → {result['checkpoint']}")
+        lines.append(report_line(f"stage {stage}: best validation {metric} {result['best_val']:.4f} → {result['checkpoint']}"))
         config = dataclasses.replace(config, init=Path(result["checkpoint"]), resume=False)  # the next stage starts here
     if config.stage in ("error", "all", "staged"):
         result = train_error_predictor(config, device)
-        lines.append(f"error predictor: best validation L1 {result['best_val']:.4f} → {result['checkpoint']}")
-    lines.append(f"trained in {time.perf_counter() - started:.0f} s on {device}")
+        lines.append(report_line(f"error predictor: best validation L1 {result['best_val']:.4f} → {result['checkpoint']}"))
+    lines.append(report_line(f"trained in {time.perf_counter() - started:.0f} s on {device}"))
     return lines

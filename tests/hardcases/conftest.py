@@ -1,6 +1,5 @@
-"""Hard cases end to end: tiny images, few iterations. The shipped networks when they exist
-(models/weights/*.pt), otherwise tiny untrained ones: numerical stability does not depend on
-training, and the untrained λ module is perturbed so that λ really changes the image."""
+"""Hard cases end to end: tiny images, few iterations, the shipped networks (models/weights/*.pt):
+the hard cases are about the networks users get."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -9,10 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-import models.pretrained as pretrained
-from models.checkpoint import load_checkpoint, save_checkpoint
-from models.denoiser import Denoiser, DenoiserConfig
-from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from models.pretrained import SHIPPED_WEIGHTS_DIR, load_networks
 
 SIZE = 16  # film side of the XML hard-case scenes
 
@@ -70,26 +66,15 @@ SCENES: dict[str, tuple[str, dict, str]] = {
 
 
 @pytest.fixture(scope="session")
-def weights_dir(tmp_path_factory) -> Path:
-    shipped = pretrained.SHIPPED_WEIGHTS_DIR
-    if (shipped / pretrained.DENOISER_FILE).is_file() and (shipped / pretrained.ERROR_PREDICTOR_FILE).is_file():
-        return shipped
-    folder = tmp_path_factory.mktemp("untrained-weights")
-    torch.manual_seed(0)
-    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal_blocks=1, kernel_size=3,
-                                       lambda_width=4, composite_width=4))
-    with torch.no_grad():  # the λ module starts as "no specialisation"; make λ matter
-        for parameter in denoiser.specialise.parameters():
-            parameter.add_(torch.randn_like(parameter) * 0.5)
-    save_checkpoint(folder / pretrained.DENOISER_FILE, denoiser)
-    save_checkpoint(folder / pretrained.ERROR_PREDICTOR_FILE, ErrorPredictor(ErrorPredictorConfig(width=8, blocks=2)))
-    return folder
+def weights_dir() -> Path:
+    return SHIPPED_WEIGHTS_DIR
 
 
 @pytest.fixture(scope="session")
-def nets(weights_dir: Path) -> tuple[torch.nn.Module, torch.nn.Module]:
-    return (load_checkpoint(weights_dir / pretrained.DENOISER_FILE),
-            load_checkpoint(weights_dir / pretrained.ERROR_PREDICTOR_FILE))
+def nets() -> tuple[torch.nn.Module, torch.nn.Module]:
+    """The shipped (trained) denoiser and error network: hard cases are about the real ones."""
+    networks = load_networks()
+    return networks.denoiser, networks.error_predictor
 
 
 @pytest.fixture(autouse=True)
