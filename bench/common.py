@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
+import math
 import os
 import platform
 import subprocess
@@ -17,11 +18,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
+from string import Template
 
 import numpy as np
 import torch
 
-from models.losses import SMAPE_EPS, smape
+from models.losses import SMAPE_EPS, smape, smape_map
 from models.metrics import psnr, relmse, ssim
 from models.pretrained import DENOISER_FILE, ERROR_PREDICTOR_FILE, Networks, load_networks, weights_dir
 from models.checkpoint import read_checkpoint
@@ -33,8 +35,14 @@ from service.loop.tensors import nchw
 REFERENCE_SEED = 7_777_777
 # The metric names every report uses, in this order.
 METRIC_NAMES = ("smape", "relmse", "psnr", "dssim")
-# How OIDN is run everywhere, stated in every report that shows it.
+# How OIDN is run everywhere, stated in every report that shows it. "high" is also what OIDN's
+# RT filter does when no quality is set, so the loop benchmark's earlier low-level call (no
+# quality given) ran the same setting; the one call below names it.
 OIDN_SETTINGS = "RT filter, `hdr=True`, quality high, noisy colour + albedo + normal"
+# Report prose lives in bench/templates/*.md (string.Template: $name, $$ for a dollar sign).
+TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
+
+OidnDenoise = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
 # --- provenance -------------------------------------------------------------------------------
@@ -52,8 +60,23 @@ def git_commit() -> str:
         return "unknown"
 
 
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def load_average() -> str:
+    """The machine's 1/5/15-minute load: it is shared, and other jobs slow every timing."""
+    return "/".join(f"{x:.1f}" for x in os.getloadavg())
+
+
 def machine_line() -> str:
-    cpu = platform.processor() or platform.machine()
+    cpu = cpu_name()
     return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__} "
             f"({torch.get_num_threads()} thread{'s' if torch.get_num_threads() > 1 else ''})")
 
@@ -63,8 +86,19 @@ def provenance(command: str | None = None, variant: str | None = None) -> str:
     lines = [f"Command: `{command or command_line()}`", f"Machine: {machine_line()}"]
     if variant:
         lines.append(f"Mitsuba variant: `{variant}`")
-    lines.append(f"Date: {_dt.date.today().isoformat()}; commit {git_commit()}")
-    return "\n".join(lines)
+    lines.append(f"Date: {_dt.datetime.now().astimezone().isoformat(timespec='minutes')}; commit {git_commit()}; "
+                 f"load average {load_average()}")
+    return "  \n".join(lines)  # markdown line breaks: one fact per line
+
+
+def fill(template: str, **fields: object) -> str:
+    """bench/templates/`template` with every $field substituted; a missing field is an error."""
+    return Template((TEMPLATES_DIR / template).read_text()).substitute(fields)
+
+
+def fmt(x: float, spec: str = ".4f") -> str:
+    """A number for a report table: 'n/a' when it is not finite."""
+    return format(x, spec) if math.isfinite(x) else "n/a"
 
 
 @contextmanager
@@ -155,6 +189,11 @@ def image_metrics(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
     return score(nchw(image), nchw(reference))
 
 
+def true_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(H, W) per-pixel SMAPE of `image` against `reference`, both sanitised as `score` does."""
+    return smape_map(sanitize(nchw(image)), sanitize(nchw(reference)))[0, 0].numpy()
+
+
 # --- Intel Open Image Denoise -----------------------------------------------------------------
 
 def _hwc(t: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -162,7 +201,7 @@ def _hwc(t: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.ascontiguousarray(np.clip(a, lo, hi), dtype=np.float32)
 
 
-def oidn_denoiser() -> tuple[Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None, str]:
+def oidn_denoiser() -> tuple[OidnDenoise | None, str]:
     """(color, albedo, normal) HWC → denoised HWC through `pyoidn`, or None and why not.
 
     The second value describes the call (or the reason it is missing) for the report."""
