@@ -28,6 +28,12 @@ from models.metrics import psnr, relmse, ssim
 from models.pretrained import DENOISER_FILE, ERROR_PREDICTOR_FILE, Networks, load_networks, weights_dir
 from models.checkpoint import read_checkpoint
 from service.images import linear_to_srgb
+from service.render.builtin import BUILTIN_BY_NAME
+from service.render.effects import inspect_scene, make_integrator
+from service.render.framebuffer import FrameBuffer
+from service.render.renderer import render_samples
+from service.render.runtime import active_variant
+from service.render.scenes import load_scene
 from service.loop.tensors import nchw
 
 # Every reference render draws from its own stream: a reference that shared samples with an
@@ -162,6 +168,29 @@ def cached_reference(path: Path, render: Callable[[int], tuple[np.ndarray, np.nd
     np.savez(partial, mean=np.asarray(mean, np.float32), variance=np.asarray(variance, np.float32))
     os.replace(partial, path)  # an interrupted run never leaves a torn cache file
     return Reference(np.asarray(mean, np.float32), np.asarray(variance, np.float32))
+
+
+def scene_fingerprint(source: str) -> str:
+    """Changes whenever the scene description does, so a stale cached reference is never used."""
+    builtin = BUILTIN_BY_NAME.get(source)
+    text = repr(builtin.build(0)) if builtin is not None else Path(source).read_text()
+    return hashlib.sha1(text.encode()).hexdigest()[:12]
+
+
+def scene_reference(source: str, label: str, size: int, spp: int, cache_dir: Path) -> Reference:
+    """The size² reference of a built-in name or XML path at `spp`, rendered once by the loop's
+    renderer and integrator choice (so a loop image differs from it only by noise and denoiser
+    error) and then read from `cache_dir`."""
+    name = f"{label}_{scene_fingerprint(source)}_{size}x{size}_{spp}spp_{active_variant()}_seed{REFERENCE_SEED}.npz"
+
+    def render(seed: int) -> tuple[np.ndarray, np.ndarray]:
+        integrator = make_integrator(inspect_scene(source, width=size, height=size))
+        buffer = FrameBuffer.empty(size, size)
+        render_samples(load_scene(source, width=size, height=size), np.full((size, size), spp), buffer,
+                       integrator=integrator, seed=seed)
+        return buffer.mean, buffer.variance
+
+    return cached_reference(cache_dir / name, render)
 
 
 # --- metrics ----------------------------------------------------------------------------------

@@ -16,11 +16,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench.common import (METRIC_NAMES, OIDN_SETTINGS, BenchNetworks, command_line, fill, load_average,
-                          load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance)
+                          load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance, scene_reference)
 from bench.loop_plots import write_plots
 from bench.loop_run import (DEGENERATE_PREDICTION_RATIO, FULL, LOOP_SEED, METHODS, PRODUCT, QUICK, STAGES,
                             BenchSettings, ErrorAgreement, Headline, SceneResult, error_agreement, headline,
-                            prepare_scenes, reference_image, run_method, warm_up)
+                            prepare_scenes, run_method, warm_up)
 from bench.models_report import CASES as MODEL_CASES, ThreadTiming, benchmark_models, denoise_ms_by_threads
 from bench.sampler_report import CASES as SAMPLER_CASES, SamplerResult, bench_sampler, sampler_table
 from bench.server import bench_http_lambda
@@ -91,7 +91,8 @@ def measure_loops(settings: BenchSettings, quick: bool, weights_dir: Path | None
     methods = [m for m in METHODS if m.denoiser != "oidn" or oidn is not None]
     for scene in prepare_scenes(settings, cache_dir):
         print(f"bench --loop: {scene.label}: reference at {settings.reference_spp} spp …", flush=True)
-        reference = reference_image(scene, settings.size, settings.reference_spp, cache_dir)
+        reference = scene_reference(scene.source, scene.label, settings.size, settings.reference_spp,
+                                    cache_dir / "references").mean
         warm_up(scene, settings, nets)
         runs = {}
         for method in methods:

@@ -10,7 +10,6 @@ cumulative time is therefore a sum of per-stage minimums, not one measured run.
 """
 from __future__ import annotations
 
-import hashlib
 import itertools
 import math
 import statistics
@@ -22,19 +21,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench.common import BenchNetworks, OidnDenoise, cached_reference, image_metrics, true_error_map
+from bench.common import BenchNetworks, OidnDenoise, image_metrics, true_error_map
 from models.frames import FrameTensors
 from models.pretrained import Networks
 from service.dataset.procedural import generate_scene
 from service.dataset.splits import scene_seeds
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
-from service.render.builtin import BUILTIN_BY_NAME
-from service.render.effects import inspect_scene, make_integrator
-from service.render.framebuffer import FrameBuffer
-from service.render.renderer import render_samples
-from service.render.runtime import active_variant, mitsuba
-from service.render.scenes import load_scene
+from service.render.runtime import mitsuba
 
 STAGES = ("render", "denoise", "error", "allocate")
 HELDOUT_DATASET_SEED = 0  # scene_seeds("heldout", n, 0): never a training scene (service.dataset.splits)
@@ -145,31 +139,6 @@ def prepare_scenes(settings: BenchSettings, cache_dir: Path) -> list[BenchScene]
         path = procedural_scene_xml(seed, cache_dir / "scenes" / f"heldout-{seed}", settings.size)
         scenes.append(BenchScene(f"heldout-{seed}", str(path), f"held-out procedural seed {seed}"))
     return scenes
-
-
-def _scene_fingerprint(scene: BenchScene) -> str:
-    """Changes whenever the scene description does, so a stale cached reference is never used."""
-    builtin = BUILTIN_BY_NAME.get(scene.source)
-    text = repr(builtin.build(0)) if builtin is not None else Path(scene.source).read_text()
-    return hashlib.sha1(text.encode()).hexdigest()[:12]
-
-
-def reference_image(scene: BenchScene, size: int, spp: int, cache_dir: Path) -> np.ndarray:
-    """(H, W, 3) float32 high-spp image of `scene`: rendered once, then read from the cache.
-
-    Same renderer and integrator as the loop, so the only difference between a loop image and
-    its reference is noise and denoiser error.
-    """
-    key = f"{scene.label}_{_scene_fingerprint(scene)}_{size}x{size}_{spp}spp_{active_variant()}"
-
-    def render(seed: int) -> tuple[np.ndarray, np.ndarray]:
-        effects = inspect_scene(scene.source, width=size, height=size)
-        buffer = FrameBuffer.empty(size, size)
-        render_samples(load_scene(scene.source, width=size, height=size), np.full((size, size), spp), buffer,
-                       integrator=make_integrator(effects), seed=seed)
-        return buffer.mean, buffer.variance
-
-    return cached_reference(cache_dir / "references" / f"{key}.npz", render).mean
 
 
 class NoErrorPrediction(torch.nn.Module):
