@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from bench.dev_references import DEFAULT_REFERENCE_DIR, write_references
 from bench.loop_report import add_arguments as add_loop_arguments, run_loop_command
 from bench.models_report import main as models_main
 from bench.quality_report import run_quality_report
@@ -25,6 +26,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spp", type=int, default=64, help="samples per pixel for --sampler (default 64)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("-o", "--out", type=Path, default=Path("docs"))
+    p.add_argument("--references", action="store_true",
+                   help="render the development suite's references (scenes/dev, mi.render as written; use a GPU)")
+    p.add_argument("--references-dir", type=Path, default=DEFAULT_REFERENCE_DIR)
+    p.add_argument("--reference-spp", type=int, default=None,
+                   help="samples per pixel of every reference (default 16384; 65536 for the noisiest scenes)")
+    p.add_argument("--only", nargs="+", default=None, metavar="SCENE", help="with --references: these scenes only")
     add_loop_arguments(p)  # --loop [--quick] --weights --cache
 
 
@@ -46,6 +53,10 @@ def main(argv: list[str]) -> int:
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    if args.references:
+        written = write_references(args.references_dir, spp=args.reference_spp, only=args.only)
+        print(f"wrote {len(written)} reference(s) to {args.references_dir}")
+        return 0
     if args.loop:
         return run_loop_command(args)
     if args.memory:

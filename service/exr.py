@@ -26,7 +26,12 @@ VECTOR_LAYERS: dict[str, tuple[str, tuple[str, ...]]] = {
 }
 # Single-channel layers: dataclass field -> EXR channel name.
 SCALAR_LAYERS: dict[str, str] = {"depth": "Z", "spp": "spp", "error": "error", "lam": "lambda"}
-HEADER_KEYS = ("scene", "iteration", "total_samples", "variant")
+HEADER_KEYS = ("scene", "iteration", "total_samples", "variant", "frame")
+# Provenance a reference image carries (bench/dev_references.py).
+REFERENCE_HEADER_KEYS = ("content_hash", "spp", "passes", "seeds")
+# Optional extra channels (an integrator's AOVs, named as Mitsuba names them) live under this
+# prefix so they can never clobber the layers above (`albedo.R` vs `aov.albedo.R`).
+EXTRA_PREFIX = "aov."
 
 
 class ExrError(ValueError):
@@ -48,6 +53,7 @@ class ExrFrame:
     error: np.ndarray | None = None
     lam: np.ndarray | None = None
     header: dict = field(default_factory=dict)
+    extra: dict[str, np.ndarray] = field(default_factory=dict)  # name (without EXTRA_PREFIX) -> (H, W)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -64,6 +70,7 @@ def result_frame(buffer: FrameBuffer, color: np.ndarray, *, error: np.ndarray | 
     return ExrFrame(
         color=color, noisy=buffer.mean, variance=buffer.variance, albedo=buffer.albedo, normal=buffer.normal,
         depth=buffer.depth, motion=buffer.motion, spp=buffer.spp.astype(np.uint32), error=error, lam=lam,
+        extra=buffer.aov_layers(),
         header={**header, "total_samples": int(buffer.spp.sum())},
     )
 
@@ -94,6 +101,10 @@ def write_exr(path: str | Path, frame: ExrFrame) -> Path:
             raise ExrError(f"layer {name!r} has shape {value.shape}, expected {(height, width)}")
         dtype = np.uint32 if name == "spp" else np.float32
         channels[channel] = _channel(value.reshape(height, width), dtype)
+    for name, value in frame.extra.items():
+        if value.shape[:2] != (height, width):
+            raise ExrError(f"extra layer {name!r} has shape {value.shape}, expected {(height, width)}")
+        channels[EXTRA_PREFIX + name] = _channel(value.reshape(height, width), np.float32)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for key, value in frame.header.items():
         header[key] = value if isinstance(value, (int, float)) else str(value)
@@ -113,7 +124,7 @@ def read_exr(path: str | Path) -> ExrFrame:
             raw_header = dict(exr.header())
     except Exception as exc:  # OpenEXR raises plain RuntimeError on corrupt input
         raise ExrError(f"{path}: not a readable EXR file ({exc})") from exc
-    frame = ExrFrame(header={k: raw_header[k] for k in HEADER_KEYS if k in raw_header})
+    frame = ExrFrame(header={k: raw_header[k] for k in HEADER_KEYS + REFERENCE_HEADER_KEYS if k in raw_header})
     for name, (prefix, suffixes) in VECTOR_LAYERS.items():
         names = [prefix + s for s in suffixes]
         if all(n in channels for n in names):
@@ -122,6 +133,7 @@ def read_exr(path: str | Path) -> ExrFrame:
         if channel in channels:
             dtype = np.uint32 if name == "spp" else np.float32
             setattr(frame, name, channels[channel].astype(dtype))
+    frame.extra = {n[len(EXTRA_PREFIX):]: c.astype(np.float32) for n, c in channels.items() if n.startswith(EXTRA_PREFIX)}
     if all(getattr(frame, f) is None for f in list(VECTOR_LAYERS) + list(SCALAR_LAYERS)):
         raise ExrError(f"{path}: no renderloop layers (expected R,G,B or noisy.R/G/B)")
     return frame

@@ -22,21 +22,23 @@ def test_list_prints_the_builtin_scenes():
 
 def test_uniform_render_writes_every_layer_and_matches_mi_render(tmp_path):
     out = tmp_path / "x.exr"
-    result = renderloop("render", "cornell-box", "--width", 32, "--height", 32, "--spp", 64, "--no-denoise",
+    result = renderloop("render", "cornell-box", "--width", 32, "--height", 32, "--spp", 256, "--no-denoise",
                         "--png", "-o", out)
     assert result.returncode == 0, result.stderr
     frame = read_exr(out)
     for layer in ("color", "noisy", "variance", "albedo", "normal", "depth", "spp"):
         assert getattr(frame, layer) is not None, layer
-    assert (frame.spp == 64).all() and frame.spp.dtype == np.uint32
+    assert (frame.spp == 256).all() and frame.spp.dtype == np.uint32
     np.testing.assert_array_equal(frame.color, frame.noisy)  # --no-denoise: the plain MC estimate
-    assert frame.header["scene"] == "cornell-box" and frame.header["total_samples"] == 32 * 32 * 64
+    assert frame.header["scene"] == "cornell-box" and frame.header["total_samples"] == 32 * 32 * 256
     assert (tmp_path / "x.png").stat().st_size > 0
 
     from service.render.runtime import mitsuba
     from service.render.scenes import load_scene
 
-    reference = np.asarray(mitsuba().render(load_scene("cornell-box", width=32, height=32), spp=256))
+    # The box's gaussian filter: each of our samples stays in its own pixel (per-pixel counts),
+    # so our image is noisier than mi.render's at equal spp; 256 spp keep the mean within 2 %.
+    reference = np.asarray(mitsuba().render(load_scene("cornell-box", width=32, height=32), spp=1024))
     assert abs(frame.color.mean() / reference.mean() - 1) < 0.02
 
 

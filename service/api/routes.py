@@ -178,6 +178,13 @@ async def put_lambda(job_id: str, request: Request, store: Store, worker: Worker
     return await run_in_threadpool(apply_lambda, store, worker, job_id, update, None)
 
 
+@router.delete("/jobs/{job_id}", status_code=204, responses={404: {"description": "no such job"}})
+def delete_job(job_id: str, worker: Worker) -> Response:
+    """Cancel the job if it is still queued or running, then remove its record and files."""
+    worker.delete(job_id)
+    return Response(status_code=204)
+
+
 @router.post("/jobs/{job_id}/cancel", response_model=JobStatus)
 def cancel_job(job_id: str, worker: Worker) -> JobStatus:
     return JobStatus.from_record(worker.cancel(job_id))

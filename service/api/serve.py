@@ -21,6 +21,10 @@ from service.loop.tensors import configure_torch_threads
 DATA_DIR_ENV = "RENDERLOOP_DATA_DIR"
 CONCURRENCY_ENV = "RENDERLOOP_CONCURRENCY"
 DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8000
+# On SIGTERM uvicorn waits for open responses before shutting the app down; an event stream
+# never ends by itself, so open ones are cut after this grace. Running jobs stop within one
+# wavefront chunk and are requeued (service.jobs.worker), so the whole exit takes seconds.
+SHUTDOWN_GRACE_SECONDS = 2
 
 
 def default_data_dir() -> Path:
@@ -38,4 +42,4 @@ def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | N
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
     app = create_app(data_dir, networks=networks, concurrency=concurrency, security=security)
-    uvicorn.run(app, host=host, port=port, log_level="info")
+    uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS)

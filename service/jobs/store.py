@@ -7,6 +7,7 @@ cancel and a worker claiming the same job cannot both win.
 from __future__ import annotations
 
 import json
+import shutil
 import sqlite3
 import threading
 import time
@@ -124,7 +125,7 @@ class JobStore:
     def list(self, state: str | None = None, limit: int = 100, offset: int = 0) -> list[JobRecord]:
         where, params = ("WHERE state = ?", (state,)) if state else ("", ())
         rows = self._execute(
-            f"SELECT * FROM jobs {where} ORDER BY created_at, rowid LIMIT ? OFFSET ?",
+            f"SELECT * FROM jobs {where} ORDER BY created_at DESC, rowid DESC LIMIT ? OFFSET ?",
             (*params, limit, offset),
         ).fetchall()
         return [JobRecord.from_row(r) for r in rows]
@@ -197,6 +198,11 @@ class JobStore:
             "WHERE id = ?",
             (state, stop_reason, error, time.time(), job_id),
         )
+
+    def delete(self, job_id: str) -> None:
+        """The record and the job's folder; the caller makes sure nothing renders it any more."""
+        self._execute("DELETE FROM jobs WHERE id = ?", (job_id,))
+        shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
 
     def cancel_if_queued(self, job_id: str) -> bool:
         cursor = self._execute(

@@ -24,7 +24,7 @@ from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
 from models.pretrained import Networks
 from service.jobs.store import CANCELED, COMPLETED, FAILED, QUEUED, JobRecord, JobStore
-from service.loop.loop import RenderLoop
+from service.loop.loop import IterationInterrupted, RenderLoop
 from service.loop.spec import IterationRecord, LoopSpec
 from service.loop.state import LoopState
 
@@ -33,6 +33,7 @@ log = logging.getLogger(__name__)
 
 IDLE_LOOPS_KEPT = 2  # finished loops kept in memory so λ changes after the run stay cheap
 LAMBDA_WAIT_SECONDS = 300.0
+DELETE_WAIT_SECONDS = 30.0  # a running job stops within one chunk; this bounds a stuck one
 
 
 def job_spec(record: JobRecord, bundle_dir: Path | None = None) -> LoopSpec:
@@ -90,8 +91,27 @@ class JobWorker:
         for job_id in self.store.ids_in_state(QUEUED):
             self.submit(job_id)
 
+    def delete(self, job_id: str, wait_seconds: float = DELETE_WAIT_SECONDS) -> None:
+        """Forget a job and its files; a queued or running job is canceled first."""
+        record = self._require(job_id)
+        if not record.finished:
+            self.cancel(job_id)  # queued: at once; running: within one wavefront chunk
+            deadline = time.monotonic() + wait_seconds
+            while self._is_live(job_id) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            if self._is_live(job_id):
+                raise JobConflict(f"job {job_id} is still stopping; retry the delete in a moment")
+        with self._lock:
+            self._idle.pop(job_id, None)
+            self._publish_locks.pop(job_id, None)
+        self.store.delete(job_id)
+
+    def _is_live(self, job_id: str) -> bool:
+        with self._lock:
+            return job_id in self._live
+
     def stop(self) -> None:
-        """Ask running loops to stop after their current iteration; they stay resumable."""
+        """Ask running loops to stop within one wavefront chunk; they stay resumable."""
         self._stopping.set()
         self._pool.shutdown(wait=False, cancel_futures=True)
 
@@ -112,7 +132,7 @@ class JobWorker:
         if record.finished:
             raise JobConflict(f"job {job_id} is already {record.state}")
         if not self.store.cancel_if_queued(job_id):
-            # Running: the loop checks the flag after each iteration and stops with "canceled".
+            # Running: the loop checks the flag after every wavefront chunk and stops.
             self._cancel_event(job_id).set()
         return self._require(job_id)
 
@@ -146,12 +166,28 @@ class JobWorker:
         should_stop = lambda: cancel.is_set() or self._stopping.is_set()  # noqa: E731
         timings = dict(record.timings)
         last: IterationRecord | None = None
-        for last in loop.run(should_stop=should_stop):
-            timings = self._finish_iteration(job_id, loop, files, last, timings)
-        if not cancel.is_set() and self._stopping.is_set():
+        try:
+            for last in loop.run(should_stop=should_stop):
+                timings = self._finish_iteration(job_id, loop, files, last, timings)
+        except IterationInterrupted:
+            # Stopped inside an iteration (within one wavefront chunk): the in-memory buffers
+            # are partial, the checkpoint of the last finished iteration is what counts.
+            if not cancel.is_set():
+                self.store.requeue(job_id)  # server shutdown: resume from the checkpoint next start
+                return
+            self._complete(job_id, self._checkpointed_loop(record, files), files, None, canceled=True)
+            return
+        finished = last is not None and last.stop_reason not in (None, "canceled")
+        if not finished and not cancel.is_set() and self._stopping.is_set():
             self.store.requeue(job_id)  # server shutdown, not a user cancel: resume next start
             return
-        self._complete(job_id, loop, files, last, canceled=cancel.is_set())
+        # A cancel that arrives during the last iteration comes too late: the job is complete.
+        self._complete(job_id, loop, files, last, canceled=cancel.is_set() and not finished)
+
+    def _checkpointed_loop(self, record: JobRecord, files: JobFiles) -> RenderLoop | None:
+        if not files.has_checkpoint():
+            return None
+        return RenderLoop(job_spec(record, files.bundle_dir), self.networks, state=LoopState.load(files.state_dir))
 
     def _open_loop(self, job_id: str, record: JobRecord, files: JobFiles) -> RenderLoop:
         state = LoopState.load(files.state_dir) if files.has_checkpoint() else None
@@ -207,12 +243,12 @@ class JobWorker:
             return self._publish_locks.setdefault(job_id, threading.Lock())
 
     def _complete(
-        self, job_id: str, loop: RenderLoop, files: JobFiles, last: IterationRecord | None, canceled: bool
+        self, job_id: str, loop: RenderLoop | None, files: JobFiles, last: IterationRecord | None, canceled: bool
     ) -> None:
         stop_reason = last.stop_reason if last is not None else ("canceled" if canceled else None)
-        if loop.state.iteration > 0:
+        if loop is not None and loop.state.iteration > 0:
             files.save_results(loop.result_frames())
-        if canceled or stop_reason == "canceled":
+        if canceled or stop_reason == "canceled" or loop is None:
             self.store.finish(job_id, CANCELED, stop_reason="canceled")
             return
         self._keep_idle(job_id, loop)

@@ -25,6 +25,10 @@ from service.render.renderer import render_samples
 from service.render.runtime import active_variant
 
 
+class IterationInterrupted(RuntimeError):
+    """`should_stop` became true inside an iteration: this loop's in-memory state is partial."""
+
+
 class RenderLoop:
     def __init__(self, spec: LoopSpec, networks: Networks | None = None, *, state: LoopState | None = None):
         """`networks`: loaded once by the caller (CLI, server, benchmark); needed when denoising."""
@@ -59,7 +63,7 @@ class RenderLoop:
             started = time.perf_counter()
             timings: dict[str, float] = {}
             counts = self._allocate(timings)
-            self._render(counts, timings)
+            self._render(counts, timings, should_stop)
             self._denoise_and_predict(timings)
             with self.lock:
                 self.state.iteration += 1
@@ -114,11 +118,20 @@ class RenderLoop:
         timings["allocate"] = time.perf_counter() - t0
         return counts
 
-    def _render(self, counts: list[np.ndarray], timings: dict) -> None:
+    def _render(self, counts: list[np.ndarray], timings: dict, should_stop: Callable[[], bool]) -> None:
         t0 = time.perf_counter()
+
+        def check(_samples: int) -> None:
+            # Called after every wavefront chunk: a cancel or shutdown takes effect within one
+            # chunk. The buffers are then half-updated, so the caller must drop this loop and
+            # resume from the last checkpoint.
+            if should_stop():
+                raise IterationInterrupted("stopped inside an iteration; resume from the last checkpoint")
+
         for f, (scene, buf) in enumerate(zip(self.scenes, self.state.buffers)):
             prev = self.scenes[f - 1].sensors()[0] if (f > 0 and self.effects.motion_vectors) else None
-            render_samples(scene, counts[f], buf, integrator=self.integrator, seed=self.spec.seed * 7919 + f, prev_sensor=prev)
+            render_samples(scene, counts[f], buf, integrator=self.integrator, seed=self.spec.seed * 7919 + f,
+                           prev_sensor=prev, progress=check)
         timings["render"] = time.perf_counter() - t0
 
     def _denoise_and_predict(self, timings: dict) -> None:

@@ -1,8 +1,13 @@
 """What a scene calls for: the effects report, and the integrator built from it.
 
-The renderer simulates only what the scene needs: `volpath` exactly when some shape, sensor or
-emitter carries a participating medium, `path` otherwise; motion vectors only when frames > 1
-and the camera or a shape actually moves between frames.
+The scene's own integrator runs as written, with all its parameters, whenever the scene
+declares one. Only when it declares none does the report choose — `volpath` exactly when some
+shape, sensor or emitter carries a participating medium, `path` otherwise — and then with
+Mitsuba's own defaults (max_depth -1, i.e. unbounded with Russian roulette from depth 5): that
+is what `mi.render` of the same file computes for a scene without media, so the two agree
+exactly, and Russian roulette already keeps the expected path length (the cost) bounded. The
+former cap of 8 bounces changed the image of every scene that left the depth to Mitsuba.
+Motion vectors only when frames > 1 and the camera or a shape actually moves between frames.
 """
 from __future__ import annotations
 
@@ -14,10 +19,10 @@ import numpy as np
 from service.render.runtime import mitsuba
 from service.render.scenes import LoadedScene, SceneError, load_scene_info
 
-# Used when the scene declares no integrator (or one without max_depth). Mitsuba's own default
-# is -1 (unbounded, Russian roulette only); a bound keeps the cost of one wavefront predictable
-# and matches the depth of mi.cornell_box().
-DEFAULT_MAX_DEPTH = 8
+# Mitsuba's own default max_depth (unbounded; Russian roulette ends paths): what a scene that
+# declares no integrator, or an integrator without max_depth, gets — as in mi.render.
+DEFAULT_MAX_DEPTH = -1
+# What the report may choose for a scene that declares no integrator.
 INTEGRATORS = ("path", "volpath")
 # Canonical order of emitter kinds in the report.
 EMITTER_KINDS = ("area", "point", "spot", "directional", "environment", "constant")
@@ -28,8 +33,8 @@ MOTION_TOLERANCE = 1e-6
 @dataclass(frozen=True)
 class SceneEffects:
     media: bool
-    integrator: str  # "volpath" if media else "path"
-    max_depth: int  # -1 means unbounded (Mitsuba's convention)
+    integrator: str  # the plugin that runs: the declared one, else "volpath" if media else "path"
+    max_depth: int  # the declared max_depth, else -1: unbounded (Mitsuba's convention)
     depth_of_field: bool  # thin lens camera with a finite aperture
     emitters: tuple[str, ...]  # kinds among EMITTER_KINDS, in that order
     glossy: bool  # some BSDF has a glossy (rough specular) lobe
@@ -37,6 +42,16 @@ class SceneEffects:
     frames: int
     animated_camera: bool
     animated_shapes: bool
+    integrator_declared: bool = False  # True: the scene's own integrator, as written
+
+    @property
+    def integrator_reason(self) -> str:
+        """Why this integrator runs, for --explain and the job record."""
+        if self.integrator_declared:
+            return f"declared by the scene: '{self.integrator}' runs as written, with all its parameters"
+        if self.media:
+            return "the scene declares no integrator and has participating media: chose 'volpath' (Mitsuba defaults)"
+        return "the scene declares no integrator and has no media: chose 'path' (Mitsuba defaults)"
 
     @property
     def temporal(self) -> bool:
@@ -70,9 +85,10 @@ def inspect_frames(loaded: list[LoadedScene]) -> SceneEffects:
     media = _has_media(scene)
     bsdf_flags = _bsdf_flags(mi, scene)
     animated_camera, animated_shapes = _motion(mi, loaded)
+    declared = first.integrator
     return SceneEffects(
         media=media,
-        integrator="volpath" if media else "path",
+        integrator=declared if declared is not None else ("volpath" if media else "path"),
         max_depth=DEFAULT_MAX_DEPTH if first.max_depth is None else first.max_depth,
         depth_of_field=_depth_of_field(mi, scene.sensors()[0]),
         emitters=_emitter_kinds(mi, scene),
@@ -84,6 +100,7 @@ def inspect_frames(loaded: list[LoadedScene]) -> SceneEffects:
         frames=len(loaded),
         animated_camera=animated_camera,
         animated_shapes=animated_shapes,
+        integrator_declared=declared is not None,
     )
 
 
@@ -107,10 +124,17 @@ def inspect_scene(
 
 
 def make_integrator(effects: SceneEffects):
-    """The `mi.Integrator` the report calls for: path or volpath with the scene's max_depth."""
+    """The integrator the report calls for, for `render_samples(integrator=...)`.
+
+    None when the scene declares its own: each frame's scene then renders with its own
+    instantiated integrator (`scene.integrator()`), parameters and all. Otherwise a fresh
+    `path`/`volpath` with Mitsuba's defaults.
+    """
+    if effects.integrator_declared:
+        return None
     if effects.integrator not in INTEGRATORS:
         raise ValueError(f"integrator must be one of {INTEGRATORS}, got {effects.integrator!r}")
-    return mitsuba().load_dict({"type": effects.integrator, "max_depth": int(effects.max_depth)})
+    return mitsuba().load_dict({"type": effects.integrator})
 
 
 def _has_media(scene) -> bool:

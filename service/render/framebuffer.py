@@ -29,6 +29,10 @@ class FrameBuffer:
     normal_sum: np.ndarray  # (H, W, 3) float64, world-space shading normal
     depth_sum: np.ndarray  # (H, W) float64, first-hit distance (0 on a miss)
     motion_sum: np.ndarray | None = None  # (H, W, 2) float64, pixels to the previous frame
+    # Extra channels of integrators that declare AOVs (Mitsuba's `aov` integrator, `moment`…),
+    # named as Mitsuba names them (`albedo.R`, `dd.y.T`, …), filtered like the radiance.
+    aov_sum: np.ndarray | None = None  # (H, W, len(aov_names)) float64
+    aov_names: tuple[str, ...] = ()
     passes: int = 0  # render calls accumulated (seeds are derived from it)
     meta: dict = field(default_factory=dict)
 
@@ -58,7 +62,12 @@ class FrameBuffer:
 
     @property
     def variance(self) -> np.ndarray:
-        """Variance of the mean: unbiased sample variance / n (0 where n < 2)."""
+        """Variance of the mean: unbiased sample variance / n (0 where n < 2).
+
+        With a filter, a sample is the weighted value w·L (filters.py) and the mean is their
+        plain average, so this is the variance of exactly the estimate `mean` reports — it
+        includes the spread the filter weights add (none for box, a little for negative lobes).
+        """
         n = self.spp[..., None].astype(np.float64)
         mean = self._per_sample(self.radiance_sum)
         sample_var = np.divide(
@@ -89,6 +98,16 @@ class FrameBuffer:
         """Screen-space motion in pixels: pixel (x, y) was at (x + mx, y + my) one frame earlier."""
         return None if self.motion_sum is None else self._per_sample(self.motion_sum).astype(np.float32)
 
+    @property
+    def aovs(self) -> np.ndarray | None:
+        """Per-pixel means of the integrator's extra channels (None when it declares none)."""
+        return None if self.aov_sum is None else self._per_sample(self.aov_sum).astype(np.float32)
+
+    def aov_layers(self) -> dict[str, np.ndarray]:
+        """The integrator's extra channels by Mitsuba's names, for ExrFrame.extra."""
+        means = self.aovs
+        return {} if means is None else {name: means[..., i] for i, name in enumerate(self.aov_names)}
+
     def copy(self) -> "FrameBuffer":
         return FrameBuffer(
             radiance_sum=self.radiance_sum.copy(),
@@ -98,6 +117,8 @@ class FrameBuffer:
             normal_sum=self.normal_sum.copy(),
             depth_sum=self.depth_sum.copy(),
             motion_sum=None if self.motion_sum is None else self.motion_sum.copy(),
+            aov_sum=None if self.aov_sum is None else self.aov_sum.copy(),
+            aov_names=self.aov_names,
             passes=self.passes,
             meta=dict(self.meta),
         )

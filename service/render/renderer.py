@@ -10,10 +10,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
+import drjit as dr
 import numpy as np
 
+from service.render.filters import PixelFilter
 from service.render.framebuffer import FrameBuffer
+from service.render.integrators import instance_refusal, sample_lane, to_rgb
 from service.render.runtime import mitsuba
+from service.render.scenes import SceneError
 
 # 2^22 lanes ≈ a few hundred MB of Dr.Jit state on the LLVM backend: a 1024² × 64 spp pass
 # (67 M samples) runs in 16 chunks instead of one 10+ GB wavefront.
@@ -47,33 +51,55 @@ def pass_seed(user_seed: int, pass_index: int, chunk_index: int) -> int:
     return (mixed ^ (mixed >> 32)) & 0xFFFFFFFF
 
 
-def _trace_chunk(mi, scene, integrator, sensor, prev_sensor, pixels: np.ndarray, width: int, pixel_count: int,
-                 seed: int, diff_scale: float) -> tuple[np.ndarray, int]:
+@dataclass
+class _Setup:
+    """What every chunk of one render call shares (prepare step)."""
+
+    scene: object
+    integrator: object
+    sensor: object
+    prev_sensor: object
+    pixel_filter: PixelFilter
+    width: int
+    pixel_count: int
+    aov_count: int
+    diff_scale: float
+
+
+def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.ndarray, int]:
     """Trace one chunk of lanes (flat pixel indices) and return per-pixel sums and the
     number of non-finite samples. Columns: radiance RGB, radiance² RGB, albedo RGB,
-    normal XYZ, depth (+ motion XY)."""
-    import drjit as dr
-
+    normal XYZ, depth (+ motion XY) (+ the integrator's AOVs)."""
     n = len(pixels)
+    sensor, scene = setup.sensor, setup.scene
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
     idx = mi.UInt32(pixels)
-    film_size = mi.ScalarVector2f(sensor.film().crop_size())
-    pixel = mi.Vector2f(mi.Float(idx % width), mi.Float(idx // width))
-    position = pixel + sampler.next_2d()
+    # Film position in pixels of the crop window: the box filter's uniform in-pixel offset, or
+    # an offset drawn from the film's filter with its weight (filters.py). The sensor's sample
+    # space [0, 1]² spans the crop window (Mitsuba builds its projection from film size, crop
+    # size and crop offset), so dividing by the crop size is what mi.render does too.
+    position, weight = setup.pixel_filter.sample(sampler, idx % setup.width, idx // setup.width)
+    crop = mi.ScalarVector2f(sensor.film().crop_size())
 
     # Sample rays: same arguments as Mitsuba's own sample_rays (time, wavelength, film
     # position normalised to [0, 1]², aperture sample for thin-lens cameras).
     time = sensor.shutter_open() + sampler.next_1d() * sensor.shutter_open_time()
     wavelength_sample = sampler.next_1d()
     aperture_sample = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
-    ray, ray_weight = sensor.sample_ray_differential(time, wavelength_sample, position / film_size, aperture_sample)
-    ray.scale_differential(float(diff_scale))
+    ray, ray_weight = sensor.sample_ray_differential(time, wavelength_sample, position / crop, aperture_sample)
+    ray.scale_differential(float(setup.diff_scale))
 
-    radiance, valid, _ = integrator.sample(scene, sampler, ray, None, True)
-    radiance = dr.select(valid, radiance * ray_weight, 0.0)
+    value, valid, aovs = sample_lane(mi, setup.integrator, scene, sampler, ray)
+    # `valid` only feeds the film's alpha in Mitsuba (a miss of `direct` or `prb` still carries
+    # the environment's radiance), so it must not mask the value here.
+    radiance = to_rgb(mi, value * ray_weight, ray.wavelengths)
+    if weight is not None:
+        radiance = radiance * weight
+        aovs = [a * weight for a in aovs]
 
-    # First-hit AOVs (~27% extra, DESIGN.md) from a separate primary intersection.
+    # First-hit AOVs (~27% extra, DESIGN.md) from a separate primary intersection along the
+    # same (filter-offset) ray; they are features, averaged unweighted so they stay in range.
     si = scene.ray_intersect(mi.Ray3f(ray))
     hit = si.is_valid()
     bsdf = si.bsdf(mi.RayDifferential3f(ray))
@@ -84,42 +110,45 @@ def _trace_chunk(mi, scene, integrator, sensor, prev_sensor, pixels: np.ndarray,
     # the remodulation turned into sparkles. Those surfaces get albedo 1 (the convention Intel
     # Open Image Denoise documents for specular surfaces); diffuse lobes are clipped to [0, 1].
     diffuse = mi.has_flag(bsdf.flags(), mi.BSDFFlags.DiffuseReflection)
-    reflectance = dr.clip(bsdf.eval_diffuse_reflectance(si, hit), 0.0, 1.0)
-    albedo = dr.select(hit, dr.select(diffuse, reflectance, 1.0), 0.0)
+    reflectance = to_rgb(mi, bsdf.eval_diffuse_reflectance(si, hit), ray.wavelengths, hit)
+    albedo = dr.select(hit, dr.select(diffuse, dr.clip(reflectance, 0.0, 1.0), 1.0), 0.0)
     normal = dr.select(hit, si.sh_frame.n, 0.0)
     depth = dr.select(hit, si.t, 0.0)
 
     motion = None
-    if prev_sensor is not None:
+    if setup.prev_sensor is not None:
         world = dr.select(hit, si.p, ray.o + ray.d * BACKGROUND_DISTANCE)
         it = dr.zeros(mi.Interaction3f)
         it.p = world
-        ds, _ = prev_sensor.sample_direction(it, mi.Point2f(0.5), True)
+        ds, _ = setup.prev_sensor.sample_direction(it, mi.Point2f(0.5), True)
         seen = ds.pdf > 0
         # ds.uv is the film position (pixels) of `world` in the previous frame.
         motion = dr.select(seen, ds.uv - position, 0.0)
 
     # Sanitise per sample: one NaN/Inf lane must not poison a pixel's running sums.
     finite = dr.all(dr.isfinite(radiance))
+    for a in aovs:
+        finite &= dr.isfinite(a)
     radiance = dr.select(finite, radiance, 0.0)
-    channels = [radiance.x, radiance.y, radiance.z,
-                dr.square(radiance.x), dr.square(radiance.y), dr.square(radiance.z),
-                albedo.x, albedo.y, albedo.z, normal.x, normal.y, normal.z, depth]
+    channels = [radiance[0], radiance[1], radiance[2],
+                dr.square(radiance[0]), dr.square(radiance[1]), dr.square(radiance[2]),
+                albedo[0], albedo[1], albedo[2], normal.x, normal.y, normal.z, depth]
     if motion is not None:
         channels += [motion.x, motion.y]
+    channels += [dr.select(finite, a, 0.0) for a in aovs]
     # Reduce into per-pixel sums inside the same kernel (dr.scatter_reduce): per-lane values
     # never exist as arrays, so memory stays O(pixels) per chunk.
     stride = len(channels)
-    sums = dr.zeros(mi.Float, pixel_count * stride)
+    sums = dr.zeros(mi.Float, setup.pixel_count * stride)
     for c, value in enumerate(channels):
         dr.scatter_reduce(dr.ReduceOp.Add, sums, value, idx * stride + c)
     nonfinite = dr.count(~finite)
     dr.eval(sums, nonfinite)
-    return np.asarray(sums, dtype=np.float64).reshape(pixel_count, stride), int(np.asarray(nonfinite).ravel()[0])
+    return np.asarray(sums, dtype=np.float64).reshape(setup.pixel_count, stride), int(np.asarray(nonfinite).ravel()[0])
 
 
-def _add_sums(buffer: FrameBuffer, sums: np.ndarray) -> None:
-    """Add one chunk's per-pixel sums (P, 13 or 15 columns) into the float64 frame buffer."""
+def _add_sums(buffer: FrameBuffer, sums: np.ndarray, motion: bool) -> None:
+    """Add one chunk's per-pixel sums (P, 13 [+2 motion] [+AOVs] columns) into the buffer."""
     h, w = buffer.shape
     per_pixel = sums.reshape(h, w, -1)
     buffer.radiance_sum += per_pixel[..., 0:3]
@@ -127,8 +156,19 @@ def _add_sums(buffer: FrameBuffer, sums: np.ndarray) -> None:
     buffer.albedo_sum += per_pixel[..., 6:9]
     buffer.normal_sum += per_pixel[..., 9:12]
     buffer.depth_sum += per_pixel[..., 12]
-    if per_pixel.shape[-1] > 13:
+    first_aov = 13
+    if motion:
         buffer.motion_sum += per_pixel[..., 13:15]
+        first_aov = 15
+    if buffer.aov_sum is not None:
+        buffer.aov_sum += per_pixel[..., first_aov:]
+
+
+def check_integrator(mi, integrator) -> None:
+    """Refuse an instantiated integrator the wavefront cannot drive (one SceneError line)."""
+    message = instance_refusal(mi, integrator)
+    if message:
+        raise SceneError(message)
 
 
 def render_samples(
@@ -144,7 +184,7 @@ def render_samples(
 ) -> RenderPass:
     """Trace exactly `counts[y, x]` new samples per pixel and add them to `buffer`.
 
-    `integrator`: the one the effects report chose (default: the scene's). `prev_sensor`:
+    `integrator`: the one the effects report chose (None: the scene's own, as declared). `prev_sensor`:
     the previous frame's sensor when the scene moves — then motion vectors are accumulated
     too. `progress(n)` is called with the samples finished after each chunk.
     """
@@ -160,24 +200,34 @@ def render_samples(
     film_w, film_h = sensor.film().crop_size()
     if (film_h, film_w) != (height, width):
         raise ValueError(f"scene film is {film_w}x{film_h}, frame buffer is {width}x{height}")
-    integrator = integrator or scene.integrator()
+    integrator = integrator if integrator is not None else scene.integrator()
+    check_integrator(mi, integrator)
+    aov_names = tuple(integrator.aov_names())
+    if aov_names and buffer.aov_sum is None:
+        buffer.aov_sum = np.zeros((height, width, len(aov_names)))
+        buffer.aov_names = aov_names
+    elif aov_names != buffer.aov_names:
+        raise ValueError(f"integrator AOVs {aov_names} do not match the buffer's {buffer.aov_names}")
     lanes = expand_counts(counts)
     total = len(lanes)
     if prev_sensor is not None and buffer.motion_sum is None:
         buffer.motion_sum = np.zeros((height, width, 2))
-    # Ray differentials describe the footprint of one sample: shrink them with the mean
-    # per-pixel rate as mi.render does with 1/sqrt(spp).
-    diff_scale = 1.0 / np.sqrt(max(buffer.spp.mean() + counts.mean(), 1.0))
+    film = sensor.film()
+    setup = _Setup(
+        scene=scene, integrator=integrator, sensor=sensor, prev_sensor=prev_sensor,
+        pixel_filter=PixelFilter(mi, film.rfilter(), width, height, film.sample_border()),
+        width=width, pixel_count=height * width, aov_count=len(aov_names),
+        # Ray differentials describe the footprint of one sample: shrink them with the mean
+        # per-pixel rate as mi.render does with 1/sqrt(spp).
+        diff_scale=1.0 / np.sqrt(max(buffer.spp.mean() + counts.mean(), 1.0)),
+    )
     chunks = max(1, -(-total // max_wavefront))
     for chunk in range(chunks if total else 0):
         pixels = lanes[chunk * max_wavefront:(chunk + 1) * max_wavefront]
-        sums, nonfinite = _trace_chunk(
-            mi, scene, integrator, sensor, prev_sensor, pixels, width, height * width,
-            pass_seed(seed, buffer.passes, chunk), diff_scale,
-        )
+        sums, nonfinite = _trace_chunk(mi, setup, pixels, pass_seed(seed, buffer.passes, chunk))
         if nonfinite:
             buffer.meta["nonfinite_samples"] = int(buffer.meta.get("nonfinite_samples", 0) + nonfinite)
-        _add_sums(buffer, sums)
+        _add_sums(buffer, sums, prev_sensor is not None)
         if progress is not None:
             progress(len(pixels))
     buffer.spp += counts.astype(np.int64)

@@ -77,10 +77,19 @@ def mitsuba():
         os.environ["DRJIT_LIBLLVM_PATH"] = lib
     import mitsuba as mi
 
+    available = tuple(mi.variants())
+    # One line, never a traceback: the per-pixel wavefront needs a vectorised (JIT) variant.
+    wavefront = [v for v in available if v.startswith(("llvm_", "cuda_"))]
+    if variant not in available or not variant.startswith(("llvm_", "cuda_")):
+        raise RuntimeSetupError(
+            f"Mitsuba variant {variant!r} cannot be used ({VARIANT_ENV}); "
+            f"choose one of: {', '.join(wavefront) or 'none installed'}"
+        )
     try:
         mi.set_variant(variant)
-    except Exception as exc:  # unknown or unavailable variant name
-        raise RuntimeSetupError(f"Mitsuba variant {variant!r} is not available: {exc}") from exc
+    except Exception as exc:  # e.g. cuda_* without a working GPU/driver
+        detail = " ".join(str(exc).split())
+        raise RuntimeSetupError(f"Mitsuba variant {variant!r} is not available here: {detail}") from exc
     return mi
 
 

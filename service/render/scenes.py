@@ -8,8 +8,11 @@ edits the renderer needs are made on the parsed description *before* any plugin 
   projection computed for the old aspect ratio, so rays no longer match the pixels.
 - sampler: always `independent`, because the renderer hands out a different sample count to
   every pixel and stratified/low-discrepancy samplers assume one fixed spp.
-- the declared integrator's `max_depth` is read here and kept; the integrator itself is
-  rebuilt by `effects.make_integrator`.
+- the declared integrator, sensor and film are checked here, before anything is built: the
+  integrator runs as written (with all its parameters) unless it cannot be driven per pixel,
+  and those are refused with one line (see `integrators.py`). Whether the scene declares an
+  integrator at all is recorded, because an instantiated scene always has one (Mitsuba adds a
+  default `path`), and only an undeclared one may be chosen by the effects report.
 """
 from __future__ import annotations
 
@@ -20,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from service.render.builtin import BUILTIN_BY_NAME, BUILTIN_SCENES
+from service.render.integrators import film_refusal, integrator_refusal, sensor_refusal
 from service.render.runtime import mitsuba
 
 MAX_RESOLUTION = 8192
@@ -49,6 +53,7 @@ class LoadedScene:
     scene: object  # mi.Scene
     max_depth: int | None  # the source integrator's max_depth; None when it declares none
     declares_frame: bool  # whether frames can differ at all (built-ins always may)
+    integrator: str | None = None  # plugin name of the scene's own <integrator>; None: none declared
 
 
 def builtin_scene_names() -> list[str]:
@@ -82,13 +87,13 @@ def load_scene_info(
     `params` sets the scene's `<default>` parameters, like Mitsuba's `-D name=value`."""
     mi = mitsuba()
     parsed = _parse_scene(mi, source, width, height, frame, params)
-    max_depth = _conform(mi, parsed.state, width, height, parsed.label)
+    max_depth, integrator = _conform(mi, parsed.state, width, height, parsed.label)
     scene = _instantiate(mi, parsed.config, parsed.state, parsed.asset_root, parsed.label)
     if not isinstance(scene, mi.Scene):
         raise SceneError(f"{parsed.label}: the file describes a {type(scene).__name__}, not a <scene>")
     if not scene.sensors():
         raise SceneError(f"{parsed.label}: the scene declares no <sensor> (camera) to render from")
-    return LoadedScene(scene=scene, max_depth=max_depth, declares_frame=parsed.declares_frame)
+    return LoadedScene(scene=scene, max_depth=max_depth, declares_frame=parsed.declares_frame, integrator=integrator)
 
 
 def film_size(source: str | Path, *, width: int | None = None, height: int | None = None,
@@ -219,14 +224,18 @@ def _parse(step, label: str):
         raise SceneError(f"{label}: {_one_line(exc)}") from exc
 
 
-def _conform(mi, state, width: int | None, height: int | None, label: str) -> int | None:
-    """Edit the parsed nodes: film size, independent sampler; return the declared max_depth."""
+def _conform(mi, state, width: int | None, height: int | None, label: str) -> tuple[int | None, str | None]:
+    """Refuse what cannot be driven per pixel; edit the parsed nodes (film size, independent
+    sampler); return the declared top-level integrator's max_depth and plugin name."""
     nodes = state.nodes
+    _refuse_unsupported(mi, nodes, label)
+    top = _top_integrator(mi, nodes)
+    integrator = None if top is None else nodes[top].props.plugin_name()
     max_depth = None
+    if top is not None and "max_depth" in nodes[top].props:
+        max_depth = int(nodes[top].props["max_depth"])
     for node in nodes:
-        if node.type == mi.ObjectType.Integrator and max_depth is None and "max_depth" in node.props:
-            max_depth = int(node.props["max_depth"])
-        elif node.type == mi.ObjectType.Sampler:
+        if node.type == mi.ObjectType.Sampler:
             _make_independent(node.props)
         elif node.type == mi.ObjectType.Film:
             _resize_film(node.props, width, height, label)
@@ -243,16 +252,50 @@ def _conform(mi, state, width: int | None, height: int | None, label: str) -> in
                 nodes[index].props["film"] = mi.Properties.ResolvedReference(len(nodes) - 1)
     elif not any(node.type == mi.ObjectType.Film for node in nodes):
         _check_size(label, *MITSUBA_DEFAULT_FILM)
-    return max_depth
+    return max_depth, integrator
 
 
-def _child_of_type(mi, state, index: int, object_type) -> bool:
+def _refuse_unsupported(mi, nodes, label: str) -> None:
+    """One SceneError line for the first integrator, sensor or film the wavefront cannot drive."""
+    checks = {
+        mi.ObjectType.Integrator: integrator_refusal,
+        mi.ObjectType.Sensor: sensor_refusal,
+        mi.ObjectType.Film: film_refusal,
+    }
+    for node in nodes:
+        check = checks.get(node.type)
+        message = check(node.props.plugin_name(), mi.variant()) if check is not None else None
+        if message:
+            raise SceneError(f"{label}: {message}")
+
+
+def _top_integrator(mi, nodes) -> int | None:
+    """Index of the scene's own integrator node: the first one no other integrator nests
+    (e.g. `aov` wraps one). Found without the root's references, which Mitsuba's shape-merging
+    transform rewrites."""
+    integrators = [i for i, node in enumerate(nodes) if node.type == mi.ObjectType.Integrator]
+    nested = set()
+    for i in integrators:
+        props = nodes[i].props
+        for key in props.keys():
+            value = props[key]
+            if isinstance(value, mi.Properties.ResolvedReference):
+                nested.add(value.index())
+    return next((i for i in integrators if i not in nested), None)
+
+
+def _child_index(mi, state, index: int, object_type) -> int | None:
+    """Index of the first child node of `object_type` under node `index`, or None."""
     props = state.nodes[index].props
     for key in props.keys():
         value = props[key]
         if isinstance(value, mi.Properties.ResolvedReference) and state.nodes[value.index()].type == object_type:
-            return True
-    return False
+            return value.index()
+    return None
+
+
+def _child_of_type(mi, state, index: int, object_type) -> bool:
+    return _child_index(mi, state, index, object_type) is not None
 
 
 def _make_independent(props) -> None:

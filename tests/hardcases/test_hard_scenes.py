@@ -40,7 +40,9 @@ def test_environment_only_scene(nets, hard_scene):
     records = run_checked(loop_for(hard_scene("environment-only"), nets), doubling_totals(16 * 16, 16, ITERATIONS))
     buffer = records[-1].buffers[0]
     assert (buffer.depth == 0).all() and (buffer.albedo == 0).all()  # every primary ray missed
-    np.testing.assert_allclose(buffer.mean, np.broadcast_to([0.5, 0.7, 1.0], buffer.mean.shape), rtol=1e-5)
+    # hdrfilm's default gaussian filter is importance-sampled from a table: each lane's weight
+    # f/pdf is ≈ 1, not exactly 1, so a constant sky comes back within a fraction of a percent.
+    np.testing.assert_allclose(buffer.mean, np.broadcast_to([0.5, 0.7, 1.0], buffer.mean.shape), rtol=5e-3)
 
 
 def test_black_and_glass_materials(nets, hard_scene):

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from models.pretrained import Networks
-from service.loop.loop import LoopSpecError, RenderLoop
+from service.loop.loop import IterationInterrupted, LoopSpecError, RenderLoop
 from service.loop.spec import LoopSpec
 from service.loop.state import LoopState
 
@@ -42,10 +42,18 @@ def test_time_limit_stops_before_overrunning(tiny_networks):
     assert len(records) == 1 and records[0].stop_reason == "time_limit"
 
 
-def test_should_stop_cancels_between_iterations(tiny_networks):
-    calls = iter([False, True, True, True])
-    records = list(make_loop(tiny_networks).run(should_stop=lambda: next(calls)))
+def test_should_stop_after_an_iteration_ends_the_run_as_canceled(tiny_networks):
+    loop = make_loop(tiny_networks)
+    records = list(loop.run(should_stop=lambda: loop.state.iteration >= 1))
     assert len(records) == 1 and records[0].stop_reason == "canceled"
+
+
+def test_should_stop_inside_an_iteration_interrupts_within_one_chunk(tiny_networks):
+    loop = make_loop(tiny_networks)
+    calls = iter([False] + [True] * 100)  # false before iteration 0 starts, true at its first chunk
+    with pytest.raises(IterationInterrupted):
+        list(loop.run(should_stop=lambda: next(calls)))
+    assert loop.state.iteration == 0
 
 
 def test_no_denoise_returns_the_monte_carlo_mean(tiny_networks):

@@ -50,16 +50,53 @@ def test_builtin_integrator_choices():
     assert inspect_scene("cornell-box", width=8, height=8).integrator == "path"
 
 
-def test_max_depth_is_kept_and_reaches_the_integrator(write_scene_xml):
-    declared = write_scene_xml(DIFFUSE_SPHERE + LIGHT + '<integrator type="path"><integer name="max_depth" value="3"/></integrator>')
+def test_a_declared_integrator_runs_as_written_with_all_its_parameters(write_scene_xml):
+    from service.render.scenes import load_scene
+
+    declared = write_scene_xml(DIFFUSE_SPHERE + LIGHT + """<integrator type="path">
+        <integer name="max_depth" value="3"/><integer name="rr_depth" value="2"/>
+        <boolean name="hide_emitters" value="true"/></integrator>""")
     effects = inspect_scene(declared)
-    assert effects.max_depth == 3
-    assert "max_depth = 3" in str(make_integrator(effects))
-    assert inspect_scene(write_scene_xml(DIFFUSE_SPHERE + LIGHT, name="plain.xml")).max_depth == DEFAULT_MAX_DEPTH
+    assert effects.integrator_declared and effects.integrator == "path" and effects.max_depth == 3
+    assert "declared" in effects.integrator_reason
+    # None: the renderer uses each frame's own scene.integrator(), parameters and all.
+    assert make_integrator(effects) is None
+    own = str(load_scene(declared).integrator())
+    assert "max_depth = 3" in own and "rr_depth = 2" in own  # hide_emitters: pinned by tests/fidelity
 
 
-def test_make_integrator_rejects_other_integrators():
-    effects = inspect_scene("cornell-box", width=8, height=8)
+def test_only_an_undeclared_integrator_is_chosen_with_mitsubas_defaults(write_scene_xml):
+    effects = inspect_scene(write_scene_xml(DIFFUSE_SPHERE + LIGHT, name="plain.xml"))
+    assert not effects.integrator_declared and "chose 'path'" in effects.integrator_reason
+    assert effects.max_depth == DEFAULT_MAX_DEPTH == -1
+    assert "max_depth = 4294967295" in str(make_integrator(effects))  # -1 as unsigned: unbounded
+
+
+def test_a_declared_direct_integrator_is_not_replaced_by_path(write_scene_xml):
+    effects = inspect_scene(write_scene_xml(DIFFUSE_SPHERE + LIGHT + '<integrator type="direct"/>'))
+    assert effects.integrator == "direct" and effects.integrator_declared
+
+
+@pytest.mark.parametrize("body, words", [
+    ('<integrator type="ptracer"/>', ["ptracer", "use 'path'"]),
+    ('<integrator type="stokes"><integrator type="path"/></integrator>', ["stokes", "polarized"]),
+])
+def test_integrators_that_cannot_be_driven_per_pixel_are_refused_in_one_line(write_scene_xml, body, words):
+    with pytest.raises(SceneError) as err:
+        inspect_scene(write_scene_xml(DIFFUSE_SPHERE + LIGHT + body))
+    message = str(err.value)
+    assert "\n" not in message and all(w in message for w in words)
+
+
+@pytest.mark.parametrize("sensor_type", ["radiancemeter", "irradiancemeter"])
+def test_sensors_that_do_not_map_pixels_to_rays_are_refused(write_scene_xml, sensor_type):
+    sensor = f'<sensor type="{sensor_type}"><film type="hdrfilm"><integer name="width" value="1"/><integer name="height" value="1"/></film></sensor>'
+    with pytest.raises(SceneError, match=f"sensor '{sensor_type}' is not supported"):
+        inspect_scene(write_scene_xml(DIFFUSE_SPHERE + LIGHT, sensor=sensor))
+
+
+def test_make_integrator_rejects_other_integrators(write_scene_xml):
+    effects = inspect_scene(write_scene_xml(DIFFUSE_SPHERE + LIGHT))
     with pytest.raises(ValueError, match="integrator"):
         make_integrator(SceneEffects(**{**effects.__dict__, "integrator": "bdpt"}))
 

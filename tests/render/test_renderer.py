@@ -170,3 +170,44 @@ def test_albedo_is_one_on_conductors_and_glass_and_the_reflectance_on_diffuse_wa
     assert buffer.albedo.max() == 1.0 and white.mean() > 0.05          # both boxes cover part of the view
     walls = buffer.albedo[~white & (buffer.albedo.sum(-1) > 0)]
     assert 0 < np.median(walls.max(-1)) < 0.9                           # diffuse walls keep their colour
+
+
+def unit_sky_scene(film: dict):
+    """Nothing but a constant emitter of radiance 1: every traced lane returns exactly 1.0."""
+    mi = mitsuba()
+    return mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path", "hide_emitters": False},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+        "sensor": {"type": "perspective", "film": {"type": "hdrfilm", **film}},
+    })
+
+
+def test_radiance_sum_counts_the_lanes_actually_traced_per_pixel():
+    # Independent of the spp bookkeeping: each traced lane adds exactly 1.0 to its pixel, so a
+    # renderer that traced half the lanes (or put them in the wrong pixel) fails here.
+    scene = unit_sky_scene({"width": 12, "height": 8, "rfilter": {"type": "box"}})
+    counts = np.random.default_rng(5).integers(0, 7, size=(8, 12))
+    buffer = FrameBuffer.empty(8, 12)
+    render_samples(scene, counts, buffer, seed=5, max_wavefront=97)
+    np.testing.assert_allclose(buffer.radiance_sum[..., 0], counts, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(buffer.radiance_sq_sum[..., 1], counts, rtol=0, atol=1e-4)
+
+
+def test_unit_sky_matches_mi_render_exactly_with_a_box_filter():
+    mi = mitsuba()
+    scene = unit_sky_scene({"width": 8, "height": 6, "rfilter": {"type": "box"}})
+    buffer = FrameBuffer.empty(6, 8)
+    render_samples(scene, np.full((6, 8), 3), buffer, seed=1)
+    np.testing.assert_allclose(buffer.mean, np.asarray(mi.render(scene, spp=3))[..., :3], atol=1e-5)
+
+
+def test_filter_weights_average_to_one_per_pixel_even_at_the_film_border():
+    # With a filter the lanes carry weights f/(p ∫f); on a constant image their mean must be 1
+    # in every pixel, border pixels (truncated footprint) included — as hdrfilm's normalisation.
+    scene = unit_sky_scene({"width": 10, "height": 7, "rfilter": {"type": "mitchell"}})
+    buffer = FrameBuffer.empty(7, 10)
+    render_samples(scene, np.full((7, 10), 4000), buffer, seed=2)
+    # Signed weights (negative lobes) have a spread; judge each pixel by its own standard error.
+    z = (buffer.mean[..., 0] - 1.0) / np.sqrt(buffer.variance[..., 0])
+    assert np.abs(z).max() < 4.5 and abs(z.mean()) < 4.5 / np.sqrt(z.size)

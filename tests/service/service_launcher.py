@@ -19,7 +19,7 @@ import models.pretrained as pretrained
 from models.checkpoint import save_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
-from service.api.serve import DATA_DIR_ENV, app_from_env
+from service.api.serve import DATA_DIR_ENV, SHUTDOWN_GRACE_SECONDS, app_from_env
 
 
 def untrained_weights(directory: Path) -> Path:
@@ -40,7 +40,8 @@ def main(port: int) -> None:
     shipped = pretrained.SHIPPED_WEIGHTS_DIR
     if not (shipped / pretrained.DENOISER_FILE).is_file():
         os.environ[pretrained.WEIGHTS_DIR_ENV] = str(untrained_weights(Path(os.environ[DATA_DIR_ENV]) / "weights"))
-    uvicorn.run(app_from_env(), host="127.0.0.1", port=port, log_level="warning")
+    uvicorn.run(app_from_env(), host="127.0.0.1", port=port, log_level="warning",
+                timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS)
 
 
 if __name__ == "__main__":

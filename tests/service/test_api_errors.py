@@ -115,7 +115,7 @@ def test_loose_file_upload_with_escape_is_422(client):
 def test_oversized_upload_is_413(server):
     # A raw socket: httpx will not send a Content-Length it does not honour.
     request = (
-        "POST /jobs HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=x\r\n"
+        "POST /jobs HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: multipart/form-data; boundary=x\r\n"
         f"Content-Length: {200 * 1024 * 1024}\r\nConnection: close\r\n\r\n"
     )
     with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:

@@ -1,6 +1,9 @@
 """Persistence: `kill -9` the server mid-job, start another on the same data dir."""
 from __future__ import annotations
 
+import signal
+import time
+
 import httpx
 import numpy as np
 
@@ -71,3 +74,41 @@ def test_finished_jobs_survive_a_restart(start_server):
         assert after == before
         assert client.get(f"/jobs/{job_id}/result.exr").content == result
         assert client.get(f"/jobs/{job_id}/preview").status_code == 200
+
+
+def test_sigterm_requeues_a_running_job_exits_fast_and_the_next_start_completes_it(start_server):
+    first = start_server()
+    with httpx.Client(base_url=first.url, timeout=60) as client:
+        body = {"scene": "cornell-box", "width": 128, "height": 128, "max_iterations": 6}
+        job_id = client.post("/jobs", json=body).json()["id"]
+        at_term = wait_for(client, job_id, lambda job: job["iteration"] >= 3)
+        with client.stream("GET", f"/jobs/{job_id}/events") as events:  # an open stream must not hold shutdown
+            next(events.iter_lines())
+            started = time.monotonic()
+            first.process.send_signal(signal.SIGTERM)
+            first.process.wait(30)
+    exit_seconds = time.monotonic() - started
+    assert at_term["state"] == "running" and at_term["iteration"] < 6, "job ended before SIGTERM"
+    assert exit_seconds < 15, f"shutdown took {exit_seconds:.1f} s"
+
+    second = start_server(first.data_dir)
+    with httpx.Client(base_url=second.url, timeout=60) as client:
+        final = wait_for(client, job_id, finished, timeout=300)
+        assert final["state"] == "completed" and final["iteration"] == 6
+        # Resumed from a checkpoint, never from scratch: at most the in-flight iteration was redone.
+        assert final["resumed_from"] is not None and final["resumed_from"] >= at_term["iteration"]
+        assert final["spp"] == 16 * 2 ** 5
+    second.stop()
+
+
+def test_delete_cancels_a_running_job_and_removes_its_record_and_files(start_server):
+    server = start_server()
+    with httpx.Client(base_url=server.url, timeout=60) as client:
+        body = {"scene": "cornell-box", "width": 128, "height": 128, "max_iterations": 6}
+        job_id = client.post("/jobs", json=body).json()["id"]
+        wait_for(client, job_id, lambda job: job["iteration"] >= 1)
+        assert client.delete(f"/jobs/{job_id}").status_code == 204
+        assert client.get(f"/jobs/{job_id}").status_code == 404
+        assert client.delete(f"/jobs/{job_id}").status_code == 404
+        assert not (server.data_dir / "jobs" / job_id).exists()
+    server.stop()

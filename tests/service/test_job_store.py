@@ -61,10 +61,10 @@ def test_restart_requeues_running_jobs(tmp_path):
     second.close()
 
 
-def test_list_filters_by_state(store):
+def test_list_is_newest_first_and_filters_by_state(store):
     a, b = store.create({}, None), store.create({}, None)
     store.claim(b.id)
-    assert [r.id for r in store.list()] == [a.id, b.id]
+    assert [r.id for r in store.list()] == [b.id, a.id]
     assert [r.id for r in store.list(state=RUNNING)] == [b.id]
 
 

@@ -13,6 +13,9 @@ FOG_ALBEDO = (0.9, 0.9, 0.9)
 
 def veiled(frame: int = 0) -> dict:
     scene = cornell_base()
+    # A scene is rendered with the integrator it declares, so the fog scene declares the
+    # volumetric one itself (same depth as the box it is built from).
+    scene["integrator"]["type"] = "volpath"
     fog_box = scene["large-box"]
     fog_box["bsdf"] = {"type": "null"}
     fog_box["interior"] = {
