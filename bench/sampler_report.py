@@ -32,7 +32,7 @@ class SamplerCase:
     scene: str  # a built-in scene name
     integrator: str  # a Mitsuba integrator plugin
     filter: str  # a Mitsuba reconstruction filter plugin (the film's rfilter)
-    max_depth: int = 8
+    max_depth: int | None = 8  # None for integrators without one (direct)
 
     @property
     def label(self) -> str:
@@ -43,7 +43,7 @@ class SamplerCase:
 # draws sample offsets from the film's filter.
 CASES: tuple[SamplerCase, ...] = (
     SamplerCase("cornell-box", "path", "box"),
-    SamplerCase("cornell-box", "direct", "box"),
+    SamplerCase("cornell-box", "direct", "box", max_depth=None),
     SamplerCase("veiled", "volpath", "box"),
 )
 
@@ -79,7 +79,10 @@ def case_scene(case: SamplerCase, size: int):
     size, and the independent sampler (what the renderer uses for per-pixel counts)."""
     mi = mitsuba()
     description = BUILTIN_BY_NAME[case.scene].build(0)
-    description["integrator"] = {"type": case.integrator, "max_depth": case.max_depth}
+    integrator = {"type": case.integrator}
+    if case.max_depth is not None:
+        integrator["max_depth"] = case.max_depth
+    description["integrator"] = integrator
     sensor = description["sensor"]
     film = dict(sensor.get("film", {"type": "hdrfilm"}))
     film.update(width=size, height=size, rfilter={"type": case.filter})
