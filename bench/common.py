@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
+import math
 import os
 import platform
 import subprocess
@@ -17,15 +18,22 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
+from string import Template
 
 import numpy as np
 import torch
 
-from models.losses import SMAPE_EPS, smape
+from models.losses import SMAPE_EPS, smape, smape_map
 from models.metrics import psnr, relmse, ssim
 from models.pretrained import DENOISER_FILE, ERROR_PREDICTOR_FILE, Networks, load_networks, weights_dir
 from models.checkpoint import read_checkpoint
 from service.images import linear_to_srgb
+from service.render.builtin import BUILTIN_BY_NAME
+from service.render.effects import inspect_scene, make_integrator
+from service.render.framebuffer import FrameBuffer
+from service.render.renderer import render_samples
+from service.render.runtime import active_variant
+from service.render.scenes import load_scene
 from service.loop.tensors import nchw
 
 # Every reference render draws from its own stream: a reference that shared samples with an
@@ -33,8 +41,14 @@ from service.loop.tensors import nchw
 REFERENCE_SEED = 7_777_777
 # The metric names every report uses, in this order.
 METRIC_NAMES = ("smape", "relmse", "psnr", "dssim")
-# How OIDN is run everywhere, stated in every report that shows it.
+# How OIDN is run everywhere, stated in every report that shows it. "high" is also what OIDN's
+# RT filter does when no quality is set, so the loop benchmark's earlier low-level call (no
+# quality given) ran the same setting; the one call below names it.
 OIDN_SETTINGS = "RT filter, `hdr=True`, quality high, noisy colour + albedo + normal"
+# Report prose lives in bench/templates/*.md (string.Template: $name, $$ for a dollar sign).
+TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
+
+OidnDenoise = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
 # --- provenance -------------------------------------------------------------------------------
@@ -52,8 +66,23 @@ def git_commit() -> str:
         return "unknown"
 
 
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def load_average() -> str:
+    """The machine's 1/5/15-minute load: it is shared, and other jobs slow every timing."""
+    return "/".join(f"{x:.1f}" for x in os.getloadavg())
+
+
 def machine_line() -> str:
-    cpu = platform.processor() or platform.machine()
+    cpu = cpu_name()
     return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__} "
             f"({torch.get_num_threads()} thread{'s' if torch.get_num_threads() > 1 else ''})")
 
@@ -63,8 +92,19 @@ def provenance(command: str | None = None, variant: str | None = None) -> str:
     lines = [f"Command: `{command or command_line()}`", f"Machine: {machine_line()}"]
     if variant:
         lines.append(f"Mitsuba variant: `{variant}`")
-    lines.append(f"Date: {_dt.date.today().isoformat()}; commit {git_commit()}")
-    return "\n".join(lines)
+    lines.append(f"Date: {_dt.datetime.now().astimezone().isoformat(timespec='minutes')}; commit {git_commit()}; "
+                 f"load average {load_average()}")
+    return "  \n".join(lines)  # markdown line breaks: one fact per line
+
+
+def fill(template: str, **fields: object) -> str:
+    """bench/templates/`template` with every $field substituted; a missing field is an error."""
+    return Template((TEMPLATES_DIR / template).read_text()).substitute(fields)
+
+
+def fmt(x: float, spec: str = ".4f") -> str:
+    """A number for a report table: 'n/a' when it is not finite."""
+    return format(x, spec) if math.isfinite(x) else "n/a"
 
 
 @contextmanager
@@ -130,6 +170,29 @@ def cached_reference(path: Path, render: Callable[[int], tuple[np.ndarray, np.nd
     return Reference(np.asarray(mean, np.float32), np.asarray(variance, np.float32))
 
 
+def scene_fingerprint(source: str) -> str:
+    """Changes whenever the scene description does, so a stale cached reference is never used."""
+    builtin = BUILTIN_BY_NAME.get(source)
+    text = repr(builtin.build(0)) if builtin is not None else Path(source).read_text()
+    return hashlib.sha1(text.encode()).hexdigest()[:12]
+
+
+def scene_reference(source: str, label: str, size: int, spp: int, cache_dir: Path) -> Reference:
+    """The size² reference of a built-in name or XML path at `spp`, rendered once by the loop's
+    renderer and integrator choice (so a loop image differs from it only by noise and denoiser
+    error) and then read from `cache_dir`."""
+    name = f"{label}_{scene_fingerprint(source)}_{size}x{size}_{spp}spp_{active_variant()}_seed{REFERENCE_SEED}.npz"
+
+    def render(seed: int) -> tuple[np.ndarray, np.ndarray]:
+        integrator = make_integrator(inspect_scene(source, width=size, height=size))
+        buffer = FrameBuffer.empty(size, size)
+        render_samples(load_scene(source, width=size, height=size), np.full((size, size), spp), buffer,
+                       integrator=integrator, seed=seed)
+        return buffer.mean, buffer.variance
+
+    return cached_reference(cache_dir / name, render)
+
+
 # --- metrics ----------------------------------------------------------------------------------
 
 def sanitize(t: torch.Tensor) -> torch.Tensor:
@@ -155,6 +218,11 @@ def image_metrics(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
     return score(nchw(image), nchw(reference))
 
 
+def true_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(H, W) per-pixel SMAPE of `image` against `reference`, both sanitised as `score` does."""
+    return smape_map(sanitize(nchw(image)), sanitize(nchw(reference)))[0, 0].numpy()
+
+
 # --- Intel Open Image Denoise -----------------------------------------------------------------
 
 def _hwc(t: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -162,7 +230,7 @@ def _hwc(t: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.ascontiguousarray(np.clip(a, lo, hi), dtype=np.float32)
 
 
-def oidn_denoiser() -> tuple[Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None, str]:
+def oidn_denoiser() -> tuple[OidnDenoise | None, str]:
     """(color, albedo, normal) HWC → denoised HWC through `pyoidn`, or None and why not.
 
     The second value describes the call (or the reason it is missing) for the report."""

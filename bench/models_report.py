@@ -17,13 +17,12 @@ import os
 import resource
 import statistics
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from string import Template
 
 import torch
 
-from bench.common import provenance
+from bench.common import fill, pinned_torch_threads, provenance
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
 
@@ -66,8 +65,8 @@ def _case(name: str, size: int, repeats: int, threads: int, queue, base: Denoise
         rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     queue.put({"model": name, "size": size, "threads": threads, "load_avg_1min": os.getloadavg()[0],
                "ms_median": 1e3 * statistics.median(times),
-               "ms_min": 1e3 * min(times), "cpu_ms_median": 1e3 * statistics.median(cpu), "peak_rss_growth_mb": (rss1 - rss0) / 1024,
-               "peak_rss_mb": rss1 / 1024})
+               "ms_min": 1e3 * min(times), "cpu_ms_median": 1e3 * statistics.median(cpu),
+               "peak_rss_growth_mb": (rss1 - rss0) / 1024, "peak_rss_mb": rss1 / 1024})
 
 
 def benchmark_models(sizes=(256, 512), repeats: int = 3, threads: int = 2, cases=CASES,
@@ -94,24 +93,36 @@ def write_models_report(rows: list[dict], config: DenoiserConfig, out: Path) -> 
         f"{r['cpu_ms_median']:.0f} | {r['peak_rss_growth_mb']:.0f} | {r['load_avg_1min']:.1f} |" for r in rows)
     path = out / "models-speed.md"
     out.mkdir(parents=True, exist_ok=True)
-    path.write_text(MODELS_REPORT.substitute(provenance=provenance(), config=config, table=table))
+    path.write_text(fill("models.md", provenance=provenance(), config=config, table=table))
     return path
 
 
-MODELS_REPORT = Template("""# Denoiser speed and memory (CPU)
+@dataclass(frozen=True)
+class ThreadTiming:
+    size: int
+    repeats: int
+    ms_median: dict[int, float]  # torch threads → median wall ms of one single-frame denoise
 
-$provenance
 
-Config: `$config`. Random inputs, weights untrained (speed does not depend on them). Each case
-runs in a fresh spawned process: median and minimum wall time of the repeats after one warm-up,
-median process CPU time, and the growth of peak RSS the timed runs caused. `lambda-tail` is
-`Denoiser.apply` alone on cached features (what a λ edit costs); `lambda-tail-map` the same with
-a per-pixel λ map. The load average is the machine's when the case finished.
-
-| model | size | threads | median wall ms | min wall ms | median CPU ms | peak RSS growth MB | load avg |
-|---|---|---|---|---|---|---|---|
-$table
-""")
+def denoise_ms_by_threads(denoiser: Denoiser, size: int, thread_counts: tuple[int, ...] = (1, 2),
+                          repeats: int = 5) -> ThreadTiming:
+    """Median wall time of one single-frame forward pass of `denoiser` at size² per torch thread
+    count, in this process, interleaved so the machine's load hits every count alike. The loop
+    report quotes it as the reason its networks run on one thread."""
+    gen = torch.Generator().manual_seed(0)
+    window = [_frame(size, size, gen)]
+    times: dict[int, list[float]] = {t: [] for t in thread_counts}
+    with torch.inference_mode():
+        for threads in thread_counts:  # warm-up per count: oneDNN builds primitives per thread count
+            with pinned_torch_threads(threads):
+                denoiser(window, 0, 1.0)
+        for _ in range(repeats):
+            for threads in thread_counts:
+                with pinned_torch_threads(threads):
+                    t0 = time.perf_counter()
+                    denoiser(window, 0, 1.0)
+                    times[threads].append(time.perf_counter() - t0)
+    return ThreadTiming(size, repeats, {t: 1e3 * statistics.median(v) for t, v in times.items()})
 
 
 def main(argv: list[str] | None = None, out: Path | None = None) -> Path | None:

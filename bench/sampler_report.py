@@ -1,67 +1,140 @@
-"""Renderer throughput vs `mi.render` at equal samples, and the memory of one large pass.
+"""Renderer throughput vs `mi.render` at equal samples (docs/sampler.md), and the memory of one
+large render pass (docs/memory.md).
 
-Every case renders the same scene both ways, interleaved, so load on the shared machine hits
-both alike; the figure quoted is the median of the per-run ratios.
+The throughput comparison runs a list of cases, each a (scene, integrator, reconstruction
+filter): a case fixes everything both renderers see, so adding a filter or an integrator is
+one more `SamplerCase` line. Every case renders the same scene both ways, interleaved, so load
+on the shared machine hits both alike; the figure quoted is the median of the per-run ratios.
 """
 from __future__ import annotations
 
 import resource
+import statistics
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import provenance
+from bench.common import fill, provenance
+from service.render.builtin import BUILTIN_BY_NAME
 from service.render.framebuffer import FrameBuffer
-from service.render.renderer import render_samples
+from service.render.renderer import DEFAULT_MAX_WAVEFRONT, render_samples
 from service.render.runtime import active_variant, mitsuba
-from service.render.scenes import load_scene
+
+TARGET_RATIO = 0.9  # ours / mi.render throughput the renderer is held to
 
 
-def bench_sampler(size: int, spp: int, repeats: int) -> dict:
-    """Interleaved runs of mi.render and render_samples on the Cornell box at equal samples."""
+@dataclass(frozen=True)
+class SamplerCase:
+    scene: str  # a built-in scene name
+    integrator: str  # a Mitsuba integrator plugin
+    filter: str  # a Mitsuba reconstruction filter plugin (the film's rfilter)
+    max_depth: int | None = 8  # None for integrators without one (direct)
+
+    @property
+    def label(self) -> str:
+        return f"{self.scene} / {self.integrator} / {self.filter}"
+
+
+# Box filter everywhere for now; tent and gaussian cases are one line each once the renderer
+# draws sample offsets from the film's filter.
+CASES: tuple[SamplerCase, ...] = (
+    SamplerCase("cornell-box", "path", "box"),
+    SamplerCase("cornell-box", "direct", "box", max_depth=None),
+    SamplerCase("veiled", "volpath", "box"),
+)
+
+
+@dataclass(frozen=True)
+class SamplerResult:
+    case: SamplerCase
+    size: int
+    spp: int
+    mi_render_s: float  # median seconds
+    ours_s: float
+    ratios: tuple[float, ...]  # per interleaved run: mi.render seconds / ours
+
+    @property
+    def samples(self) -> int:
+        return self.size * self.size * self.spp
+
+    @property
+    def mi_render_msps(self) -> float:
+        return self.samples / self.mi_render_s / 1e6
+
+    @property
+    def ours_msps(self) -> float:
+        return self.samples / self.ours_s / 1e6
+
+    @property
+    def ratio(self) -> float:
+        return statistics.median(self.ratios)
+
+
+def case_scene(case: SamplerCase, size: int):
+    """The case's scene: the built-in description with the case's integrator, filter and film
+    size, and the independent sampler (what the renderer uses for per-pixel counts)."""
     mi = mitsuba()
-    scene = load_scene("cornell-box", width=size, height=size)
+    description = BUILTIN_BY_NAME[case.scene].build(0)
+    integrator = {"type": case.integrator}
+    if case.max_depth is not None:
+        integrator["max_depth"] = case.max_depth
+    description["integrator"] = integrator
+    sensor = description["sensor"]
+    film = dict(sensor.get("film", {"type": "hdrfilm"}))
+    film.update(width=size, height=size, rfilter={"type": case.filter})
+    sensor["film"] = film
+    sensor["sampler"] = {"type": "independent"}
+    return mi.load_dict(description)
+
+
+def bench_case(case: SamplerCase, size: int, spp: int, repeats: int) -> SamplerResult:
+    """Interleaved runs of mi.render and render_samples on one case at equal samples."""
+    mi = mitsuba()
+    scene = case_scene(case, size)
+    integrator = scene.integrator()
     counts = np.full((size, size), spp)
     # One untimed run of each first: kernels are compiled (and cached) on first use.
-    np.asarray(mi.render(scene, spp=spp))
-    render_samples(scene, counts, FrameBuffer.empty(size, size))
+    np.asarray(mi.render(scene, spp=spp, integrator=integrator))
+    render_samples(scene, counts, FrameBuffer.empty(size, size), integrator=integrator)
     ours, theirs = [], []
     for rep in range(repeats):
         t0 = time.perf_counter()
-        np.asarray(mi.render(scene, spp=spp, seed=rep))
+        np.asarray(mi.render(scene, spp=spp, seed=rep, integrator=integrator))
         theirs.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
-        render_samples(scene, counts, FrameBuffer.empty(size, size), seed=rep)
+        render_samples(scene, counts, FrameBuffer.empty(size, size), integrator=integrator, seed=rep)
         ours.append(time.perf_counter() - t0)
-    samples = size * size * spp
-    ratios = [t / o for t, o in zip(theirs, ours)]
-    return {"variant": active_variant(), "size": size, "spp": spp, "samples": samples,
-            "mi_render_s": float(np.median(theirs)), "ours_s": float(np.median(ours)),
-            "mi_render_msps": samples / np.median(theirs) / 1e6, "ours_msps": samples / np.median(ours) / 1e6,
-            "ratio": float(np.median(ratios)), "ratios": ratios}
+    return SamplerResult(case, size, spp, statistics.median(theirs), statistics.median(ours),
+                         tuple(t / o for t, o in zip(theirs, ours)))
 
 
-def write_sampler_report(result: dict, out: Path) -> Path:
+def bench_sampler(size: int, spp: int, repeats: int, cases: tuple[SamplerCase, ...] = CASES) -> list[SamplerResult]:
+    return [bench_case(case, size, spp, repeats) for case in cases]
+
+
+def sampler_table(results: list[SamplerResult]) -> str:
+    """The markdown table both the sampler report and the loop report show."""
+    lines = ["| scene / integrator / filter | `mi.render` s | ours s | `mi.render` M samples/s | ours M samples/s "
+             "| ratio ours / `mi.render` (per run) |",
+             "|---|---:|---:|---:|---:|---|"]
+    for r in results:
+        runs = ", ".join(f"{x:.2f}" for x in r.ratios)
+        lines.append(f"| {r.case.label} | {r.mi_render_s:.3f} | {r.ours_s:.3f} | {r.mi_render_msps:.2f} | "
+                     f"{r.ours_msps:.2f} | **{r.ratio:.2f}×** ({runs}) |")
+    return "\n".join(lines)
+
+
+def write_sampler_report(results: list[SamplerResult], out: Path) -> Path:
+    first = results[0]
     path = out / "sampler.md"
     out.mkdir(parents=True, exist_ok=True)
-    path.write_text(f"""# Renderer throughput vs `mi.render`
-
-{provenance(variant=result['variant'])}
-
-Cornell box {result['size']}², {result['spp']} spp ({result['samples']:,} samples), runs interleaved,
-median of {len(result['ratios'])}. Ours includes the first-hit AOVs (albedo, normal, depth) that
-`mi.render` does not compute, and accumulates sum and sum of squares per pixel.
-
-| renderer | seconds | M samples/s |
-|---|---:|---:|
-| `mi.render` | {result['mi_render_s']:.2f} | {result['mi_render_msps']:.2f} |
-| `render_samples` (per-pixel counts) | {result['ours_s']:.2f} | {result['ours_msps']:.2f} |
-
-Throughput ratio ours / `mi.render`: **{result['ratio']:.2f}×** (per run: {', '.join(f'{r:.2f}' for r in result['ratios'])}; target ≥ 0.9×).
-""")
+    path.write_text(fill("sampler.md", provenance=provenance(variant=active_variant()), size=first.size,
+                         spp=first.spp, samples=f"{first.samples:,}", repeats=len(first.ratios),
+                         table=sampler_table(results), target=f"{TARGET_RATIO:g}"))
     return path
 
 
@@ -78,23 +151,28 @@ print(result.samples, result.chunks, f"{result.seconds:.1f}")
 """
 
 
-def bench_memory(size: int = 1024, spp: int = 64) -> dict:
+@dataclass(frozen=True)
+class MemoryResult:
+    size: int
+    spp: int
+    samples: int
+    chunks: int
+    seconds: float
+    peak_rss_gb: float
+
+
+def bench_memory(size: int = 1024, spp: int = 64) -> MemoryResult:
     out = subprocess.run([sys.executable, "-c", MEMORY_PROBE, str(size), str(spp)],
                          capture_output=True, text=True, check=True).stdout.split()
     peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss  # Linux reports KiB
-    return {"size": size, "spp": spp, "samples": int(out[0]), "chunks": int(out[1]), "seconds": float(out[2]),
-            "peak_rss_gb": peak_kb / 2**20}
+    return MemoryResult(size, spp, int(out[0]), int(out[1]), float(out[2]), peak_kb / 2**20)
 
 
-def write_memory_report(result: dict, out: Path) -> Path:
+def write_memory_report(result: MemoryResult, out: Path) -> Path:
     path = out / "memory.md"
     out.mkdir(parents=True, exist_ok=True)
-    path.write_text(f"""# Memory of one large render pass
-
-{provenance()}
-
-Cornell box {result['size']}² × {result['spp']} spp = {result['samples']:,} samples in {result['chunks']} chunks
-of at most 2²² lanes, rendered by `render_samples` in a fresh process: **peak RSS
-{result['peak_rss_gb']:.2f} GB** (whole process: Python, Mitsuba, the frame buffer), {result['seconds']:.1f} s.
-""")
+    lanes = int(np.log2(DEFAULT_MAX_WAVEFRONT))
+    path.write_text(fill("memory.md", provenance=provenance(variant=active_variant()), size=result.size,
+                         spp=result.spp, samples=f"{result.samples:,}", chunks=result.chunks, lanes=lanes,
+                         peak_rss_gb=f"{result.peak_rss_gb:.2f}", seconds=f"{result.seconds:.1f}"))
     return path

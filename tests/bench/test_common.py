@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from bench.common import (METRIC_NAMES, REFERENCE_SEED, cached_reference, image_metrics, pinned_torch_threads,
-                          provenance)
+from bench.common import (METRIC_NAMES, REFERENCE_SEED, cached_reference, fill, image_metrics,
+                          pinned_torch_threads, provenance)
 
 
 def test_identical_images_score_perfectly_under_every_metric_name():
@@ -57,3 +57,8 @@ def test_pinned_threads_are_restored_even_when_the_body_raises():
 def test_provenance_names_command_variant_and_commit():
     text = provenance("renderloop bench --sampler", "llvm_ad_rgb")
     assert "Command: `renderloop bench --sampler`" in text and "`llvm_ad_rgb`" in text and "Date:" in text and "commit" in text
+
+
+def test_every_template_field_is_filled_or_the_fill_fails():
+    with pytest.raises(KeyError):
+        fill("memory.md", provenance="p")

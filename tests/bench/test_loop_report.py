@@ -7,38 +7,22 @@ import math
 from pathlib import Path
 
 import pytest
-import torch
 
-import models.pretrained as pretrained
-from models.checkpoint import save_checkpoint
-from models.denoiser import Denoiser, DenoiserConfig
-from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
-from bench.loop_report import METRICS, STAGES, run_loop_benchmark, time_to_reach
+from bench.common import METRIC_NAMES as METRICS
+from bench.loop_report import run_loop_benchmark
+from bench.loop_run import STAGES, time_to_reach
 
 
-@pytest.fixture
-def weights_dir(tmp_path: Path) -> Path | None:
-    """The shipped weights when they exist; otherwise tiny untrained networks (speed and
-    plumbing are what this test checks, not quality)."""
-    shipped = pretrained.SHIPPED_WEIGHTS_DIR
-    if all((shipped / name).is_file() for name in (pretrained.DENOISER_FILE, pretrained.ERROR_PREDICTOR_FILE)):
-        return None
-    torch.manual_seed(0)
-    folder = tmp_path / "weights"
-    save_checkpoint(folder / pretrained.DENOISER_FILE,
-                    Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal_blocks=1, kernel_size=3,
-                                            lambda_width=4, composite_width=4)), extra={"note": "untrained test net"})
-    save_checkpoint(folder / pretrained.ERROR_PREDICTOR_FILE, ErrorPredictor(ErrorPredictorConfig(width=8, blocks=1)))
-    return folder
-
-
-def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, weights_dir: Path | None) -> None:
-    report = run_loop_benchmark(tmp_path / "docs", quick=True, weights_dir=weights_dir, cache_dir=tmp_path / "cache",
+def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, tiny_weights_dir: Path) -> None:
+    report = run_loop_benchmark(tmp_path / "docs", quick=True, weights_dir=tiny_weights_dir, cache_dir=tmp_path / "cache",
                                 command="renderloop bench --loop --quick")
     text = report.read_text()
     for needed in ("Command: `renderloop bench --loop --quick`", "Machine:", "Date:", "## Headline", "**median**",
-                   "## Micro-benchmarks", "p50", "ms / megapixel"):
+                   "## Micro-benchmarks", "p50", "ms / megapixel",
+                   "sums of per-stage minimums", "marks a time extrapolated", "Measured in this run",
+                   "cornell-box / path / box", "quality high"):
         assert needed in text
+    assert "$" not in text  # every template field was filled
     assert "Failed:" not in text  # every micro-benchmark ran, the HTTP one against a real server included
     rows = list(csv.DictReader(open(tmp_path / "docs" / "benchmarks" / "loop-quick.csv")))
     methods = {r["method"] for r in rows}

@@ -12,10 +12,12 @@ import torch
 from models.checkpoint import save_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+import bench.quality_eval as evaluation
+import bench.quality_measures as measures
 import bench.quality_report as quality
 
 SPP_LEVELS = (16, 32, 64, 128)
-NETWORK_ROWS = (quality.NOISY, quality.SINGLE, quality.MULTISCALE, quality.TEMPORAL)
+NETWORK_ROWS = (evaluation.NOISY, evaluation.SINGLE, evaluation.MULTISCALE, evaluation.TEMPORAL)
 
 
 def tiny_denoiser() -> Denoiser:
@@ -113,7 +115,7 @@ def test_crops_are_written_and_linked(report: Path) -> None:
 
 def test_ablation_reuses_the_trained_weights() -> None:
     trained = tiny_denoiser()
-    single = quality.ablation(trained, multiscale=False, temporal=False)
+    single = evaluation.ablation(trained, multiscale=False, temporal=False)
     assert single.composite is None and single.temporal is None
     for name, value in single.state_dict().items():
         assert torch.equal(value, trained.state_dict()[name]), name
@@ -123,9 +125,9 @@ def test_lambda_measures_see_noise_and_blur() -> None:
     torch.manual_seed(0)
     x = torch.linspace(0, 1, 32)
     reference = (0.2 + 0.6 * (x[None, :] > 0.5).float() + 0.3 * torch.sin(20 * x)[:, None]).expand(1, 3, 32, 32)
-    same = quality.lambda_measures(reference, reference)
-    noisy = quality.lambda_measures(reference * (1 + 0.3 * torch.randn(1, 1, 32, 32)), reference)
-    blurred = quality.lambda_measures(torch.nn.functional.avg_pool2d(reference, 5, 1, 2, count_include_pad=False),
+    same = measures.lambda_measures(reference, reference)
+    noisy = measures.lambda_measures(reference * (1 + 0.3 * torch.randn(1, 1, 32, 32)), reference)
+    blurred = measures.lambda_measures(torch.nn.functional.avg_pool2d(reference, 5, 1, 2, count_include_pad=False),
                                       reference)
     assert same["noise"] == 0 and same["detail"] == pytest.approx(1) and same["grad_corr"] == pytest.approx(1)
     assert noisy["noise"] > 0.01 and noisy["detail"] > 1
@@ -134,8 +136,8 @@ def test_lambda_measures_see_noise_and_blur() -> None:
 
 def test_rank_correlation_matches_a_monotone_map() -> None:
     a = torch.rand(1, 1, 8, 8).numpy()
-    assert quality.spearman(a, a ** 3) == pytest.approx(1)
-    assert quality.pearson(a, -a) == pytest.approx(-1)
+    assert measures.spearman(a, a ** 3) == pytest.approx(1)
+    assert measures.pearson(a, -a) == pytest.approx(-1)
 
 
 def test_report_states_the_held_out_references_own_noise(report: Path) -> None:

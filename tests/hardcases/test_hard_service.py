@@ -8,7 +8,7 @@ import httpx
 
 from hardcase_checks import assert_finite_frame
 from service.exr import read_exr
-from bench.loop_report import running_server, wait_for_job
+from bench.server import running_server, wait_for_job
 
 
 def test_fireflies_job_at_7x13_completes_with_finite_layers(tmp_path: Path, weights_dir: Path):

@@ -1,0 +1,18 @@
+"""The throughput comparison runs over (scene, integrator, filter) cases, each built and timed."""
+from __future__ import annotations
+
+import pytest
+
+from bench.sampler_report import CASES, bench_case
+
+
+def test_cases_cover_path_volpath_and_direct_with_the_box_filter():
+    assert {case.integrator for case in CASES} >= {"path", "volpath", "direct"}
+    assert {case.filter for case in CASES} == {"box"}
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda case: case.label)
+def test_every_case_times_both_renderers_at_equal_samples(case):
+    result = bench_case(case, size=8, spp=2, repeats=1)
+    assert result.samples == 8 * 8 * 2 and len(result.ratios) == 1
+    assert result.ours_s > 0 and result.mi_render_s > 0 and result.ratio > 0
