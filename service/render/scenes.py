@@ -16,10 +16,12 @@ from __future__ import annotations
 import numbers
 import re
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 from service.render.builtin import BUILTIN_BY_NAME, BUILTIN_SCENES
+from service.render.flatten import FlatScene, FlattenError, flatten_scene
 from service.render.runtime import mitsuba
 
 MAX_RESOLUTION = 8192
@@ -32,10 +34,10 @@ CROP_PROPS = ("crop_offset_x", "crop_offset_y", "crop_width", "crop_height")
 FRAME_PARAMETER = "frame"
 RESOLUTION_PARAMETERS = ("width", "height")
 
-# Relative asset paths are resolved through Mitsuba's process-wide file resolver, which we
-# swap while instantiating an XML scene; the lock keeps concurrent loads from seeing each
-# other's asset roots.
+# Mitsuba's process-wide file resolver is swapped for a sandboxed one while a scene is parsed
+# and instantiated; the lock keeps concurrent loads from restoring each other's resolver.
 _RESOLVER_LOCK = threading.Lock()
+_FLAT_LOCATION = re.compile(r"\bstring \(line (\d+), col \d+\)")
 
 
 class SceneError(ValueError):
@@ -65,9 +67,11 @@ def load_scene(
     width: int | None = None,
     height: int | None = None,
     frame: int = 0,
+    params: dict[str, str] | None = None,
+    root: str | Path | None = None,
 ) -> object:
     """The `mi.Scene` for a built-in name or XML path at `frame`, optionally resized."""
-    return load_scene_info(source, width=width, height=height, frame=frame).scene
+    return load_scene_info(source, width=width, height=height, frame=frame, params=params, root=root).scene
 
 
 def load_scene_info(
@@ -76,8 +80,14 @@ def load_scene_info(
     width: int | None = None,
     height: int | None = None,
     frame: int = 0,
+    params: dict[str, str] | None = None,
+    root: str | Path | None = None,
 ) -> LoadedScene:
-    """Like `load_scene`, also returning the declared max_depth (used by the effects report)."""
+    """Like `load_scene`, also returning the declared max_depth (used by the effects report).
+
+    `params` are the scene's parameters (Mitsuba's `-D NAME=VALUE`); `root` is the folder the
+    scene may read files from (an uploaded bundle's folder; default: the XML file's folder).
+    """
     width, height = _check_override(width, height)
     if isinstance(frame, bool) or not isinstance(frame, numbers.Integral) or frame < 0:
         raise SceneError(f"frame must be an integer >= 0, got {frame!r}")
@@ -88,26 +98,23 @@ def load_scene_info(
     # (e.g. a leftover <default name="frame">); that is no reason to refuse the scene.
     config.unused_parameters = mi.LogLevel.Debug
     builtin = BUILTIN_BY_NAME.get(str(source)) if not isinstance(source, Path) else None
+    explain = None
     if builtin is not None:
+        if params:
+            raise SceneError(f"{builtin.name}: built-in scenes take no parameters (got {', '.join(sorted(params))})")
         state = _parse(lambda: mi.parser.parse_dict(config, builtin.build(frame)), builtin.name)
-        asset_root = None
         declares_frame = True
     else:
         path = _scene_path(source)
-        declared = _declared_parameters(path)
-        params = {FRAME_PARAMETER: str(frame)} if FRAME_PARAMETER in declared else {}
-        # A file that sizes its film from $width/$height gets the override through them too,
-        # so anything else it derives from them stays consistent.
-        for name, value in zip(RESOLUTION_PARAMETERS, (width, height)):
-            if value is not None and name in declared:
-                params[name] = str(value)
-        state = _parse(lambda: mi.parser.parse_file(config, str(path), **params), path.name)
-        asset_root = path.parent
-        declares_frame = FRAME_PARAMETER in declared
+        flat = _flatten(path, root, params, frame, width, height)
+        explain = _explainer(flat, Path(root) if root is not None else path.parent)
+        with _sandboxed_resolver(mi):
+            state = _parse(lambda: mi.parser.parse_string(config, flat.document), path.name, explain)
+        declares_frame = flat.declares(FRAME_PARAMETER)
     label = builtin.name if builtin is not None else Path(source).name
-    _parse(lambda: mi.parser.transform_all(config, state), label)
+    _parse(lambda: mi.parser.transform_all(config, state), label, explain)
     max_depth = _conform(mi, state, width, height, label)
-    scene = _instantiate(mi, config, state, asset_root, label)
+    scene = _instantiate(mi, config, state, label, explain)
     if not isinstance(scene, mi.Scene):
         raise SceneError(f"{label}: the file describes a {type(scene).__name__}, not a <scene>")
     if not scene.sensors():
@@ -152,19 +159,33 @@ def _scene_path(source: str | Path) -> Path:
     return path.resolve()
 
 
-def _declared_parameters(path: Path) -> set[str]:
-    """Names declared with `<default name=...>` in the file (Mitsuba rejects unknown `$params`).
-
-    A file that is not well-formed XML declares nothing here; Mitsuba's parser then reports the
-    actual syntax error with its line and column.
-    """
-    from defusedxml import ElementTree
-
+def _flatten(path: Path, root, params, frame: int, width, height) -> FlatScene:
+    """The scene as one checked document (service/render/flatten.py): Mitsuba gets no `$`,
+    no `<include>` and only absolute paths inside `root`."""
+    if params and FRAME_PARAMETER in params:
+        raise SceneError(f"{path.name}: '{FRAME_PARAMETER}' is set by the renderer for each frame; it cannot be a parameter")
+    # The renderer's own values apply where the scene uses them: a file that sizes its film
+    # from $width/$height gets the override through them, so what it derives stays consistent.
+    optional = {FRAME_PARAMETER: str(frame)}
+    for name, value in zip(RESOLUTION_PARAMETERS, (width, height)):
+        if value is not None:
+            optional[name] = str(value)
     try:
-        root = ElementTree.parse(str(path)).getroot()
-    except Exception:
-        return set()
-    return {element.get("name") for element in root.iter("default") if element.get("name")}
+        return flatten_scene(path, root=path.parent if root is None else Path(root), params=params, optional_params=optional)
+    except FlattenError as exc:
+        raise SceneError(str(exc)) from exc
+
+
+def _explainer(flat: FlatScene, root: Path):
+    """Mitsuba's messages about the flat document, pointed back at the user's file and line,
+    with the bundle's absolute paths shortened to bundle-relative ones."""
+    prefix = str(root.resolve()) + "/"
+
+    def explain(message: str) -> str:
+        message = _FLAT_LOCATION.sub(lambda match: flat.locate(int(match.group(1))), message)
+        return message.replace(prefix, "")
+
+    return explain
 
 
 def _one_line(exc: BaseException) -> str:
@@ -173,13 +194,14 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(text.split())
 
 
-def _parse(step, label: str):
+def _parse(step, label: str, explain=None):
     try:
         return step()
     except SceneError:
         raise
     except Exception as exc:  # Mitsuba raises RuntimeError for every parse problem
-        raise SceneError(f"{label}: {_one_line(exc)}") from exc
+        message = _one_line(exc)
+        raise SceneError(f"{label}: {explain(message) if explain else message}") from exc
 
 
 def _conform(mi, state, width: int | None, height: int | None, label: str) -> int | None:
@@ -239,15 +261,27 @@ def _resize_film(props, width: int | None, height: int | None, label: str) -> No
                 del props[key]
 
 
-def _instantiate(mi, config, state, asset_root: Path | None, label: str):
-    if asset_root is None:
-        return _parse(lambda: mi.parser.instantiate(config, state), label)
+def _instantiate(mi, config, state, label: str, explain=None):
+    with _sandboxed_resolver(mi):
+        return _parse(lambda: mi.parser.instantiate(config, state), label, explain)
+
+
+@contextmanager
+def _sandboxed_resolver(mi):
+    """Mitsuba's file resolver with one search path: Mitsuba's own install folder.
+
+    Not the working directory (a relative name would read the server's files) and not the
+    bundle: plugins load as `plugins/<type>.so` through this resolver, so a bundle folder here
+    would let an uploaded `plugins/x.so` be loaded as code. Scene files need no search path;
+    the flattener already made every reference an absolute path inside the bundle.
+    """
     with _RESOLVER_LOCK:
         previous = mi.file_resolver()
-        resolver = mi.FileResolver(previous)
-        resolver.prepend(str(asset_root))
+        resolver = mi.FileResolver()
+        resolver.clear()
+        resolver.append(str(Path(mi.__file__).resolve().parent))
         mi.set_file_resolver(resolver)
         try:
-            return _parse(lambda: mi.parser.instantiate(config, state), label)
+            yield
         finally:
             mi.set_file_resolver(previous)

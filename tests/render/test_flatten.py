@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from service.render.flatten import MAX_INCLUDE_DEPTH, FlattenError, flatten_scene, parse_param_pairs
@@ -260,3 +261,50 @@ def test_param_pairs_parse_like_dash_d():
     assert parse_param_pairs(["a=1", "b=x=y", "a=2"]) == {"a": "2", "b": "x=y"}
     with pytest.raises(FlattenError, match="NAME=VALUE"):
         parse_param_pairs(["novalue"])
+
+
+# -- the loader (service/render/scenes.py) goes through the flattener ------------------------------
+
+SENSOR = """<sensor type="perspective"><transform name="to_world"><lookat origin="0,0,5" target="0,0,0" up="0,1,0"/></transform>
+  <film type="hdrfilm"><integer name="width" value="$res"/><integer name="height" value="4"/></film></sensor>"""
+
+
+def test_loader_takes_parameters_and_finds_sub_folder_textures(bundle):
+    from service.render.scenes import load_scene
+
+    child = scene('<shape type="sphere"><bsdf type="diffuse">' + bitmap("sub/tex.png").replace("<texture", '<texture name="reflectance"') + "</bsdf></shape>")
+    root = bundle({"scene.xml": scene('<default name="res" value="4"/>' + SENSOR + '<include filename="sub/child.xml"/>'),
+                   "sub/child.xml": child})
+    mi = mitsuba()
+    mi.Bitmap(np.full((2, 2, 3), 0.5, dtype=np.float32)).convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, True).write(str(root / "sub" / "tex.png"))
+    assert list(load_scene(root / "scene.xml", params={"res": "6"}).sensors()[0].film().size()) == [6, 4]
+
+
+def test_loader_refuses_unknown_parameters_and_frame(bundle):
+    from service.render.scenes import SceneError, load_scene
+
+    root = bundle({"scene.xml": scene('<default name="res" value="4"/>' + SENSOR)})
+    with pytest.raises(SceneError, match="unknown scene parameter nope; the scene's <default> parameters: res"):
+        load_scene(root / "scene.xml", params={"nope": "1"})
+    with pytest.raises(SceneError, match="'frame' is set by the renderer"):
+        load_scene(root / "scene.xml", params={"frame": "1"})
+
+
+def test_loader_errors_point_into_the_users_file_without_server_paths(bundle):
+    from service.render.scenes import SceneError, load_scene
+
+    root = bundle({"scene.xml": scene('<default name="res" value="4"/>' + SENSOR + '\n<include filename="sub/c.xml"/>'),
+                   "sub/c.xml": scene('\n\n<shape type="sphere"><float name="radius" value="abc"/></shape>')})
+    with pytest.raises(SceneError) as err:
+        load_scene(root / "scene.xml")
+    assert "sub/c.xml:4" in str(err.value) and str(root) not in str(err.value)
+
+
+def test_loader_never_loads_plugins_from_the_bundle(bundle):
+    from service.render.scenes import SceneError, load_scene
+
+    root = bundle({"scene.xml": scene('<default name="res" value="4"/>' + SENSOR + '<shape type="evilplug"/>'),
+                   "plugins/evilplug.so": "not a library"})
+    with pytest.raises(SceneError) as err:
+        load_scene(root / "scene.xml")
+    assert 'Plugin "evilplug" not found' in str(err.value)  # never dlopen()ed from the bundle
