@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 from fastapi import Request
 from fastapi.exceptions import RequestValidationError
@@ -55,11 +56,12 @@ def require_builtin(scene: str) -> None:
         raise invalid("scene", f"unknown built-in scene {scene!r}; known: {', '.join(names)} (or upload a bundle)")
 
 
-def check_effective_job(spec: LoopSpec) -> None:
+def check_effective_job(spec: LoopSpec, root: Path | None = None) -> None:
     """Service limits on the job as it will run: the scene's own film size when the request
-    names none (a job without width/height must not escape the sample cap)."""
+    names none (a job without width/height must not escape the sample cap). Parsing the scene
+    here also turns a broken scene into a 422 at submit instead of a failed job later."""
     try:
-        width, height = film_size(spec.scene, width=spec.width, height=spec.height, params=spec.params)
+        width, height = film_size(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root)
         check_limits(spec, width, height)
     except (SceneError, LoopSpecError) as exc:
         raise invalid("spec", str(exc)) from exc
@@ -92,10 +94,11 @@ def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, reque
             bundle.extract_zip(items[0].file, root)
         else:
             bundle.save_files(((u.filename or "", u.file) for u in items), root)
-        entry = bundle.prepare_bundle(root, request.scene)
+        spec = request.loop_spec("")
+        entry = bundle.prepare_bundle(root, request.scene, params=spec.params)
         relative = entry.relative_to(root.resolve()).as_posix()
         spec = request.loop_spec(str(entry))
-        check_effective_job(spec)
+        check_effective_job(spec, root)
     except BaseException:
         shutil.rmtree(files.root, ignore_errors=True)
         raise

@@ -39,10 +39,15 @@ DELETE_WAIT_SECONDS = 30.0  # a running job stops within one chunk; this bounds 
 def job_spec(record: JobRecord, bundle_dir: Path | None = None) -> LoopSpec:
     """A job record's stored spec as the loop's LoopSpec; a bundle's scene resolves inside
     `bundle_dir` (left relative without it)."""
-    values = dict(record.spec)
-    bundle_scene = values.pop("bundle_scene", None)
-    scene = str(bundle_dir / bundle_scene) if (bundle_scene and bundle_dir is not None) else None
+    values = {key: value for key, value in record.spec.items() if key != "bundle_scene"}
+    entry = bundle_scene(record)
+    scene = str(bundle_dir / entry) if (entry and bundle_dir is not None) else None
     return LoopSpec.from_stored(values, scene=scene)
+
+
+def bundle_scene(record: JobRecord) -> str | None:
+    """The entry XML of an uploaded job, relative to its bundle; None for a built-in scene."""
+    return record.spec["bundle_scene"] if "bundle_scene" in record.spec else None
 
 
 @dataclass(frozen=True)
@@ -184,14 +189,19 @@ class JobWorker:
         # A cancel that arrives during the last iteration comes too late: the job is complete.
         self._complete(job_id, loop, files, last, canceled=cancel.is_set() and not finished)
 
+    def _make_loop(self, record: JobRecord, files: JobFiles, state: LoopState | None) -> RenderLoop:
+        # An uploaded scene may read files from its whole bundle, nothing outside it.
+        root = files.bundle_dir if bundle_scene(record) else None
+        return RenderLoop(job_spec(record, files.bundle_dir), self.networks, state=state, scene_root=root)
+
     def _checkpointed_loop(self, record: JobRecord, files: JobFiles) -> RenderLoop | None:
         if not files.has_checkpoint():
             return None
-        return RenderLoop(job_spec(record, files.bundle_dir), self.networks, state=LoopState.load(files.state_dir))
+        return self._make_loop(record, files, LoopState.load(files.state_dir))
 
     def _open_loop(self, job_id: str, record: JobRecord, files: JobFiles) -> RenderLoop:
         state = LoopState.load(files.state_dir) if files.has_checkpoint() else None
-        loop = RenderLoop(job_spec(record, files.bundle_dir), self.networks, state=state)
+        loop = self._make_loop(record, files, state)
         if state is not None:
             self.store.set_resumed_from(job_id, state.iteration)
         with self._lock:
@@ -333,6 +343,6 @@ class JobWorker:
         if not files.has_checkpoint():
             return None
         # After a restart: rebuild from the checkpoint; set_lambda recomputes the cache once.
-        loop = RenderLoop(job_spec(record, files.bundle_dir), self.networks, state=LoopState.load(files.state_dir))
+        loop = self._make_loop(record, files, LoopState.load(files.state_dir))
         self._keep_idle(job_id, loop)
         return loop

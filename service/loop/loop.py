@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 from typing import Callable, Iterator
 
 import numpy as np
@@ -30,14 +31,18 @@ class IterationInterrupted(RuntimeError):
 
 
 class RenderLoop:
-    def __init__(self, spec: LoopSpec, networks: Networks | None = None, *, state: LoopState | None = None):
-        """`networks`: loaded once by the caller (CLI, server, benchmark); needed when denoising."""
+    def __init__(self, spec: LoopSpec, networks: Networks | None = None, *, state: LoopState | None = None,
+                 scene_root: Path | None = None):
+        """`networks`: loaded once by the caller (CLI, server, benchmark); needed when denoising.
+        `scene_root`: the folder the scene may read files from (a job's bundle; default: the
+        scene file's own folder)."""
         validate_spec(spec)
         if spec.denoise and networks is None:
             raise LoopSpecError("denoising needs the networks: pass them (models.pretrained.load_networks)")
         self.spec = spec
         # Each frame is loaded once; the effects report reads the loaded frames.
-        loaded = load_frames(spec.scene, frames=spec.frames, width=spec.width, height=spec.height, params=spec.params)
+        loaded = load_frames(spec.scene, frames=spec.frames, width=spec.width, height=spec.height, params=spec.params,
+                             root=scene_root)
         self.effects = inspect_frames(loaded)
         self.scenes = [frame.scene for frame in loaded]
         self.integrator = make_integrator(self.effects)

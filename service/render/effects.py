@@ -64,16 +64,16 @@ class SceneEffects:
 
 def load_frames(
     source: str | Path, *, frames: int = 1, width: int | None = None, height: int | None = None,
-    params: dict[str, str] | None = None,
+    params: dict[str, str] | None = None, root: str | Path | None = None,
 ) -> list[LoadedScene]:
     """Every frame of a sequence, each loaded once; a file without `$frame` is one scene
     shared by all frames (it cannot change between them)."""
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise SceneError(f"frames must be an integer >= 1, got {frames!r}")
-    first = load_scene_info(source, width=width, height=height, frame=0, params=params)
+    first = load_scene_info(source, width=width, height=height, frame=0, params=params, root=root)
     if not first.declares_frame:
         return [first] * frames
-    return [first] + [load_scene_info(source, width=width, height=height, frame=f, params=params)
+    return [first] + [load_scene_info(source, width=width, height=height, frame=f, params=params, root=root)
                       for f in range(1, frames)]
 
 
@@ -110,16 +110,18 @@ def inspect_scene(
     frames: int = 1,
     width: int | None = None,
     height: int | None = None,
+    params: dict[str, str] | None = None,
+    root: str | Path | None = None,
 ) -> SceneEffects:
     """Load frame 0 (and frames 1 and last when animated) and report what the scene needs."""
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise SceneError(f"frames must be an integer >= 1, got {frames!r}")
-    first = load_scene_info(source, width=width, height=height, frame=0)
+    first = load_scene_info(source, width=width, height=height, frame=0, params=params, root=root)
     loaded = [first] * frames
     if frames > 1 and first.declares_frame:
         # Motion is judged on frames 1 and last against 0; the frames between are not needed.
         for frame in sorted({1, frames - 1}):
-            loaded[frame] = load_scene_info(source, width=width, height=height, frame=frame)
+            loaded[frame] = load_scene_info(source, width=width, height=height, frame=frame, params=params, root=root)
     return inspect_frames(loaded)
 
 

@@ -19,10 +19,12 @@ from __future__ import annotations
 import numbers
 import re
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 from service.render.builtin import BUILTIN_BY_NAME, BUILTIN_SCENES
+from service.render.flatten import FlatScene, FlattenError, flatten_scene
 from service.render.integrators import film_refusal, integrator_refusal, sensor_refusal
 from service.render.runtime import mitsuba
 
@@ -36,10 +38,10 @@ CROP_PROPS = ("crop_offset_x", "crop_offset_y", "crop_width", "crop_height")
 FRAME_PARAMETER = "frame"
 RESOLUTION_PARAMETERS = ("width", "height")
 
-# Relative asset paths are resolved through Mitsuba's process-wide file resolver, which we
-# swap while instantiating an XML scene; the lock keeps concurrent loads from seeing each
-# other's asset roots.
+# Mitsuba's process-wide file resolver is swapped for a sandboxed one while a scene is parsed
+# and instantiated; the lock keeps concurrent loads from restoring each other's resolver.
 _RESOLVER_LOCK = threading.Lock()
+_FLAT_LOCATION = re.compile(r"\bstring \(line (\d+), col \d+\)")
 
 
 class SceneError(ValueError):
@@ -70,9 +72,11 @@ def load_scene(
     width: int | None = None,
     height: int | None = None,
     frame: int = 0,
+    params: dict[str, str] | None = None,
+    root: str | Path | None = None,
 ) -> object:
     """The `mi.Scene` for a built-in name or XML path at `frame`, optionally resized."""
-    return load_scene_info(source, width=width, height=height, frame=frame).scene
+    return load_scene_info(source, width=width, height=height, frame=frame, params=params, root=root).scene
 
 
 def load_scene_info(
@@ -82,13 +86,17 @@ def load_scene_info(
     height: int | None = None,
     frame: int = 0,
     params: dict[str, str] | None = None,
+    root: str | Path | None = None,
 ) -> LoadedScene:
     """Like `load_scene`, also returning the declared max_depth (used by the effects report).
-    `params` sets the scene's `<default>` parameters, like Mitsuba's `-D name=value`."""
+
+    `params` are the scene's parameters (Mitsuba's `-D NAME=VALUE`); `root` is the folder the
+    scene may read files from (an uploaded bundle's folder; default: the XML file's folder).
+    """
     mi = mitsuba()
-    parsed = _parse_scene(mi, source, width, height, frame, params)
+    parsed = _parse_scene(mi, source, width, height, frame, params, root)
     max_depth, integrator = _conform(mi, parsed.state, width, height, parsed.label)
-    scene = _instantiate(mi, parsed.config, parsed.state, parsed.asset_root, parsed.label)
+    scene = _instantiate(mi, parsed.config, parsed.state, parsed.label, parsed.explain)
     if not isinstance(scene, mi.Scene):
         raise SceneError(f"{parsed.label}: the file describes a {type(scene).__name__}, not a <scene>")
     if not scene.sensors():
@@ -97,11 +105,11 @@ def load_scene_info(
 
 
 def film_size(source: str | Path, *, width: int | None = None, height: int | None = None,
-              params: dict[str, str] | None = None) -> tuple[int, int]:
+              params: dict[str, str] | None = None, root: str | Path | None = None) -> tuple[int, int]:
     """(width, height) the scene renders at — the request's size, else its film's — read from
     the parsed description without instantiating anything (no meshes or textures loaded)."""
     mi = mitsuba()
-    parsed = _parse_scene(mi, source, width, height, 0, params)
+    parsed = _parse_scene(mi, source, width, height, 0, params, root)
     _conform(mi, parsed.state, width, height, parsed.label)
     films = [node for node in parsed.state.nodes if node.type == mi.ObjectType.Film]
     if not films:
@@ -116,13 +124,13 @@ def film_size(source: str | Path, *, width: int | None = None, height: int | Non
 class _Parsed:
     config: object  # mi.parser.ParserConfig
     state: object  # mi.parser.ParserState, transformed
-    asset_root: Path | None
     label: str
     declares_frame: bool
+    explain: object  # maps Mitsuba's message on the flat document back to the user's file:line
 
 
 def _parse_scene(mi, source: str | Path, width: int | None, height: int | None, frame: int,
-                 user_params: dict[str, str] | None = None) -> _Parsed:
+                 params: dict[str, str] | None = None, root: str | Path | None = None) -> _Parsed:
     width, height = _check_override(width, height)
     if isinstance(frame, bool) or not isinstance(frame, numbers.Integral) or frame < 0:
         raise SceneError(f"frame must be an integer >= 0, got {frame!r}")
@@ -132,29 +140,22 @@ def _parse_scene(mi, source: str | Path, width: int | None, height: int | None, 
     # (e.g. a leftover <default name="frame">); that is no reason to refuse the scene.
     config.unused_parameters = mi.LogLevel.Debug
     builtin = BUILTIN_BY_NAME.get(str(source)) if not isinstance(source, Path) else None
+    explain = None
     if builtin is not None:
-        if user_params:
-            raise SceneError(f"{builtin.name}: built-in scenes take no parameters (got {', '.join(sorted(user_params))})")
+        if params:
+            raise SceneError(f"{builtin.name}: built-in scenes take no parameters (got {', '.join(sorted(params))})")
         state = _parse(lambda: mi.parser.parse_dict(config, builtin.build(frame)), builtin.name)
-        asset_root, label, declares_frame = None, builtin.name, True
+        declares_frame = True
     else:
         path = _scene_path(source)
-        declared = _declared_parameters(path)
-        params = {FRAME_PARAMETER: str(frame)} if FRAME_PARAMETER in declared else {}
-        # A file that sizes its film from $width/$height gets the override through them too,
-        # so anything else it derives from them stays consistent.
-        for name, value in zip(RESOLUTION_PARAMETERS, (width, height)):
-            if value is not None and name in declared:
-                params[name] = str(value)
-        unknown = sorted(set(user_params or {}) - declared)
-        if unknown:
-            known = ", ".join(sorted(declared)) or "none"
-            raise SceneError(f"{path.name}: unknown scene parameter(s) {', '.join(unknown)}; its <default> names: {known}")
-        params.update(user_params or {})
-        state = _parse(lambda: mi.parser.parse_file(config, str(path), **params), path.name)
-        asset_root, label, declares_frame = path.parent, path.name, FRAME_PARAMETER in declared
-    _parse(lambda: mi.parser.transform_all(config, state), label)
-    return _Parsed(config, state, asset_root, label, declares_frame)
+        flat = _flatten(path, root, params, frame, width, height)
+        explain = _explainer(flat, Path(root) if root is not None else path.parent)
+        with _sandboxed_resolver(mi):
+            state = _parse(lambda: mi.parser.parse_string(config, flat.document), path.name, explain)
+        declares_frame = flat.declares(FRAME_PARAMETER)
+    label = builtin.name if builtin is not None else Path(source).name
+    _parse(lambda: mi.parser.transform_all(config, state), label, explain)
+    return _Parsed(config, state, label, declares_frame, explain)
 
 
 def _check_override(width: int | None, height: int | None) -> tuple[int | None, int | None]:
@@ -194,19 +195,33 @@ def _scene_path(source: str | Path) -> Path:
     return path.resolve()
 
 
-def _declared_parameters(path: Path) -> set[str]:
-    """Names declared with `<default name=...>` in the file (Mitsuba rejects unknown `$params`).
-
-    A file that is not well-formed XML declares nothing here; Mitsuba's parser then reports the
-    actual syntax error with its line and column.
-    """
-    from defusedxml import ElementTree
-
+def _flatten(path: Path, root, params, frame: int, width, height) -> FlatScene:
+    """The scene as one checked document (service/render/flatten.py): Mitsuba gets no `$`,
+    no `<include>` and only absolute paths inside `root`."""
+    if params and FRAME_PARAMETER in params:
+        raise SceneError(f"{path.name}: '{FRAME_PARAMETER}' is set by the renderer for each frame; it cannot be a parameter")
+    # The renderer's own values apply where the scene uses them: a file that sizes its film
+    # from $width/$height gets the override through them, so what it derives stays consistent.
+    optional = {FRAME_PARAMETER: str(frame)}
+    for name, value in zip(RESOLUTION_PARAMETERS, (width, height)):
+        if value is not None:
+            optional[name] = str(value)
     try:
-        root = ElementTree.parse(str(path)).getroot()
-    except Exception:
-        return set()
-    return {element.get("name") for element in root.iter("default") if element.get("name")}
+        return flatten_scene(path, root=path.parent if root is None else Path(root), params=params, optional_params=optional)
+    except FlattenError as exc:
+        raise SceneError(str(exc)) from exc
+
+
+def _explainer(flat: FlatScene, root: Path):
+    """Mitsuba's messages about the flat document, pointed back at the user's file and line,
+    with the bundle's absolute paths shortened to bundle-relative ones."""
+    prefix = str(root.resolve()) + "/"
+
+    def explain(message: str) -> str:
+        message = _FLAT_LOCATION.sub(lambda match: flat.locate(int(match.group(1))), message)
+        return message.replace(prefix, "")
+
+    return explain
 
 
 def _one_line(exc: BaseException) -> str:
@@ -215,13 +230,14 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(text.split())
 
 
-def _parse(step, label: str):
+def _parse(step, label: str, explain=None):
     try:
         return step()
     except SceneError:
         raise
     except Exception as exc:  # Mitsuba raises RuntimeError for every parse problem
-        raise SceneError(f"{label}: {_one_line(exc)}") from exc
+        message = _one_line(exc)
+        raise SceneError(f"{label}: {explain(message) if explain else message}") from exc
 
 
 def _conform(mi, state, width: int | None, height: int | None, label: str) -> tuple[int | None, str | None]:
@@ -319,15 +335,27 @@ def _resize_film(props, width: int | None, height: int | None, label: str) -> No
                 del props[key]
 
 
-def _instantiate(mi, config, state, asset_root: Path | None, label: str):
-    if asset_root is None:
-        return _parse(lambda: mi.parser.instantiate(config, state), label)
+def _instantiate(mi, config, state, label: str, explain=None):
+    with _sandboxed_resolver(mi):
+        return _parse(lambda: mi.parser.instantiate(config, state), label, explain)
+
+
+@contextmanager
+def _sandboxed_resolver(mi):
+    """Mitsuba's file resolver with one search path: Mitsuba's own install folder.
+
+    Not the working directory (a relative name would read the server's files) and not the
+    bundle: plugins load as `plugins/<type>.so` through this resolver, so a bundle folder here
+    would let an uploaded `plugins/x.so` be loaded as code. Scene files need no search path;
+    the flattener already made every reference an absolute path inside the bundle.
+    """
     with _RESOLVER_LOCK:
         previous = mi.file_resolver()
-        resolver = mi.FileResolver(previous)
-        resolver.prepend(str(asset_root))
+        resolver = mi.FileResolver()
+        resolver.clear()
+        resolver.append(str(Path(mi.__file__).resolve().parent))
         mi.set_file_resolver(resolver)
         try:
-            return _parse(lambda: mi.parser.instantiate(config, state), label)
+            yield
         finally:
             mi.set_file_resolver(previous)

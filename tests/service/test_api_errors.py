@@ -7,6 +7,7 @@ import httpx
 import pytest
 
 from service_harness import Server, zip_bytes
+from service.api.app import MAX_UPLOAD_BYTES
 
 JOB = {"scene": "cornell-box", "width": 16, "height": 16, "max_iterations": 1}
 SCENE = """<scene version="3.0.0">
@@ -116,7 +117,7 @@ def test_oversized_upload_is_413(server):
     # A raw socket: httpx will not send a Content-Length it does not honour.
     request = (
         "POST /jobs HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: multipart/form-data; boundary=x\r\n"
-        f"Content-Length: {200 * 1024 * 1024}\r\nConnection: close\r\n\r\n"
+        f"Content-Length: {MAX_UPLOAD_BYTES + 1}\r\nConnection: close\r\n\r\n"
     )
     with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
         sock.sendall(request.encode())

@@ -97,7 +97,7 @@ def test_entity_bomb_rejected(tmp_path):
 def test_missing_reference_named(tmp_path):
     members = good_members()
     del members["meshes/box.obj"]
-    with pytest.raises(BundleError, match="meshes/box.obj: referenced by scene.xml but not in the bundle"):
+    with pytest.raises(BundleError, match="scene.xml:3: .meshes/box.obj. is not in the bundle"):
         unpack(tmp_path, members)
 
 
@@ -129,3 +129,62 @@ def test_loose_files_upload(tmp_path):
     assert prepare_bundle(root, "scene.xml").name == "scene.xml"
     with pytest.raises(BundleError, match=r"\.\./x.png: '\.\.'"):
         save_files([("../x.png", io.BytesIO(b"x"))], tmp_path / "other")
+
+
+def test_default_limits_fit_real_scenes():
+    from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES
+
+    assert MAX_BUNDLE_FILES >= 4096 and MAX_BUNDLE_BYTES >= 1024**3
+    assert BundleLimits() == BundleLimits(max_bytes=MAX_BUNDLE_BYTES, max_files=MAX_BUNDLE_FILES)
+
+
+def test_zipped_folder_unpacks_without_its_top_folder(tmp_path):
+    members = {f"myscene/{name}": data for name, data in good_members().items()}
+    members["__MACOSX/myscene/._scene.xml"] = "junk"
+    root = tmp_path / "bundle"
+    written = extract_zip(make_zip(members), root)
+    assert "scene.xml" in {p.as_posix() for p in written} and (root / "parts" / "lights.xml").is_file()
+    assert prepare_bundle(root, None).name == "scene.xml"
+
+
+def test_spec_names_a_scene_inside_a_sub_folder(tmp_path):
+    scene = SCENE.replace("parts/lights.xml", "../parts/lights.xml").replace('"meshes/', '"../meshes/').replace('"textures/', '"../textures/')
+    members = {f"cbox/{name}": data for name, data in good_members(**{"scenes/cbox.xml": scene}).items() if name != "scene.xml"}
+    root = tmp_path / "bundle"
+    extract_zip(make_zip(members), root)
+    assert prepare_bundle(root, "scenes/cbox.xml") == root / "scenes" / "cbox.xml"
+
+
+def test_file_and_folder_with_the_same_name_is_a_bundle_error(tmp_path):
+    with pytest.raises(BundleError, match="a: is both a file and a folder"):
+        extract_zip(make_zip({**good_members(), "a": "x", "a/b.txt": "y"}), tmp_path / "bundle")
+    with pytest.raises(BundleError, match="a: is both a file and a folder"):
+        save_files([("a/b.txt", io.BytesIO(b"y")), ("a", io.BytesIO(b"x"))], tmp_path / "loose")
+
+
+@pytest.mark.parametrize("name", ["x" * 256 + ".png", "d/" + "é" * 128 + ".png", "/".join(["abc"] * 300)])
+def test_over_long_member_names_are_bundle_errors(tmp_path, name):
+    with pytest.raises(BundleError, match="longer than"):
+        extract_zip(make_zip({**good_members(), name: "x"}), tmp_path / "bundle")
+    with pytest.raises(BundleError, match="longer than"):
+        prepare_bundle_with_scene(tmp_path, name)
+
+
+def prepare_bundle_with_scene(tmp_path, scene):
+    root = tmp_path / "named"
+    extract_zip(make_zip(good_members()), root)
+    return prepare_bundle(root, scene)
+
+
+def test_scene_parameters_are_checked_at_upload(tmp_path):
+    scene = SCENE.replace("textures/wood.png", "$tex").replace(
+        '<scene version="3.0.0">', '<scene version="3.0.0"><default name="tex" value="textures/wood.png"/>'
+    )
+    root = tmp_path / "bundle"
+    extract_zip(make_zip(good_members(**{"scene.xml": scene})), root)
+    with pytest.raises(BundleError, match="'/etc/passwd'"):
+        prepare_bundle(root, None, params={"tex": "/etc/passwd"})
+    root = tmp_path / "again"
+    extract_zip(make_zip(good_members(**{"scene.xml": scene})), root)
+    with pytest.raises(BundleError, match="unknown scene parameter spp; the scene's <default> parameters: tex"):
+        prepare_bundle(root, None, params={"spp": "4"})

@@ -1,7 +1,6 @@
 """The routes' helpers alone, without a server: job lookup, the frame-range check, λ from JSON."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 from fastapi.exceptions import RequestValidationError
 
