@@ -43,6 +43,8 @@ def add_render_parser(sub) -> None:
     p = sub.add_parser("render", help="render a scene with the adaptive loop (or one uniform pass)")
     p.add_argument("scene", nargs="?", help="Mitsuba 3 XML file or built-in scene name (see --list)")
     p.add_argument("--list", action="store_true", help="print the built-in scenes and exit")
+    p.add_argument("--explain", action="store_true",
+                   help="print the effects report (which integrator runs and why, what is simulated) and exit")
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
     p.add_argument("--frames", type=int, default=d.frames, help=f"frames of the scene's animation (default {d.frames})")
@@ -110,9 +112,16 @@ def run_render(args) -> int:
         return 0
     if not args.scene:
         raise CliError("render needs a SCENE (an XML file or a built-in name; see --list)")
+    spec = render_spec(args)
+    if args.explain:
+        from service.render.effects import explain_effects, inspect_scene
+
+        effects = inspect_scene(spec.scene, frames=spec.frames, width=spec.width, height=spec.height,
+                                params=spec.params)
+        print(explain_effects(effects))
+        return 0
     if args.output is None:
         raise CliError("render needs -o OUT.exr")
-    spec = render_spec(args)
 
     from tqdm import tqdm
 

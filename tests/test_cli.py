@@ -103,3 +103,13 @@ def test_help_loads_no_heavy_module():
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "[]"
+
+
+def test_explain_says_which_integrator_runs_and_why_without_rendering(write_scene_xml, tmp_path):
+    declared = renderloop("render", "veiled", "--explain")
+    assert declared.returncode == 0, declared.stderr
+    assert "integrator: volpath (declared by the scene" in declared.stdout and "participating media: yes" in declared.stdout
+    scene = write_scene_xml('<shape type="sphere"><bsdf type="diffuse"/></shape><emitter type="constant"/>')
+    chosen = renderloop("render", scene, "--explain")
+    assert chosen.returncode == 0 and "declares no integrator and has no media: chose 'path'" in chosen.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.xml"]  # nothing rendered, nothing written

@@ -125,6 +125,22 @@ def inspect_scene(
     return inspect_frames(loaded)
 
 
+def explain_effects(effects: SceneEffects) -> str:
+    """The effects report as lines a person reads (`renderloop render --explain`)."""
+    yes = lambda flag: "yes" if flag else "no"  # noqa: E731
+    return "\n".join([
+        f"integrator: {effects.integrator} ({effects.integrator_reason})",
+        f"max depth: {effects.max_depth if effects.max_depth >= 0 else 'unbounded (Russian roulette)'}",
+        f"participating media: {yes(effects.media)}",
+        f"depth of field: {yes(effects.depth_of_field)}",
+        f"emitters: {', '.join(effects.emitters) or 'none'}",
+        f"glossy lobes: {yes(effects.glossy)}; perfectly specular lobes: {yes(effects.delta_bsdf)}",
+        f"frames: {effects.frames}; temporal denoising: {yes(effects.temporal)}; "
+        f"motion vectors: {yes(effects.motion_vectors)} (camera moves: {yes(effects.animated_camera)}, "
+        f"shapes move: {yes(effects.animated_shapes)})",
+    ])
+
+
 def make_integrator(effects: SceneEffects):
     """The integrator the report calls for, for `render_samples(integrator=...)`.
 
