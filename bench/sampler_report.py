@@ -39,12 +39,15 @@ class SamplerCase:
         return f"{self.scene} / {self.integrator} / {self.filter}"
 
 
-# Box filter everywhere for now; tent and gaussian cases are one line each once the renderer
-# draws sample offsets from the film's filter.
+# Each integrator with the box filter and with a filter whose offsets are importance-sampled
+# (tent, gaussian): the renderer's cost of filtering shows up beside mi.render's splatting.
 CASES: tuple[SamplerCase, ...] = (
     SamplerCase("cornell-box", "path", "box"),
+    SamplerCase("cornell-box", "path", "gaussian"),
     SamplerCase("cornell-box", "direct", "box", max_depth=None),
+    SamplerCase("cornell-box", "direct", "tent", max_depth=None),
     SamplerCase("veiled", "volpath", "box"),
+    SamplerCase("veiled", "volpath", "gaussian"),
 )
 
 
