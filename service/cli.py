@@ -12,6 +12,7 @@ from pathlib import Path
 
 from service import denoise_command, train_command
 from service.api.security import LOOPBACK_HOSTS, SecuritySettings, is_loopback
+from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.loop.spec import ALLOCATORS, DEFAULT_ITERATIONS, LAMBDA_RANGE, LoopSpec, LoopSpecError
 from service.dataset import command as dataset_command
 
@@ -163,6 +164,10 @@ def add_serve_parser(sub) -> None:
                    help="a Host header name to serve besides the loopback names (repeatable; '*' for any)")
     p.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",
                    help="a web origin allowed to call the API from a browser (repeatable; default: none)")
+    p.add_argument("--max-bundle-mb", type=int, default=MAX_BUNDLE_BYTES // 2**20,
+                   help=f"largest uploaded scene bundle, uncompressed (default {MAX_BUNDLE_BYTES // 2**20} MiB)")
+    p.add_argument("--max-bundle-files", type=int, default=MAX_BUNDLE_FILES,
+                   help=f"most files in one bundle (default {MAX_BUNDLE_FILES})")
     p.add_argument("--insecure-no-auth", action="store_true",
                    help="allow binding a non-loopback address without a token")
     p.set_defaults(handler=run_serve)
@@ -187,12 +192,15 @@ def run_serve(args) -> int:
     if args.concurrency < 1:
         raise CliError("--concurrency must be >= 1")
     security = serve_security(args)
+    if args.max_bundle_mb < 1 or args.max_bundle_files < 1:
+        raise CliError("--max-bundle-mb and --max-bundle-files must be >= 1")
+    limits = BundleLimits(max_bytes=args.max_bundle_mb * 2**20, max_files=args.max_bundle_files)
     auth = " -H 'authorization: Bearer $RENDERLOOP_TOKEN'" if security.token else ""
     print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir})")
     print(f"try: curl -X POST http://{args.host}:{args.port}/jobs{auth} -H 'content-type: application/json' "
           "-d '{\"scene\": \"cornell-box\", \"width\": 64, \"height\": 64, \"max_iterations\": 3}'")
     serve(args.host, args.port, args.data_dir, args.concurrency, networks=load_cli_networks(args.weights),
-          security=security)
+          security=security, bundle_limits=limits)
     return 0
 
 

@@ -17,11 +17,13 @@ from service.jobs import bundle
 from service.jobs.store import JobStore
 from service.jobs.worker import JobWorker
 
-MAX_UPLOAD_BYTES = bundle.MAX_BUNDLE_BYTES + 1024 * 1024  # the bundle plus form overhead
+FORM_OVERHEAD_BYTES = 1024 * 1024  # multipart headers and the spec field around the bundle
+MAX_UPLOAD_BYTES = bundle.MAX_BUNDLE_BYTES + FORM_OVERHEAD_BYTES  # with the default bundle limits
 
 
 def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
-               security: SecuritySettings = SecuritySettings()) -> FastAPI:
+               security: SecuritySettings = SecuritySettings(),
+               bundle_limits: bundle.BundleLimits = bundle.BundleLimits()) -> FastAPI:
     store = JobStore(Path(data_dir))
     worker = JobWorker(store, networks, concurrency=concurrency)
 
@@ -32,8 +34,8 @@ def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
         worker.stop()
 
     app = FastAPI(title="renderloop", version="0.1.0", lifespan=lifespan)
-    app.state.store, app.state.worker = store, worker
-    app.add_middleware(BodySizeLimit, max_bytes=MAX_UPLOAD_BYTES)
+    app.state.store, app.state.worker, app.state.bundle_limits = store, worker, bundle_limits
+    app.add_middleware(BodySizeLimit, max_bytes=bundle_limits.max_bytes + FORM_OVERHEAD_BYTES)
     if security.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(security.cors_origins), allow_credentials=False,
                            allow_methods=["GET", "POST", "PUT", "DELETE"], allow_headers=["Authorization", "Content-Type"])

@@ -71,14 +71,15 @@ async def submit_job(request: Request, store: Store, worker: Worker) -> JobCreat
     """JSON body naming a built-in scene, or multipart: `spec` (JSON) plus `bundle` (zip)
     or `files` (scene XML and assets, sub-folders in the file names)."""
     if is_multipart(request):
-        form = await request.form(max_files=bundle.MAX_BUNDLE_FILES + 1, max_fields=8)
+        limits: bundle.BundleLimits = request.app.state.bundle_limits
+        form = await request.form(max_files=limits.max_files + 1, max_fields=8)
         spec_request = parse_bundle_spec(form.get("spec") or "{}")
         archives, files = uploads(form, "bundle"), uploads(form, "files")
         if bool(archives) == bool(files) or len(archives) > 1:
             raise invalid("bundle", "upload one zip as 'bundle', or the XML and assets as 'files'")
         job_id = store.new_id()
         stored = await run_in_threadpool(unpack_bundle, worker.files(job_id), archives or files, bool(archives),
-                                         spec_request)
+                                         spec_request, limits)
         record = store.create(stored, stored["lambda"], job_id=job_id)
     else:
         spec = await run_in_threadpool(builtin_job, await json_body(request))

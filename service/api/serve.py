@@ -16,10 +16,13 @@ from fastapi import FastAPI
 from models.pretrained import Networks, load_networks
 from service.api.app import create_app
 from service.api.security import SecuritySettings
+from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.loop.tensors import configure_torch_threads
 
 DATA_DIR_ENV = "RENDERLOOP_DATA_DIR"
 CONCURRENCY_ENV = "RENDERLOOP_CONCURRENCY"
+MAX_BUNDLE_MB_ENV = "RENDERLOOP_MAX_BUNDLE_MB"
+MAX_BUNDLE_FILES_ENV = "RENDERLOOP_MAX_BUNDLE_FILES"
 DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8000
 # On SIGTERM uvicorn waits for open responses before shutting the app down; an event stream
 # never ends by itself, so open ones are cut after this grace. Running jobs stop within one
@@ -31,15 +34,25 @@ def default_data_dir() -> Path:
     return Path(os.environ.get(DATA_DIR_ENV) or "./data")
 
 
+def bundle_limits_from_env() -> BundleLimits:
+    megabytes = os.environ.get(MAX_BUNDLE_MB_ENV)
+    files = os.environ.get(MAX_BUNDLE_FILES_ENV)
+    return BundleLimits(max_bytes=int(megabytes) * 2**20 if megabytes else MAX_BUNDLE_BYTES,
+                        max_files=int(files) if files else MAX_BUNDLE_FILES)
+
+
 def app_from_env() -> FastAPI:
     configure_torch_threads()
     return create_app(default_data_dir(), networks=load_networks(),
-                      concurrency=int(os.environ.get(CONCURRENCY_ENV, "1")), security=SecuritySettings.from_env())
+                      concurrency=int(os.environ.get(CONCURRENCY_ENV, "1")), security=SecuritySettings.from_env(),
+                      bundle_limits=bundle_limits_from_env())
 
 
 def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | None = None, concurrency: int = 1,
-          *, networks: Networks, security: SecuritySettings = SecuritySettings()) -> None:
+          *, networks: Networks, security: SecuritySettings = SecuritySettings(),
+          bundle_limits: BundleLimits = BundleLimits()) -> None:
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
-    app = create_app(data_dir, networks=networks, concurrency=concurrency, security=security)
+    app = create_app(data_dir, networks=networks, concurrency=concurrency, security=security,
+                     bundle_limits=bundle_limits)
     uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS)

@@ -84,16 +84,17 @@ def parse_bundle_spec(raw: object) -> BundleJobCreate:
     return validated(BundleJobCreate, data if data is not None else {})
 
 
-def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, request: BundleJobCreate) -> dict:
+def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, request: BundleJobCreate,
+                  limits: bundle.BundleLimits = bundle.BundleLimits()) -> dict:
     """Store the upload under the job's folder and return the stored spec (scene relative to
     the bundle); on any problem the folder is removed and the error propagates."""
     root = files.bundle_dir
     root.mkdir(parents=True, exist_ok=True)
     try:
         if archive:
-            bundle.extract_zip(items[0].file, root)
+            bundle.extract_zip(items[0].file, root, limits)
         else:
-            bundle.save_files(((u.filename or "", u.file) for u in items), root)
+            bundle.save_files(((u.filename or "", u.file) for u in items), root, limits)
         spec = request.loop_spec("")
         entry = bundle.prepare_bundle(root, request.scene, params=spec.params)
         relative = entry.relative_to(root.resolve()).as_posix()
