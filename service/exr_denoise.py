@@ -14,13 +14,20 @@ from service.loop.spec import lambda_problem
 from service.loop.tensors import lam_tensor, nchw, to_image
 
 REQUIRED_LAYERS = ("noisy", "variance", "albedo", "normal", "depth")
+# EXR layer names of each required field, for the message (service/exr.py owns the layout).
+LAYER_NAMES = {"noisy": "noisy.R/G/B", "variance": "variance.R/G/B", "albedo": "albedo.R/G/B",
+               "normal": "N.X/Y/Z", "depth": "Z"}
 
 
 def frame_from_exr(path: Path, frame: ExrFrame) -> FrameTensors:
     """ExrFrame → models.frames.FrameTensors (1, C, H, W)."""
     missing = [name for name in REQUIRED_LAYERS if getattr(frame, name) is None]
     if missing:
-        raise ExrError(f"{path}: missing layers {', '.join(missing)} (render with --no-denoise to get them)")
+        # An EXR from mi.render (even with the aov integrator's albedo/normal) has no per-pixel
+        # variance of the mean, which the denoiser's features need: say so and how to get one.
+        raise ExrError(f"{path}: missing layers {', '.join(LAYER_NAMES[m] for m in missing)}; an EXR written by "
+                       f"mi.render lacks at least the variance of the mean — render the scene with "
+                       f"`renderloop render SCENE --no-denoise -o x.exr` to get every layer")
     return FrameTensors(color=nchw(frame.noisy), variance=nchw(frame.variance), albedo=nchw(frame.albedo),
                         normal=nchw(frame.normal), depth=nchw(frame.depth),
                         motion=None if frame.motion is None else nchw(frame.motion))

@@ -113,3 +113,24 @@ def test_explain_says_which_integrator_runs_and_why_without_rendering(write_scen
     chosen = renderloop("render", scene, "--explain")
     assert chosen.returncode == 0 and "declares no integrator and has no media: chose 'path'" in chosen.stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.xml"]  # nothing rendered, nothing written
+
+
+def test_denoise_says_in_one_line_what_an_exr_from_mi_render_lacks(tmp_path):
+    # A file Mitsuba itself wrote with the aov integrator: colour plus albedo and normal channels.
+    from service.render.runtime import mitsuba
+
+    mi = mitsuba()
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "aov", "aovs": "albedo:albedo,nn:sh_normal", "img": {"type": "path"}},
+        "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+        "shape": {"type": "sphere", "to_world": mi.ScalarTransform4f().translate([0, 0, 4])},
+        "light": {"type": "constant"},
+    })
+    exr = tmp_path / "mitsuba.exr"
+    mi.Bitmap(mi.render(scene, spp=4), channel_names=["R", "G", "B", "albedo.R", "albedo.G", "albedo.B",
+                                                       "nn.X", "nn.Y", "nn.Z"]).write(str(exr))
+    result = renderloop("denoise", exr, "-o", tmp_path / "out.exr")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "variance.R/G/B" in lines[0] and "--no-denoise" in lines[0]
