@@ -46,12 +46,15 @@ class LoopState:
             arrays = {name: getattr(buf, name) for name in BUFFER_ARRAYS}
             if buf.motion_sum is not None:
                 arrays["motion_sum"] = buf.motion_sum
+            if buf.aov_sum is not None:  # the scene integrator's own AOV channels
+                arrays["aov_sum"] = buf.aov_sum
             if self.error_maps[i] is not None:
                 arrays["error"] = self.error_maps[i]
             np.savez(tmp / f"frame_{i}.npz", **arrays)
         np.save(tmp / "lambda.npy", self.lam_map)
         meta = {"version": STATE_VERSION, "iteration": self.iteration, "elapsed": self.elapsed,
-                "frames": len(self.buffers), "passes": [b.passes for b in self.buffers]}
+                "frames": len(self.buffers), "passes": [b.passes for b in self.buffers],
+                "aov_names": [list(b.aov_names) for b in self.buffers]}
         (tmp / "state.json").write_text(json.dumps(meta))
         old = directory.with_name(directory.name + ".old")
         shutil.rmtree(old, ignore_errors=True)
@@ -82,6 +85,8 @@ class LoopState:
             with np.load(directory / f"frame_{i}.npz") as data:
                 buf = FrameBuffer(**{name: data[name] for name in BUFFER_ARRAYS})
                 buf.motion_sum = data["motion_sum"] if "motion_sum" in data else None
+                buf.aov_sum = data["aov_sum"] if "aov_sum" in data else None
+                buf.aov_names = tuple(meta.get("aov_names", [[]] * meta["frames"])[i])
                 buf.passes = meta["passes"][i]
                 errors.append(data["error"] if "error" in data else None)
             buffers.append(buf)

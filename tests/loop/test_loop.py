@@ -1,4 +1,6 @@
 """The adaptive loop end to end on real renders (tiny images, small untrained networks)."""
+import pathlib
+
 import numpy as np
 import pytest
 import torch
@@ -133,3 +135,15 @@ def test_single_frame_jobs_do_no_temporal_work(tiny_networks):
     assert not loop.effects.temporal and not loop.effects.motion_vectors
     record = list(loop.run())[-1]
     assert record.buffers[0].motion is None and len(record.denoised) == 1
+
+
+def test_a_checkpoint_keeps_the_scene_integrators_aov_channels(tmp_path):
+    scene = pathlib.Path(__file__).parents[1] / "fidelity" / "scenes" / "aov_tent.xml"
+    loop = RenderLoop(LoopSpec(scene=str(scene), max_iterations=1, denoise=False, allocator="uniform"), None)
+    list(loop.run())
+    before = loop.state.buffers[0]
+    assert before.aov_names and before.aov_sum is not None
+    loop.state.save(tmp_path / "s")
+    after = LoopState.load(tmp_path / "s").buffers[0]
+    assert after.aov_names == before.aov_names
+    np.testing.assert_array_equal(after.aov_sum, before.aov_sum)
