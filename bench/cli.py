@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from bench.dev_suite_report import run_dev_suite_report
 from bench.dev_references import DEFAULT_REFERENCE_DIR, write_references
 from bench.loop_report import add_arguments as add_loop_arguments, run_loop_command
 from bench.models_report import main as models_main
@@ -31,7 +32,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--references-dir", type=Path, default=DEFAULT_REFERENCE_DIR)
     p.add_argument("--reference-spp", type=int, default=None,
                    help="samples per pixel of every reference (default 16384; 65536 for the noisiest scenes)")
-    p.add_argument("--only", nargs="+", default=None, metavar="SCENE", help="with --references: these scenes only")
+    p.add_argument("--only", nargs="+", default=None, metavar="SCENE",
+                   help="with --references or --dev-suite: these development scenes only")
+    p.add_argument("--dev-suite", action="store_true",
+                   help="KPCN vs OIDN at 16 spp and the loop vs uniform + OIDN at 128 spp on scenes/dev → docs/dev-suite.md")
     add_loop_arguments(p)  # --loop [--quick] --weights --cache
 
 
@@ -56,6 +60,9 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.references:
         written = write_references(args.references_dir, spp=args.reference_spp, only=args.only)
         print(f"wrote {len(written)} reference(s) to {args.references_dir}")
+        return 0
+    if args.dev_suite:
+        print(f"wrote {run_dev_suite_report(args.out, weights_dir=args.weights, only=args.only)}")
         return 0
     if args.loop:
         return run_loop_command(args)

@@ -1,0 +1,40 @@
+"""The development suite's report and references: a real run on the cheapest scene against its
+committed reference, and a reference from another version of its scene is refused."""
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+
+import pytest
+
+from bench.dev_references import DEFAULT_REFERENCE_DIR, StaleReference, dev_scenes, load_reference
+from bench.dev_suite_report import run_dev_suite_report
+
+
+def test_every_development_scene_has_a_committed_reference_of_its_current_version():
+    scenes = dev_scenes()
+    assert len(scenes) >= 10
+    for scene in scenes:
+        image, header = load_reference(DEFAULT_REFERENCE_DIR, scene, None if scene.frames == 1 else 0)
+        assert image.ndim == 3 and image.shape[2] == 3 and int(header["spp"]) >= 16384
+
+
+def test_a_reference_of_an_edited_scene_is_refused(tmp_path: Path):
+    (scene,) = dev_scenes(["point_object"])
+    copy = tmp_path / "point_object"
+    shutil.copytree(scene.path.parent, copy)
+    (copy / "scene.xml").write_text(scene.path.read_text() + "\n<!-- edited -->\n")
+    edited = type(scene)(scene.name, copy / "scene.xml", scene.frames)
+    with pytest.raises(StaleReference, match="another version"):
+        load_reference(DEFAULT_REFERENCE_DIR, edited)
+
+
+def test_dev_suite_report_scores_every_method_against_the_reference(tmp_path: Path):
+    pytest.importorskip("pyoidn")
+    report = run_dev_suite_report(tmp_path, only=["point_object"])
+    text = report.read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| point_object |"))
+    values = [float(cell) for cell in row.strip("|").split("|")[1:]]
+    assert len(values) == 7 and all(math.isfinite(v) and v >= 0 for v in values)
+    assert "Command:" in text and "Intel Open Image Denoise" in text
