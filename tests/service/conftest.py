@@ -29,6 +29,17 @@ def server(start_server) -> Server:
     return start_server()
 
 
+@pytest.fixture(scope="module")
+def module_server(tmp_path_factory, request) -> Iterator[Server]:
+    """One server for a whole test module whose tests cannot disturb each other (starting one per
+    test costs seconds); the module's SERVER_ENV, if any, is added to its environment. A module
+    uses it by overriding `server`: `def server(module_server): return module_server`."""
+    root = tmp_path_factory.mktemp(request.module.__name__.rsplit(".", 1)[-1])
+    server = Server(root / "data", root / "server.log", env=getattr(request.module, "SERVER_ENV", None)).start()
+    yield server
+    server.stop()
+
+
 @pytest.fixture
 def client(server) -> Iterator[httpx.Client]:
     with httpx.Client(base_url=server.url, timeout=60) as c:

@@ -3,10 +3,9 @@ from __future__ import annotations
 
 import socket
 
-import httpx
 import pytest
 
-from service_harness import Server, zip_bytes
+from service_harness import zip_bytes
 from service.api.app import MAX_UPLOAD_BYTES
 
 JOB = {"scene": "cornell-box", "width": 16, "height": 16, "max_iterations": 1}
@@ -19,19 +18,9 @@ BOMB = """<?xml version="1.0"?>
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    # One server for the whole module: none of these tests render, so they cannot disturb
-    # each other, and starting a server per test costs seconds each.
-    root = tmp_path_factory.mktemp("errors")
-    server = Server(root / "data", root / "server.log").start()
-    yield server
-    server.stop()
+def server(module_server):
+    return module_server
 
-
-@pytest.fixture
-def client(server):
-    with httpx.Client(base_url=server.url, timeout=60) as c:
-        yield c
 
 
 def upload(client, archive: bytes, spec: str = '{"width": 16, "height": 16, "max_iterations": 1}'):

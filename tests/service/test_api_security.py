@@ -8,18 +8,16 @@ import sys
 import httpx
 import pytest
 
-from service_harness import REPO, Server
+from service_harness import REPO
 
 TOKEN = "s3cret-token"
 JOB = {"scene": "cornell-box", "width": 8, "height": 8, "max_iterations": 1}
+SERVER_ENV = {"RENDERLOOP_TOKEN": TOKEN}
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    root = tmp_path_factory.mktemp("security")
-    server = Server(root / "data", root / "server.log", env={"RENDERLOOP_TOKEN": TOKEN}).start()
-    yield server
-    server.stop()
+def server(module_server):
+    return module_server
 
 
 def test_every_endpoint_but_healthz_needs_the_token(server):

@@ -5,18 +5,15 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from service_harness import Server, zip_bytes
+from service_harness import zip_bytes
 
 SCENE = '<scene version="3.0.0"><shape type="sphere"/></scene>'
+SERVER_ENV = {"RENDERLOOP_MAX_BUNDLE_FILES": "2", "RENDERLOOP_MAX_BUNDLE_MB": "1"}
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    root = tmp_path_factory.mktemp("limits")
-    server = Server(root / "data", root / "server.log",
-                    env={"RENDERLOOP_MAX_BUNDLE_FILES": "2", "RENDERLOOP_MAX_BUNDLE_MB": "1"}).start()
-    yield server
-    server.stop()
+def server(module_server):
+    return module_server
 
 
 def test_a_bundle_with_more_files_than_the_configured_cap_is_refused(server):

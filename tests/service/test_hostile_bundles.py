@@ -10,7 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
-from service_harness import REPO, Server, finished, wait_for, zip_bytes
+from service_harness import REPO, finished, wait_for, zip_bytes
 from service.render.runtime import mitsuba
 
 SPEC = '{"width": 8, "height": 8, "max_iterations": 1}'
@@ -38,17 +38,9 @@ def png(tmp_path_factory) -> bytes:
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    root = tmp_path_factory.mktemp("hostile")
-    server = Server(root / "data", root / "server.log").start()
-    yield server
-    server.stop()
+def server(module_server):
+    return module_server
 
-
-@pytest.fixture
-def client(server):
-    with httpx.Client(base_url=server.url, timeout=60) as c:
-        yield c
 
 
 def submit(client, members: dict, spec: str = SPEC) -> httpx.Response:
