@@ -15,7 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bench.common import (METRIC_NAMES, OIDN_SETTINGS, BenchNetworks, command_line, fill, load_average,
+from bench.common import (METRIC_NAMES, BenchNetworks, command_line, fill, load_average,
                           load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance, scene_reference)
 from bench.loop_plots import write_plots
 from bench.loop_run import (DEGENERATE_PREDICTION_RATIO, FULL, LOOP_SEED, METHODS, PRODUCT, QUICK, STAGES,
@@ -159,7 +159,7 @@ def write_loop_report(path: Path, results: LoopResults) -> Path:
         weights=results.nets.description,
         quick=" (**--quick**: small images, few scenes and iterations; not the real report)" if results.quick else "",
         size=s.size, iterations=s.iterations, spps=", ".join(spps), last_spp=spps[-1], reference_spp=s.reference_spp,
-        repeats=s.timing_repeats, threads=TORCH_THREADS, oidn=OIDN_SETTINGS,
+        repeats=s.timing_repeats, threads=TORCH_THREADS,
         methods="; ".join(f"({m.key}) {m.label}" for m in METHODS), oidn_status=results.oidn_status,
         headline_table=headline_table(scenes, head), goals="; ".join(goal_lines(head)),
         error_plot=f"![SMAPE vs cumulative wall time, log-log, one panel per scene; dotted: the target]({rel(plots[0])})"
