@@ -35,7 +35,7 @@ def unnormalised_weights(logits: Tensor) -> Tensor:
 TILE_PIXELS = 32768   # inference row tiles: a 3-channel output tile (≈ 400 KB) stays in L2 for all taps
 
 
-def filter_padded(padded: Sequence[Tensor], weights: Tensor, k: int) -> Tensor:
+def filter_padded(padded: Sequence[Tensor], weights: Tensor, k: int, tile_pixels: int = TILE_PIXELS) -> Tensor:
     """Σ_frames Σ_taps w·x / Σ w: eq. 3 with the joint normalisation of eq. 4.
     padded[f] is frame f's image after pad_for_kernel; weights (N, F·k², H, W) ≥ 0.
 
@@ -44,7 +44,7 @@ def filter_padded(padded: Sequence[Tensor], weights: Tensor, k: int) -> Tensor:
     tile: in-place updates of slices would make backward copy the whole output per tap."""
     h, w = weights.shape[-2:]
     out = torch.zeros(padded[0].shape[:2] + (h, w), dtype=weights.dtype, device=weights.device)
-    rows = h if torch.is_grad_enabled() else max(1, TILE_PIXELS // w)
+    rows = h if torch.is_grad_enabled() else max(1, tile_pixels // w)
     for y0 in range(0, h, rows):
         y1 = min(h, y0 + rows)
         acc = out if rows >= h else out[:, :, y0:y1]     # no view under autograd
