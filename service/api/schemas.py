@@ -109,6 +109,7 @@ class JobStatus(BaseModel):
     preview_version: int
     lambda_value: float | None = Field(None, description="global λ last set; null once a per-pixel map is used")
     resumed_from: int | None = Field(None, description="iteration a restart resumed this job at")
+    effects: dict | None = Field(None, description="the effects report: which integrator runs and why, what is simulated")
     spec: dict
 
     @classmethod
@@ -128,6 +129,7 @@ class JobStatus(BaseModel):
             preview_version=record.preview_version,
             lambda_value=record.lambda_value,
             resumed_from=record.resumed_from,
+            effects=record.effects,
             spec=record.spec,
         )
 

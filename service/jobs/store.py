@@ -49,10 +49,13 @@ CREATE TABLE IF NOT EXISTS jobs (
     finished_at     REAL,
     preview_version INTEGER NOT NULL DEFAULT 0,
     lambda_value    REAL,
-    resumed_from    INTEGER
+    resumed_from    INTEGER,
+    effects         TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state);
 """
+# Columns added after the first release, for data folders made before them.
+_ADDED_COLUMNS = {"effects": "TEXT"}
 
 
 @dataclass
@@ -74,6 +77,7 @@ class JobRecord:
     preview_version: int = 0
     lambda_value: float | None = None  # the global λ last set; None once a per-pixel map is set
     resumed_from: int | None = None  # iteration the last restart resumed at; None if never resumed
+    effects: dict[str, Any] | None = None  # the effects report once the scene is loaded
 
     @property
     def finished(self) -> bool:
@@ -84,6 +88,7 @@ class JobRecord:
         values = dict(row)
         values["spec"] = json.loads(values["spec"])
         values["timings"] = json.loads(values["timings"])
+        values["effects"] = json.loads(values["effects"]) if values.get("effects") else None
         return cls(**values)
 
 
@@ -104,6 +109,10 @@ class JobStore:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable across process kills
         self._db.executescript(_SCHEMA)
+        present = {row["name"] for row in self._db.execute("PRAGMA table_info(jobs)")}
+        for column, kind in _ADDED_COLUMNS.items():
+            if column not in present:
+                self._db.execute(f"ALTER TABLE jobs ADD COLUMN {column} {kind}")
 
     def close(self) -> None:
         with self._lock:
@@ -183,6 +192,9 @@ class JobStore:
             )
             row = self._db.execute("SELECT preview_version FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return int(row["preview_version"])
+
+    def set_effects(self, job_id: str, effects: dict[str, Any]) -> None:
+        self._execute("UPDATE jobs SET effects = ? WHERE id = ?", (json.dumps(effects), job_id))
 
     def set_resumed_from(self, job_id: str, iteration: int) -> None:
         self._execute("UPDATE jobs SET resumed_from = ? WHERE id = ?", (iteration, job_id))

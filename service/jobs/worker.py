@@ -202,6 +202,7 @@ class JobWorker:
     def _open_loop(self, job_id: str, record: JobRecord, files: JobFiles) -> RenderLoop:
         state = LoopState.load(files.state_dir) if files.has_checkpoint() else None
         loop = self._make_loop(record, files, state)
+        self.store.set_effects(job_id, loop.effects.as_record())
         if state is not None:
             self.store.set_resumed_from(job_id, state.iteration)
         with self._lock:

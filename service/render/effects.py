@@ -11,7 +11,7 @@ Motion vectors only when frames > 1 and the camera or a shape actually moves bet
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +52,11 @@ class SceneEffects:
         if self.media:
             return "the scene declares no integrator and has participating media: chose 'volpath' (Mitsuba defaults)"
         return "the scene declares no integrator and has no media: chose 'path' (Mitsuba defaults)"
+
+    def as_record(self) -> dict:
+        """What a job record shows: every field, plus why the integrator was chosen."""
+        return {**asdict(self), "integrator_reason": self.integrator_reason, "temporal": self.temporal,
+                "motion_vectors": self.motion_vectors}
 
     @property
     def temporal(self) -> bool:

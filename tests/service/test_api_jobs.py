@@ -98,6 +98,13 @@ def test_lifecycle(client, tmp_path):
     assert frame.error is not None and frame.lam is not None
 
 
+def test_the_job_record_says_which_integrator_runs_and_why(client):
+    final = wait_for(client, submit(client), finished)
+    effects = final["effects"]
+    assert effects["integrator"] == "path" and effects["integrator_declared"] is True
+    assert "declared by the scene" in effects["integrator_reason"] and effects["media"] is False
+
+
 def test_preview_is_204_before_the_first_iteration(client):
     blocker = submit(client, width=64, height=64, max_iterations=7, **NO_DENOISE)  # occupies the worker
     waiting = submit(client, width=16, height=16, max_iterations=1, **NO_DENOISE)
