@@ -74,10 +74,11 @@ def _first_hit_flags(mi):
     return mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame
 
 
-def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.ndarray, int]:
-    """Trace one chunk of lanes (flat pixel indices) and return per-pixel sums and the
-    number of non-finite samples. Columns: radiance RGB, radiance² RGB, albedo RGB,
-    normal XYZ, depth (+ motion XY) (+ the integrator's AOVs)."""
+def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.ndarray, int, int]:
+    """Trace one chunk of lanes (flat pixel indices, ascending) and return the per-pixel sums of
+    the pixels it covers, the first of them, and the number of non-finite samples. Columns:
+    radiance RGB, radiance² RGB, albedo RGB, normal XYZ, depth (+ motion XY) (+ the integrator's
+    AOVs)."""
     n = len(pixels)
     sensor, scene = setup.sensor, setup.scene
     sampler = mi.load_dict({"type": "independent"})
@@ -145,31 +146,35 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.n
         channels += [motion.x, motion.y]
     channels += [dr.select(finite, a, 0.0) for a in aovs]
     # Reduce into per-pixel sums inside the same kernel (dr.scatter_reduce): per-lane values
-    # never exist as arrays, so memory stays O(pixels) per chunk.
-    stride = len(channels)
-    sums = dr.zeros(mi.Float, setup.pixel_count * stride)
+    # never exist as arrays, so memory stays O(pixels of this chunk). Lanes are sorted by
+    # pixel, so the chunk covers one contiguous pixel range and only that range is summed.
+    first, span, stride = int(pixels[0]), int(pixels[-1]) - int(pixels[0]) + 1, len(channels)
+    sums = dr.zeros(mi.Float, span * stride)
     for c, value in enumerate(channels):
-        dr.scatter_reduce(dr.ReduceOp.Add, sums, value, idx * stride + c)
+        dr.scatter_reduce(dr.ReduceOp.Add, sums, value, (idx - first) * stride + c)
     nonfinite = dr.count(~finite)
     dr.eval(sums, nonfinite)
-    return np.asarray(sums, dtype=np.float64).reshape(setup.pixel_count, stride), int(np.asarray(nonfinite).ravel()[0])
+    return np.asarray(sums, dtype=np.float64).reshape(span, stride), first, int(np.asarray(nonfinite).ravel()[0])
 
 
-def _add_sums(buffer: FrameBuffer, sums: np.ndarray, motion: bool) -> None:
-    """Add one chunk's per-pixel sums (P, 13 [+2 motion] [+AOVs] columns) into the buffer."""
-    h, w = buffer.shape
-    per_pixel = sums.reshape(h, w, -1)
-    buffer.radiance_sum += per_pixel[..., 0:3]
-    buffer.radiance_sq_sum += per_pixel[..., 3:6]
-    buffer.albedo_sum += per_pixel[..., 6:9]
-    buffer.normal_sum += per_pixel[..., 9:12]
-    buffer.depth_sum += per_pixel[..., 12]
+def _add_sums(buffer: FrameBuffer, sums: np.ndarray, first: int, motion: bool) -> None:
+    """Add one chunk's per-pixel sums (its pixels `first`…, 13 [+2 motion] [+AOVs] columns)."""
+    rows = slice(first, first + len(sums))
+
+    def flat(array: np.ndarray) -> np.ndarray:
+        return array.reshape(-1, *array.shape[2:])[rows]  # a view: the buffers are contiguous
+
+    flat(buffer.radiance_sum)[...] += sums[:, 0:3]
+    flat(buffer.radiance_sq_sum)[...] += sums[:, 3:6]
+    flat(buffer.albedo_sum)[...] += sums[:, 6:9]
+    flat(buffer.normal_sum)[...] += sums[:, 9:12]
+    flat(buffer.depth_sum)[...] += sums[:, 12]
     first_aov = 13
     if motion:
-        buffer.motion_sum += per_pixel[..., 13:15]
+        flat(buffer.motion_sum)[...] += sums[:, 13:15]
         first_aov = 15
     if buffer.aov_sum is not None:
-        buffer.aov_sum += per_pixel[..., first_aov:]
+        flat(buffer.aov_sum)[...] += sums[:, first_aov:]
 
 
 def check_integrator(mi, integrator) -> None:
@@ -232,10 +237,10 @@ def render_samples(
     chunks = max(1, -(-total // max_wavefront))
     for chunk in range(chunks if total else 0):
         pixels = lanes[chunk * max_wavefront:(chunk + 1) * max_wavefront]
-        sums, nonfinite = _trace_chunk(mi, setup, pixels, pass_seed(seed, buffer.passes, chunk))
+        sums, first, nonfinite = _trace_chunk(mi, setup, pixels, pass_seed(seed, buffer.passes, chunk))
         if nonfinite:
             buffer.meta["nonfinite_samples"] = int(buffer.meta.get("nonfinite_samples", 0) + nonfinite)
-        _add_sums(buffer, sums, prev_sensor is not None)
+        _add_sums(buffer, sums, first, prev_sensor is not None)
         if progress is not None:
             progress(len(pixels))
     buffer.spp += counts.astype(np.int64)
