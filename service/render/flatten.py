@@ -2,7 +2,7 @@
 
 Mitsuba resolves `<default>`, `$name` and `<include>` itself, and its resolver falls back to the
 process's working directory and its own install folder. A check that reads the XML with
-different rules than Mitsuba can be walked around (issue 12). So we do that resolution here, with
+different rules than Mitsuba can be walked around (docs/security.md). So we do that resolution here, with
 Mitsuba's rules, and hand Mitsuba the result: one document with nothing left to substitute, no
 `<include>`, and every file reference an absolute path we checked to lie inside the bundle root.
 

@@ -8,6 +8,7 @@ into one flat wavefront (DESIGN.md, runtime facts), split into chunks of at most
 from __future__ import annotations
 
 from dataclasses import dataclass
+from time import perf_counter
 from typing import Callable
 
 import drjit as dr
@@ -201,10 +202,8 @@ def render_samples(
     the previous frame's sensor when the scene moves — then motion vectors are accumulated
     too. `progress(n)` is called with the samples finished after each chunk.
     """
-    import time as _time
-
     mi = mitsuba()
-    start = _time.perf_counter()
+    start = perf_counter()
     counts = np.asarray(counts)
     height, width = buffer.shape
     if counts.shape != (height, width):
@@ -245,4 +244,4 @@ def render_samples(
             progress(len(pixels))
     buffer.spp += counts.astype(np.int64)
     buffer.passes += 1
-    return RenderPass(samples=total, chunks=chunks if total else 0, seconds=_time.perf_counter() - start)
+    return RenderPass(samples=total, chunks=chunks if total else 0, seconds=perf_counter() - start)
