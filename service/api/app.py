@@ -8,10 +8,12 @@ from typing import AsyncIterator
 
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.utils import get_openapi
 
 from models.pretrained import Networks
 from service.api.errors import BodySizeLimit, install_error_handlers
 from service.api.routes import router
+from service.api.schemas import BundleJobCreate, JobCreate, LambdaUpdate
 from service.api.security import RequestGuard, SecuritySettings
 from service.jobs import bundle
 from service.jobs.store import JobStore
@@ -42,4 +44,19 @@ def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
     app.add_middleware(RequestGuard, settings=security)  # added last: runs first
     install_error_handlers(app)
     app.include_router(router)
+    app.openapi = lambda: openapi_document(app)
     return app
+
+
+def openapi_document(app: FastAPI) -> dict:
+    """FastAPI's document plus the request bodies of the routes that read the raw request
+    (JSON or multipart), whose schemas it cannot see."""
+    if app.openapi_schema is None:
+        document = get_openapi(title=app.title, version=app.version, routes=app.routes)
+        components = document.setdefault("components", {}).setdefault("schemas", {})
+        for model in (JobCreate, BundleJobCreate, LambdaUpdate):
+            schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
+            components.update(schema.pop("$defs", {}))
+            components[model.__name__] = schema
+        app.openapi_schema = document
+    return app.openapi_schema

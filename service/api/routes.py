@@ -15,8 +15,8 @@ from starlette.concurrency import run_in_threadpool
 
 from service.api import imaging
 from service.api.lambda_map import constant, decode_map, paint_rects
-from service.api.schemas import (Health, ImageFormat, JobCreated, JobList, JobStatus, LambdaResult, LambdaUpdate,
-                                 Layer)
+from service.api.schemas import (ErrorBody, Health, ImageFormat, JobCreate, JobCreated, JobList, JobStatus,
+                                 LambdaResult, LambdaUpdate, Layer)
 from service.api.submit import (builtin_job, invalid, is_multipart, json_body, parse_bundle_spec, unpack_bundle,
                                 uploads, validated)
 from service.images import png_bytes
@@ -29,7 +29,38 @@ EVENT_POLL_SECONDS = 0.25
 EVENT_KEEPALIVE_SECONDS = 15.0
 MAX_OFFSET = 2**62  # SQLite integers are 64-bit: larger offsets cannot name a row anyway
 
-router = APIRouter()
+def _error(description: str) -> dict:
+    return {"model": ErrorBody, "description": description}
+
+
+# What any route may answer besides its success (OpenAPI; every one carries ErrorBody).
+COMMON_ERRORS = {
+    400: _error("the Host header is not served here"),
+    401: _error("the server needs a bearer token"),
+    413: _error("the request body is over the upload cap"),
+    415: _error("a body that is neither application/json nor multipart/form-data"),
+    422: _error("invalid input; the message names the field"),
+}
+JOB_ERRORS = {404: _error("no job with this id"), 409: _error("the job's state does not allow this now")}
+router = APIRouter(responses=COMMON_ERRORS)
+
+
+def _json_or_multipart(json_model: type, multipart: dict) -> dict:
+    """An OpenAPI request body for routes that read the raw request (JSON or an upload)."""
+    return {"requestBody": {"required": True, "content": {
+        "application/json": {"schema": {"$ref": f"#/components/schemas/{json_model.__name__}"}},
+        "multipart/form-data": {"schema": multipart}}}}
+
+
+SUBMIT_BODY = _json_or_multipart(JobCreate, {
+    "type": "object", "required": ["spec"], "properties": {
+        "spec": {"type": "string", "description": "BundleJobCreate as JSON (scene: the XML inside the bundle)"},
+        "bundle": {"type": "string", "format": "binary", "description": "a zip of the scene folder"},
+        "files": {"type": "array", "items": {"type": "string", "format": "binary"},
+                  "description": "or the XML and its assets, sub-folders in the file names"}}})
+LAMBDA_BODY = _json_or_multipart(LambdaUpdate, {
+    "type": "object", "required": ["map"], "properties": {
+        "map": {"type": "string", "format": "binary", "description": "single-channel PNG/EXR whose pixels are λ"}}})
 
 
 def get_store(request: Request) -> JobStore:
@@ -66,7 +97,7 @@ def check_frame(record: JobRecord, frame: int) -> None:
 
 # -- submit -----------------------------------------------------------------------------------
 
-@router.post("/jobs", status_code=202, response_model=JobCreated)
+@router.post("/jobs", status_code=202, response_model=JobCreated, openapi_extra=SUBMIT_BODY)
 async def submit_job(request: Request, store: Store, worker: Worker) -> JobCreated:
     """JSON body naming a built-in scene, or multipart: `spec` (JSON) plus `bundle` (zip)
     or `files` (scene XML and assets, sub-folders in the file names)."""
@@ -100,12 +131,16 @@ def list_jobs(
     return JobList(jobs=[JobStatus.from_record(r) for r in store.list(state, limit, offset)])
 
 
-@router.get("/jobs/{job_id}", response_model=JobStatus)
+@router.get("/jobs/{job_id}", response_model=JobStatus, responses=JOB_ERRORS)
 def get_job(record: Job) -> JobStatus:
     return JobStatus.from_record(record)
 
 
-@router.get("/jobs/{job_id}/preview")
+@router.get("/jobs/{job_id}/preview", responses={
+    **JOB_ERRORS,
+    200: {"content": {"image/png": {}, "image/x-exr": {}}, "description": "the layer, with an ETag"},
+    204: {"description": "no iteration has finished yet"},
+    304: {"description": "unchanged since the ETag sent in If-None-Match"}})
 def get_preview(
     record: Job,
     worker: Worker,
@@ -131,7 +166,8 @@ def get_preview(
     return Response(png_bytes(imaging.to_rgb8(layer, values, exposure)), media_type="image/png", headers=headers)
 
 
-@router.get("/jobs/{job_id}/result.exr")
+@router.get("/jobs/{job_id}/result.exr", responses={
+    **JOB_ERRORS, 200: {"content": {"image/x-exr": {}}, "description": "the frame's multi-layer EXR"}})
 def get_result(record: Job, worker: Worker, frame: int = Query(0, ge=0)) -> FileResponse:
     check_frame(record, frame)
     path = worker.files(record.id).result_path(frame)
@@ -163,7 +199,7 @@ def apply_lambda(store: JobStore, worker: JobWorker, job_id: str, update: Lambda
     return LambdaResult(version=applied.version, full_passes=applied.full_passes, tail_passes=applied.tail_passes)
 
 
-@router.put("/jobs/{job_id}/lambda", response_model=LambdaResult)
+@router.put("/jobs/{job_id}/lambda", response_model=LambdaResult, responses=JOB_ERRORS, openapi_extra=LAMBDA_BODY)
 async def put_lambda(job_id: str, request: Request, store: Store, worker: Worker) -> LambdaResult:
     """JSON `{"value": 2.5}` or `{"rects": [{"x","y","w","h","value"}]}` (painted over the
     current map), or multipart with a single-channel PNG/EXR `map` whose pixels are λ."""
@@ -179,14 +215,14 @@ async def put_lambda(job_id: str, request: Request, store: Store, worker: Worker
     return await run_in_threadpool(apply_lambda, store, worker, job_id, update, None)
 
 
-@router.delete("/jobs/{job_id}", status_code=204, responses={404: {"description": "no such job"}})
+@router.delete("/jobs/{job_id}", status_code=204, responses=JOB_ERRORS)
 def delete_job(job_id: str, worker: Worker) -> Response:
     """Cancel the job if it is still queued or running, then remove its record and files."""
     worker.delete(job_id)
     return Response(status_code=204)
 
 
-@router.post("/jobs/{job_id}/cancel", response_model=JobStatus)
+@router.post("/jobs/{job_id}/cancel", response_model=JobStatus, responses=JOB_ERRORS)
 def cancel_job(job_id: str, worker: Worker) -> JobStatus:
     return JobStatus.from_record(worker.cancel(job_id))
 
@@ -213,7 +249,8 @@ async def event_stream(store: JobStore, job_id: str, request: Request) -> AsyncI
         quiet += EVENT_POLL_SECONDS
 
 
-@router.get("/jobs/{job_id}/events")
+@router.get("/jobs/{job_id}/events", responses={
+    **JOB_ERRORS, 200: {"content": {"text/event-stream": {}}, "description": "status events until the job ends"}})
 async def job_events(job_id: str, request: Request, store: Store) -> StreamingResponse:
     """Server-sent events: `status` on every change of the job record, `end` when it ends."""
     await run_in_threadpool(require_job, store, job_id)

@@ -85,6 +85,13 @@ BundleJobCreate = create_model(
 )
 
 
+class ErrorBody(BaseModel):
+    """Every refusal: what is wrong, in one message (422s also list the fields)."""
+
+    detail: str
+    errors: list[dict] | None = None
+
+
 class JobCreated(BaseModel):
     id: str
     state: str

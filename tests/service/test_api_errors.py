@@ -158,3 +158,15 @@ def test_a_json_integer_of_thousands_of_digits_is_422_not_500(client):
 
 def test_job_list_offset_beyond_sqlite_integers_is_422_not_500(client):
     assert client.get("/jobs", params={"offset": 9223372036854775808}).status_code == 422
+
+
+def test_openapi_describes_request_bodies_and_error_answers(client):
+    document = client.get("/openapi.json").json()
+    submit = document["paths"]["/jobs"]["post"]
+    assert set(submit["requestBody"]["content"]) == {"application/json", "multipart/form-data"}
+    assert {"400", "401", "413", "415", "422"} <= set(submit["responses"])
+    lam = document["paths"]["/jobs/{job_id}/lambda"]["put"]
+    assert set(lam["requestBody"]["content"]) == {"application/json", "multipart/form-data"}
+    preview = document["paths"]["/jobs/{job_id}/preview"]["get"]["responses"]
+    assert {"200", "204", "304", "404", "409", "422"} <= set(preview)
+    assert {"JobCreate", "LambdaUpdate", "ErrorBody"} <= set(document["components"]["schemas"])
