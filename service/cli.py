@@ -6,6 +6,7 @@ for bugs only.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import os
 import sys
 from pathlib import Path
@@ -13,7 +14,7 @@ from pathlib import Path
 from service import denoise_command, train_command
 from service.api.security import LOOPBACK_HOSTS, SecuritySettings, is_loopback
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
-from service.loop.spec import ALLOCATORS, DEFAULT_ITERATIONS, LAMBDA_RANGE, LoopSpec, LoopSpecError
+from service.loop.spec import ALLOCATORS, DEFAULT_ITERATIONS, SERVICE_LIMITS, LAMBDA_RANGE, LoopSpec, LoopSpecError
 from service.dataset import command as dataset_command
 
 EXIT_USAGE = 2
@@ -168,6 +169,9 @@ def add_serve_parser(sub) -> None:
                    help=f"largest uploaded scene bundle, uncompressed (default {MAX_BUNDLE_BYTES // 2**20} MiB)")
     p.add_argument("--max-bundle-files", type=int, default=MAX_BUNDLE_FILES,
                    help=f"most files in one bundle (default {MAX_BUNDLE_FILES})")
+    p.add_argument("--max-job-memory-gb", type=float, default=SERVICE_LIMITS.max_memory_bytes / 2**30,
+                   help="refuse jobs whose estimated memory is over this (default "
+                        f"{SERVICE_LIMITS.max_memory_bytes / 2**30:g} GiB)")
     p.add_argument("--insecure-no-auth", action="store_true",
                    help="allow binding a non-loopback address without a token")
     p.set_defaults(handler=run_serve)
@@ -195,12 +199,15 @@ def run_serve(args) -> int:
     if args.max_bundle_mb < 1 or args.max_bundle_files < 1:
         raise CliError("--max-bundle-mb and --max-bundle-files must be >= 1")
     limits = BundleLimits(max_bytes=args.max_bundle_mb * 2**20, max_files=args.max_bundle_files)
+    if not args.max_job_memory_gb > 0:
+        raise CliError("--max-job-memory-gb must be > 0")
+    job_limits = replace(SERVICE_LIMITS, max_memory_bytes=args.max_job_memory_gb * 2**30)
     auth = " -H 'authorization: Bearer $RENDERLOOP_TOKEN'" if security.token else ""
     print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir})")
     print(f"try: curl -X POST http://{args.host}:{args.port}/jobs{auth} -H 'content-type: application/json' "
           "-d '{\"scene\": \"cornell-box\", \"width\": 64, \"height\": 64, \"max_iterations\": 3}'")
     serve(args.host, args.port, args.data_dir, args.concurrency, networks=load_cli_networks(args.weights),
-          security=security, bundle_limits=limits)
+          security=security, bundle_limits=limits, job_limits=job_limits)
     return 0
 
 

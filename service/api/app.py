@@ -17,6 +17,7 @@ from service.api.schemas import BundleJobCreate, JobCreate, LambdaUpdate
 from service.api.security import RequestGuard, SecuritySettings
 from service.jobs import bundle
 from service.jobs.store import JobStore
+from service.loop.spec import SERVICE_LIMITS, JobLimits
 from service.jobs.worker import JobWorker
 
 FORM_OVERHEAD_BYTES = 1024 * 1024  # multipart headers and the spec field around the bundle
@@ -25,7 +26,8 @@ MAX_UPLOAD_BYTES = bundle.MAX_BUNDLE_BYTES + FORM_OVERHEAD_BYTES  # with the def
 
 def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
                security: SecuritySettings = SecuritySettings(),
-               bundle_limits: bundle.BundleLimits = bundle.BundleLimits()) -> FastAPI:
+               bundle_limits: bundle.BundleLimits = bundle.BundleLimits(),
+               job_limits: JobLimits = SERVICE_LIMITS) -> FastAPI:
     store = JobStore(Path(data_dir))
     worker = JobWorker(store, networks, concurrency=concurrency)
 
@@ -36,7 +38,8 @@ def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
         worker.stop()
 
     app = FastAPI(title="renderloop", version="0.1.0", lifespan=lifespan)
-    app.state.store, app.state.worker, app.state.bundle_limits = store, worker, bundle_limits
+    app.state.store, app.state.worker = store, worker
+    app.state.bundle_limits, app.state.job_limits = bundle_limits, job_limits
     app.add_middleware(BodySizeLimit, max_bytes=bundle_limits.max_bytes + FORM_OVERHEAD_BYTES)
     if security.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(security.cors_origins), allow_credentials=False,

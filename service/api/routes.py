@@ -110,10 +110,10 @@ async def submit_job(request: Request, store: Store, worker: Worker) -> JobCreat
             raise invalid("bundle", "upload one zip as 'bundle', or the XML and assets as 'files'")
         job_id = store.new_id()
         stored = await run_in_threadpool(unpack_bundle, worker.files(job_id), archives or files, bool(archives),
-                                         spec_request, limits)
+                                         spec_request, limits, request.app.state.job_limits)
         record = store.create(stored, stored["lambda"], job_id=job_id)
     else:
-        spec = await run_in_threadpool(builtin_job, await json_body(request))
+        spec = await run_in_threadpool(builtin_job, await json_body(request), request.app.state.job_limits)
         record = await run_in_threadpool(store.create, spec.to_stored(), spec.lam)
     worker.submit(record.id)
     return JobCreated(id=record.id, state=record.state)

@@ -8,6 +8,7 @@ RENDERLOOP_TORCH_THREADS / RENDERLOOP_TOKEN / RENDERLOOP_ALLOWED_HOSTS / RENDERL
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import uvicorn
@@ -17,12 +18,14 @@ from models.pretrained import Networks, load_networks
 from service.api.app import create_app
 from service.api.security import SecuritySettings
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
+from service.loop.spec import SERVICE_LIMITS, JobLimits
 from service.loop.tensors import configure_torch_threads
 
 DATA_DIR_ENV = "RENDERLOOP_DATA_DIR"
 CONCURRENCY_ENV = "RENDERLOOP_CONCURRENCY"
 MAX_BUNDLE_MB_ENV = "RENDERLOOP_MAX_BUNDLE_MB"
 MAX_BUNDLE_FILES_ENV = "RENDERLOOP_MAX_BUNDLE_FILES"
+MAX_JOB_MEMORY_GB_ENV = "RENDERLOOP_MAX_JOB_MEMORY_GB"
 DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8000
 # On SIGTERM uvicorn waits for open responses before shutting the app down; an event stream
 # never ends by itself, so open ones are cut after this grace. Running jobs stop within one
@@ -45,14 +48,19 @@ def app_from_env() -> FastAPI:
     configure_torch_threads()
     return create_app(default_data_dir(), networks=load_networks(),
                       concurrency=int(os.environ.get(CONCURRENCY_ENV, "1")), security=SecuritySettings.from_env(),
-                      bundle_limits=bundle_limits_from_env())
+                      bundle_limits=bundle_limits_from_env(), job_limits=job_limits_from_env())
+
+
+def job_limits_from_env() -> JobLimits:
+    gigabytes = os.environ.get(MAX_JOB_MEMORY_GB_ENV)
+    return replace(SERVICE_LIMITS, max_memory_bytes=float(gigabytes) * 2**30) if gigabytes else SERVICE_LIMITS
 
 
 def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | None = None, concurrency: int = 1,
           *, networks: Networks, security: SecuritySettings = SecuritySettings(),
-          bundle_limits: BundleLimits = BundleLimits()) -> None:
+          bundle_limits: BundleLimits = BundleLimits(), job_limits: JobLimits = SERVICE_LIMITS) -> None:
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
     app = create_app(data_dir, networks=networks, concurrency=concurrency, security=security,
-                     bundle_limits=bundle_limits)
+                     bundle_limits=bundle_limits, job_limits=job_limits)
     uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS)

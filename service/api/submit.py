@@ -15,7 +15,7 @@ from starlette.datastructures import UploadFile
 from service.api.schemas import BundleJobCreate, JobCreate
 from service.jobs import bundle
 from service.jobs.artifacts import JobFiles
-from service.loop.spec import LoopSpec, LoopSpecError, check_limits
+from service.loop.spec import SERVICE_LIMITS, JobLimits, LoopSpec, LoopSpecError, check_limits
 from service.render.scenes import SceneError, builtin_scene_names, film_size
 
 JSON_MEDIA_TYPE = "application/json"
@@ -56,23 +56,23 @@ def require_builtin(scene: str) -> None:
         raise invalid("scene", f"unknown built-in scene {scene!r}; known: {', '.join(names)} (or upload a bundle)")
 
 
-def check_effective_job(spec: LoopSpec, root: Path | None = None) -> None:
+def check_effective_job(spec: LoopSpec, root: Path | None = None, limits: JobLimits = SERVICE_LIMITS) -> None:
     """Service limits on the job as it will run: the scene's own film size when the request
     names none (a job without width/height must not escape the sample cap). Parsing the scene
     here also turns a broken scene into a 422 at submit instead of a failed job later."""
     try:
         width, height = film_size(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root)
-        check_limits(spec, width, height)
+        check_limits(spec, width, height, limits)
     except (SceneError, LoopSpecError) as exc:
         raise invalid("spec", str(exc)) from exc
 
 
-def builtin_job(body: object) -> LoopSpec:
+def builtin_job(body: object, limits: JobLimits = SERVICE_LIMITS) -> LoopSpec:
     """The LoopSpec of a JSON request naming a built-in scene, limits checked."""
     request: JobCreate = validated(JobCreate, body)
     require_builtin(request.scene)
     spec = request.loop_spec(request.scene)
-    check_effective_job(spec)
+    check_effective_job(spec, None, limits)
     return spec
 
 
@@ -85,7 +85,7 @@ def parse_bundle_spec(raw: object) -> BundleJobCreate:
 
 
 def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, request: BundleJobCreate,
-                  limits: bundle.BundleLimits = bundle.BundleLimits()) -> dict:
+                  limits: bundle.BundleLimits = bundle.BundleLimits(), job_limits: JobLimits = SERVICE_LIMITS) -> dict:
     """Store the upload under the job's folder and return the stored spec (scene relative to
     the bundle); on any problem the folder is removed and the error propagates."""
     root = files.bundle_dir
@@ -99,7 +99,7 @@ def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, reque
         entry = bundle.prepare_bundle(root, request.scene, params=spec.params)
         relative = entry.relative_to(root.resolve()).as_posix()
         spec = request.loop_spec(str(entry))
-        check_effective_job(spec, root)
+        check_effective_job(spec, root, job_limits)
     except BaseException:
         shutil.rmtree(files.root, ignore_errors=True)
         raise

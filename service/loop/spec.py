@@ -44,9 +44,21 @@ class JobLimits:
     max_spp_first: int = 1024
     max_total_samples: float = 2.0**33  # pixels × frames × final mean spp
     max_time_limit: float = 7 * 24 * 3600.0
+    max_memory_bytes: float = 8 * 2.0**30  # estimated_memory of the job (serve --max-job-memory-gb)
 
 
 SERVICE_LIMITS = JobLimits()
+# What a job holds in memory: a fixed part (Python, Mitsuba, torch and one 2^22-lane wavefront
+# chunk: `renderloop bench --memory` measured 0.73 GB for a whole 1024² pass, 0.13 GB of it the
+# frame buffer) plus, per pixel and frame, the float64 sums (128 B), the denoiser's cached
+# features (~260 B at width 32 over the pyramid) and temporaries — rounded up to 1 KiB.
+BASE_JOB_BYTES = 0.6e9
+BYTES_PER_PIXEL_FRAME = 1024
+
+
+def estimated_memory(width: int, height: int, frames: int) -> float:
+    """Bytes a job needs while it runs (see BASE_JOB_BYTES, BYTES_PER_PIXEL_FRAME)."""
+    return BASE_JOB_BYTES + BYTES_PER_PIXEL_FRAME * width * height * frames
 
 
 @dataclass
@@ -172,6 +184,10 @@ def check_limits(spec: LoopSpec, film_width: int, film_height: int, limits: JobL
         raise LoopSpecError(f"max_iterations may be at most {limits.max_iterations}, got {spec.max_iterations}")
     if spec.time_limit is not None and spec.time_limit > limits.max_time_limit:
         raise LoopSpecError(f"time_limit may be at most {limits.max_time_limit:g} s, got {spec.time_limit:g}")
+    memory = estimated_memory(width, height, spec.frames)
+    if memory > limits.max_memory_bytes:
+        raise LoopSpecError(f"the job would need about {memory / 2**30:.1f} GiB ({width}x{height} × {spec.frames} "
+                            f"frame(s)), over this server's cap of {limits.max_memory_bytes / 2**30:.1f} GiB")
     planned = width * height * spec.frames * spec.planned_mean_spp()
     if not math.isfinite(planned):
         # Every iteration doubles the samples: a time limit or target error alone bounds nothing.

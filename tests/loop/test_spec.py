@@ -67,3 +67,16 @@ def test_api_schema_fields_are_the_spec_fields():
     spec_fields = {f.name for f in dataclasses.fields(LoopSpec)} - {"scene"}
     assert spec_fields <= set(JobCreate.model_fields)
     assert JobCreate.model_validate({"scene": "cornell-box"}).loop_spec("cornell-box") == LoopSpec(scene="cornell-box")
+
+
+def test_a_job_over_the_memory_cap_is_refused_with_its_estimate():
+    from dataclasses import replace
+
+    from service.loop.spec import SERVICE_LIMITS, check_limits, estimated_memory
+
+    spec = LoopSpec(scene="cornell-box", frames=16, max_iterations=1, spp_first=1)
+    assert estimated_memory(2048, 2048, 16) > SERVICE_LIMITS.max_memory_bytes  # 2048² × 16 frames
+    with pytest.raises(LoopSpecError, match="GiB"):
+        check_limits(spec, 2048, 2048)
+    roomy = replace(SERVICE_LIMITS, max_memory_bytes=128 * 2**30)
+    check_limits(spec, 2048, 2048, roomy)  # the same job fits a server configured for it

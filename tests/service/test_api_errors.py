@@ -170,3 +170,9 @@ def test_openapi_describes_request_bodies_and_error_answers(client):
     preview = document["paths"]["/jobs/{job_id}/preview"]["get"]["responses"]
     assert {"200", "204", "304", "404", "409", "422"} <= set(preview)
     assert {"JobCreate", "LambdaUpdate", "ErrorBody"} <= set(document["components"]["schemas"])
+
+
+def test_a_job_whose_memory_estimate_is_over_the_server_cap_is_422(client):
+    body = {"scene": "cornell-box", "width": 2048, "height": 2048, "frames": 16, "spp_first": 1, "max_iterations": 1}
+    response = client.post("/jobs", json=body)
+    assert response.status_code == 422 and "GiB" in response.json()["detail"]
