@@ -14,6 +14,7 @@ from pathlib import Path
 from service import denoise_command, train_command
 from service.api.security import LOOPBACK_HOSTS, SecuritySettings, is_loopback
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
+from service.jobs.retention import Retention
 from service.loop.spec import ALLOCATORS, DEFAULT_ITERATIONS, SERVICE_LIMITS, LAMBDA_RANGE, LoopSpec, LoopSpecError
 from service.dataset import command as dataset_command
 
@@ -172,6 +173,10 @@ def add_serve_parser(sub) -> None:
     p.add_argument("--max-job-memory-gb", type=float, default=SERVICE_LIMITS.max_memory_bytes / 2**30,
                    help="refuse jobs whose estimated memory is over this (default "
                         f"{SERVICE_LIMITS.max_memory_bytes / 2**30:g} GiB)")
+    p.add_argument("--keep-days", type=float, default=None,
+                   help="remove finished jobs (record and files) this many days after they end (default: keep)")
+    p.add_argument("--max-disk-gb", type=float, default=None,
+                   help="keep the data folder under this size by removing the oldest finished jobs (default: no cap)")
     p.add_argument("--insecure-no-auth", action="store_true",
                    help="allow binding a non-loopback address without a token")
     p.set_defaults(handler=run_serve)
@@ -202,12 +207,17 @@ def run_serve(args) -> int:
     if not args.max_job_memory_gb > 0:
         raise CliError("--max-job-memory-gb must be > 0")
     job_limits = replace(SERVICE_LIMITS, max_memory_bytes=args.max_job_memory_gb * 2**30)
+    for name in ("keep_days", "max_disk_gb"):
+        if getattr(args, name) is not None and not getattr(args, name) > 0:
+            raise CliError(f"--{name.replace('_', '-')} must be > 0")
+    retention = Retention(keep_days=args.keep_days,
+                          max_disk_bytes=args.max_disk_gb * 2**30 if args.max_disk_gb else None)
     auth = " -H 'authorization: Bearer $RENDERLOOP_TOKEN'" if security.token else ""
     print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir})")
     print(f"try: curl -X POST http://{args.host}:{args.port}/jobs{auth} -H 'content-type: application/json' "
           "-d '{\"scene\": \"cornell-box\", \"width\": 64, \"height\": 64, \"max_iterations\": 3}'")
     serve(args.host, args.port, args.data_dir, args.concurrency, networks=load_cli_networks(args.weights),
-          security=security, bundle_limits=limits, job_limits=job_limits)
+          security=security, bundle_limits=limits, job_limits=job_limits, retention=retention)
     return 0
 
 

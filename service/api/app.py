@@ -16,6 +16,7 @@ from service.api.routes import router
 from service.api.schemas import BundleJobCreate, JobCreate, LambdaUpdate
 from service.api.security import RequestGuard, SecuritySettings
 from service.jobs import bundle
+from service.jobs.retention import Housekeeper, Retention
 from service.jobs.store import JobStore
 from service.loop.spec import SERVICE_LIMITS, JobLimits
 from service.jobs.worker import JobWorker
@@ -27,14 +28,17 @@ MAX_UPLOAD_BYTES = bundle.MAX_BUNDLE_BYTES + FORM_OVERHEAD_BYTES  # with the def
 def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
                security: SecuritySettings = SecuritySettings(),
                bundle_limits: bundle.BundleLimits = bundle.BundleLimits(),
-               job_limits: JobLimits = SERVICE_LIMITS) -> FastAPI:
+               job_limits: JobLimits = SERVICE_LIMITS, retention: Retention = Retention()) -> FastAPI:
     store = JobStore(Path(data_dir))
     worker = JobWorker(store, networks, concurrency=concurrency)
+    housekeeper = Housekeeper(store, retention)
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
         worker.start()
+        housekeeper.start()
         yield
+        housekeeper.stop()
         worker.stop()
 
     app = FastAPI(title="renderloop", version="0.1.0", lifespan=lifespan)
