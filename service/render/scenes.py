@@ -111,6 +111,14 @@ def film_size(source: str | Path, *, width: int | None = None, height: int | Non
     mi = mitsuba()
     parsed = _parse_scene(mi, source, width, height, 0, params, root)
     _conform(mi, parsed.state, width, height, parsed.label)
+    # What instantiating would refuse, found without loading anything (a submit check).
+    plugins = mi.PluginManager.instance()
+    unknown = sorted({node.props.plugin_name() for node in parsed.state.nodes if node.type != mi.ObjectType.Scene
+                      and plugins.plugin_type(node.props.plugin_name()) == mi.ObjectType.Unknown})
+    if unknown:
+        raise SceneError(f"{parsed.label}: unknown plugin(s) {', '.join(repr(name) for name in unknown)}")
+    if not any(node.type == mi.ObjectType.Sensor for node in parsed.state.nodes):
+        raise SceneError(f"{parsed.label}: the scene declares no <sensor> (camera) to render from")
     films = [node for node in parsed.state.nodes if node.type == mi.ObjectType.Film]
     if not films:
         return MITSUBA_DEFAULT_FILM

@@ -176,3 +176,22 @@ def test_a_job_whose_memory_estimate_is_over_the_server_cap_is_422(client):
     body = {"scene": "cornell-box", "width": 2048, "height": 2048, "frames": 16, "spp_first": 1, "max_iterations": 1}
     response = client.post("/jobs", json=body)
     assert response.status_code == 422 and "GiB" in response.json()["detail"]
+
+
+def test_json_nested_a_hundred_thousand_deep_is_422_not_500(client):
+    raw = '{"scene": ' + "[" * 100_000 + "]" * 100_000 + "}"
+    response = client.post("/jobs", content=raw, headers={"content-type": "application/json"})
+    assert response.status_code == 422, response.text
+
+
+@pytest.mark.parametrize("body, message", [
+    ('<scene version="3.0.0"><shape type="sphere"/></scene>', "no <sensor>"),
+    ('<scene version="3.0.0"><sensor type="perspective"/><shape type="no_such_plugin"/></scene>', "no_such_plugin"),
+    ('<scene version="3.0.0"><integrator type="path"><integer name="max_depth" value="abc"/></integrator>'
+     '<sensor type="perspective"/></scene>', "abc"),
+])
+def test_scene_errors_are_422_at_submit_with_mitsubas_message(client, body, message):
+    response = client.post("/jobs", data={"spec": '{"max_iterations": 1}'},
+                           files={"bundle": ("s.zip", zip_bytes({"scene.xml": body}), "application/zip")})
+    assert response.status_code == 422, response.text
+    assert message in response.json()["detail"] and "/tmp" not in response.json()["detail"]
