@@ -6,6 +6,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+# A pixel counts as converged once this many samples all agreed (FrameBuffer.converged); the
+# tolerance absorbs float64 rounding of the sums of identical values.
+CONVERGED_MIN_SPP = 16
+CONVERGED_REL_TOLERANCE = 1e-9
+
 def _finite(values: np.ndarray) -> np.ndarray:
     """NaN/±Inf → 0. A running sum that went non-finite (a corrupted or overflowed accumulator;
     the renderer already drops non-finite samples) holds no usable estimate: read it like an
@@ -75,6 +80,16 @@ class FrameBuffer:
         )
         var_of_mean = np.divide(np.maximum(sample_var, 0.0), n, out=np.zeros_like(mean), where=n > 1)
         return _finite(var_of_mean).astype(np.float32)
+
+    def converged(self, min_spp: int = CONVERGED_MIN_SPP) -> np.ndarray:
+        """(H, W) bool: at least `min_spp` samples and every one returned the same value (empty
+        background, a flat emitter seen directly). The mean is then exact for what the pixel
+        sees, so nothing gains from more samples or from filtering it."""
+        n = self.spp[..., None].astype(np.float64)
+        spread = self.radiance_sq_sum - np.divide(self.radiance_sum**2, n, out=np.zeros_like(self.radiance_sum),
+                                                  where=n > 0)
+        same = np.abs(spread) <= CONVERGED_REL_TOLERANCE * self.radiance_sq_sum
+        return (self.spp >= min_spp) & same.all(axis=-1)
 
     def relative_variance(self, eps: float = 1e-2) -> np.ndarray:
         """Variance of the mean over squared luminance-ish magnitude (Rousselle et al. style)."""

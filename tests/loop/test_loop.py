@@ -147,3 +147,24 @@ def test_a_checkpoint_keeps_the_scene_integrators_aov_channels(tmp_path):
     after = LoopState.load(tmp_path / "s").buffers[0]
     assert after.aov_names == before.aov_names
     np.testing.assert_array_equal(after.aov_sum, before.aov_sum)
+
+
+POINT_LIT_SPHERE = """
+  <shape type="sphere"><float name="radius" value="0.8"/><bsdf type="diffuse"/></shape>
+  <emitter type="point"><point name="position" x="2" y="2" z="4"/><rgb name="intensity" value="30"/></emitter>
+"""
+
+
+def test_pixels_whose_samples_all_agreed_keep_their_exact_mean_and_get_only_the_floor(write_scene_xml, tiny_networks):
+    scene = write_scene_xml(POINT_LIT_SPHERE)  # an 8×8 view of a sphere on a black background
+    loop = RenderLoop(LoopSpec(scene=str(scene), width=16, height=16, max_iterations=2, allocator="error"),
+                      tiny_networks)
+    records = list(loop.run())
+    buffer = records[-1].buffers[0]
+    background = buffer.converged()
+    assert background.any() and not background.all()
+    assert (records[-1].denoised[0][background] == 0).all()  # no light bled into the empty pixels
+    assert (records[-1].error[0][background] == 0).all()
+    # Iteration 1 spent its 16 × 256 samples mostly on the sphere: the background got the floor.
+    added = buffer.spp - 16
+    assert added[background].mean() < 0.5 * added[~background].mean()
