@@ -82,14 +82,18 @@ class FrameBuffer:
         return _finite(var_of_mean).astype(np.float32)
 
     def converged(self, min_spp: int = CONVERGED_MIN_SPP) -> np.ndarray:
-        """(H, W) bool: at least `min_spp` samples and every one returned the same value (empty
-        background, a flat emitter seen directly). The mean is then exact for what the pixel
-        sees, so nothing gains from more samples or from filtering it."""
+        """(H, W) bool: at least `min_spp` samples and every one returned the same value — an
+        empty background (every primary ray missed, radiance 0) or a flat emitter seen directly
+        (the same non-zero value). The mean is then exact for what the pixel sees, so nothing
+        gains from more samples or from filtering it. A surface pixel whose samples were all 0
+        does not count: rare light paths (indirect light in a dark corner) can miss 16 times."""
         n = self.spp[..., None].astype(np.float64)
         spread = self.radiance_sq_sum - np.divide(self.radiance_sum**2, n, out=np.zeros_like(self.radiance_sum),
                                                   where=n > 0)
-        same = np.abs(spread) <= CONVERGED_REL_TOLERANCE * self.radiance_sq_sum
-        return (self.spp >= min_spp) & same.all(axis=-1)
+        same = (np.abs(spread) <= CONVERGED_REL_TOLERANCE * self.radiance_sq_sum).all(axis=-1)
+        lit = self.radiance_sum.any(axis=-1)
+        missed = self.depth_sum == 0  # first-hit distance is 0 for a miss
+        return (self.spp >= min_spp) & same & (lit | missed)
 
     def relative_variance(self, eps: float = 1e-2) -> np.ndarray:
         """Variance of the mean over squared luminance-ish magnitude (Rousselle et al. style)."""

@@ -21,3 +21,10 @@ def test_a_pixel_is_converged_only_when_enough_samples_all_agreed():
     n = CONVERGED_MIN_SPP
     buffer = buffer_with([[0.0] * n, [0.37] * n, [0.37] * (n - 1) + [0.38], [0.0] * (n - 1)])
     np.testing.assert_array_equal(buffer.converged()[0], [True, True, False, False])
+
+
+def test_a_surface_whose_samples_were_all_zero_is_not_converged():
+    # Rare indirect light can miss 16 times in a row; only a pixel that saw nothing is exact at 0.
+    buffer = buffer_with([[0.0] * CONVERGED_MIN_SPP, [0.0] * CONVERGED_MIN_SPP])
+    buffer.depth_sum[0, 1] = 3.0 * CONVERGED_MIN_SPP  # pixel 1's primary rays hit a surface
+    np.testing.assert_array_equal(buffer.converged()[0], [True, False])
