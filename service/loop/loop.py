@@ -189,9 +189,8 @@ class RenderLoop:
             return list(self._denoised)
 
     def _keep_converged(self, images: list[np.ndarray]) -> list[np.ndarray]:
-        """Pixels whose samples all agreed keep their exact mean: filtering could only bleed
-        neighbours' light into them (measured: the shipped denoiser doubled the SMAPE of a
-        point-lit object on black, docs/dev-suite.md, before this)."""
+        """Pixels whose samples all agreed (FrameBuffer.converged) keep their exact mean:
+        filtering could only bleed neighbours' light into them."""
         return [np.where(mask[..., None], buf.mean, image).astype(np.float32)
                 for mask, buf, image in zip(self._converged, self.state.buffers, images)]
 
