@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+from functools import lru_cache
 from typing import Annotated, AsyncIterator
 
 import numpy as np
@@ -16,7 +17,7 @@ from starlette.concurrency import run_in_threadpool
 from service.api import imaging
 from service.api.lambda_map import constant, decode_map, paint_rects
 from service.api.schemas import (ErrorBody, Health, ImageFormat, JobCreate, JobCreated, JobList, JobStatus,
-                                 LambdaResult, LambdaUpdate, Layer)
+                                 LambdaResult, LambdaUpdate, Layer, SceneInfo, SceneList)
 from service.api.submit import (builtin_job, invalid, is_multipart, json_body, parse_bundle_spec, unpack_bundle,
                                 uploads, validated)
 from service.images import png_bytes
@@ -24,6 +25,8 @@ from service.jobs import bundle
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.store import CANCELED, FAILED, STATES, JobRecord, JobStore
 from service.jobs.worker import JobWorker, job_spec
+from service.render.effects import inspect_scene
+from service.render.scenes import describe_builtin_scenes, film_size
 
 EVENT_POLL_SECONDS = 0.25
 EVENT_KEEPALIVE_SECONDS = 15.0
@@ -256,6 +259,23 @@ async def job_events(job_id: str, request: Request, store: Store) -> StreamingRe
     await run_in_threadpool(require_job, store, job_id)
     headers = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
     return StreamingResponse(event_stream(store, job_id, request), media_type="text/event-stream", headers=headers)
+
+
+@lru_cache(maxsize=1)
+def builtin_scene_list() -> SceneList:
+    """Every built-in scene with its film size and effects report (loaded once per process)."""
+    scenes = []
+    for name, description in describe_builtin_scenes():
+        width, height = film_size(name)
+        scenes.append(SceneInfo(name=name, description=description, width=width, height=height,
+                                effects=inspect_scene(name).as_record()))
+    return SceneList(scenes=scenes)
+
+
+@router.get("/scenes", response_model=SceneList)
+def list_scenes() -> SceneList:
+    """The built-in scenes a JSON job may name, with what each calls for."""
+    return builtin_scene_list()
 
 
 @router.get("/healthz", response_model=Health)

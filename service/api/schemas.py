@@ -188,6 +188,18 @@ class LambdaResult(BaseModel):
     tail_passes: int = Field(0, description="λ-only passes from cached features")
 
 
+class SceneInfo(BaseModel):
+    name: str
+    description: str
+    width: int
+    height: int
+    effects: dict = Field(description="the effects report: which integrator runs and why, what is simulated")
+
+
+class SceneList(BaseModel):
+    scenes: list[SceneInfo]
+
+
 class Health(BaseModel):
     status: str
     jobs: dict[str, int]

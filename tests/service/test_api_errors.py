@@ -195,3 +195,10 @@ def test_scene_errors_are_422_at_submit_with_mitsubas_message(client, body, mess
                            files={"bundle": ("s.zip", zip_bytes({"scene.xml": body}), "application/zip")})
     assert response.status_code == 422, response.text
     assert message in response.json()["detail"] and "/tmp" not in response.json()["detail"]
+
+
+def test_scenes_lists_every_builtin_with_its_size_and_effects_report(client):
+    scenes = {scene["name"]: scene for scene in client.get("/scenes").json()["scenes"]}
+    assert {"cornell-box", "fireflies", "veiled"} <= set(scenes)
+    assert scenes["veiled"]["effects"]["media"] is True and scenes["veiled"]["effects"]["integrator"] == "volpath"
+    assert scenes["cornell-box"]["width"] > 0 and "integrator_reason" in scenes["cornell-box"]["effects"]
