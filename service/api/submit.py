@@ -95,8 +95,7 @@ def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, reque
             bundle.extract_zip(items[0].file, root, limits)
         else:
             bundle.save_files(((u.filename or "", u.file) for u in items), root, limits)
-        spec = request.loop_spec("")
-        entry = bundle.prepare_bundle(root, request.scene, params=spec.params)
+        entry = bundle.prepare_bundle(root, request.scene, params=request.params)
         relative = entry.relative_to(root.resolve()).as_posix()
         spec = request.loop_spec(str(entry))
         check_effective_job(spec, root, job_limits)

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
+from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
-from models.pretrained import Networks
 from service.jobs.store import CANCELED, COMPLETED, FAILED, QUEUED, JobRecord, JobStore
 from service.loop.loop import IterationInterrupted, RenderLoop
 from service.loop.spec import IterationRecord, LoopSpec

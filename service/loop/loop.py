@@ -50,7 +50,6 @@ class RenderLoop:
         self.state = state or LoopState.new(spec.frames, int(height), int(width), spec.lam)
         if self.state.buffers[0].shape != (height, width) or len(self.state.buffers) != spec.frames:
             raise LoopSpecError("checkpoint does not match the job's resolution or frame count")
-        self.networks = networks
         # One frame → no temporal work; more → each frame's 2M+1 window (all frames advance together).
         radius = networks.denoiser.config.temporal_radius if (networks and self.effects.temporal) else 0
         self.session = DenoiseSession(networks, spec.frames, radius) if spec.denoise else None
