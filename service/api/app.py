@@ -2,6 +2,7 @@
 service.api.routes, the error handlers that turn every refusal into a 4xx with a message."""
 from __future__ import annotations
 
+import logging
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import AsyncIterator
@@ -18,8 +19,11 @@ from service.api.security import RequestGuard, SecuritySettings
 from service.jobs import bundle
 from service.jobs.retention import Housekeeper, Retention
 from service.jobs.store import JobStore
-from service.loop.spec import SERVICE_LIMITS, JobLimits
 from service.jobs.worker import JobWorker
+from service.loop.spec import SERVICE_LIMITS, JobLimits
+from service.render.sandbox import wall_support
+
+log = logging.getLogger(__name__)
 
 FORM_OVERHEAD_BYTES = 1024 * 1024  # multipart headers and the spec field around the bundle
 MAX_UPLOAD_BYTES = bundle.MAX_BUNDLE_BYTES + FORM_OVERHEAD_BYTES  # with the default bundle limits
@@ -35,6 +39,11 @@ def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        wall = wall_support()
+        if wall.available:
+            log.info("scene files load behind a Landlock wall (ABI %d): the job's folder and installed software only", wall.abi)
+        else:
+            log.warning("scene files load WITHOUT the kernel wall (%s); the flattener's check is the only wall", wall.reason)
         worker.start()
         housekeeper.start()
         yield

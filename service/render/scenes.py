@@ -27,6 +27,7 @@ from service.render.builtin import BUILTIN_BY_NAME, BUILTIN_SCENES
 from service.render.flatten import FlatScene, FlattenError, flatten_scene
 from service.render.integrators import film_refusal, integrator_refusal, sensor_refusal
 from service.render.runtime import mitsuba
+from service.render.sandbox import run_walled
 
 MAX_RESOLUTION = 8192
 MAX_PIXELS = 16_777_216
@@ -96,7 +97,7 @@ def load_scene_info(
     mi = mitsuba()
     parsed = _parse_scene(mi, source, width, height, frame, params, root)
     max_depth, integrator = _conform(mi, parsed.state, width, height, parsed.label)
-    scene = _instantiate(mi, parsed.config, parsed.state, parsed.label, parsed.explain)
+    scene = _instantiate(mi, parsed)
     if not isinstance(scene, mi.Scene):
         raise SceneError(f"{parsed.label}: the file describes a {type(scene).__name__}, not a <scene>")
     if not scene.sensors():
@@ -135,6 +136,7 @@ class _Parsed:
     label: str
     declares_frame: bool
     explain: object  # maps Mitsuba's message on the flat document back to the user's file:line
+    readable: Path | None = None  # the folder a file scene may read (None: a built-in, reads nothing)
 
 
 def _parse_scene(mi, source: str | Path, width: int | None, height: int | None, frame: int,
@@ -148,7 +150,7 @@ def _parse_scene(mi, source: str | Path, width: int | None, height: int | None, 
     # (e.g. a leftover <default name="frame">); that is no reason to refuse the scene.
     config.unused_parameters = mi.LogLevel.Debug
     builtin = BUILTIN_BY_NAME.get(str(source)) if not isinstance(source, Path) else None
-    explain = None
+    explain, readable = None, None
     if builtin is not None:
         if params:
             raise SceneError(f"{builtin.name}: built-in scenes take no parameters (got {', '.join(sorted(params))})")
@@ -157,13 +159,14 @@ def _parse_scene(mi, source: str | Path, width: int | None, height: int | None, 
     else:
         path = _scene_path(source)
         flat = _flatten(path, root, params, frame, width, height)
-        explain = _explainer(flat, Path(root) if root is not None else path.parent)
+        readable = Path(root) if root is not None else path.parent
+        explain = _explainer(flat, readable)
         with _sandboxed_resolver(mi):
             state = _parse(lambda: mi.parser.parse_string(config, flat.document), path.name, explain)
         declares_frame = flat.declares(FRAME_PARAMETER)
     label = builtin.name if builtin is not None else Path(source).name
     _parse(lambda: mi.parser.transform_all(config, state), label, explain)
-    return _Parsed(config, state, label, declares_frame, explain)
+    return _Parsed(config, state, label, declares_frame, explain, readable)
 
 
 def _check_override(width: int | None, height: int | None) -> tuple[int | None, int | None]:
@@ -343,9 +346,19 @@ def _resize_film(props, width: int | None, height: int | None, label: str) -> No
                 del props[key]
 
 
-def _instantiate(mi, config, state, label: str, explain=None):
-    with _sandboxed_resolver(mi):
-        return _parse(lambda: mi.parser.instantiate(config, state), label, explain)
+def _instantiate(mi, parsed: _Parsed):
+    """Instantiate (this is where Mitsuba opens meshes, textures and volumes). A file scene
+    loads behind the kernel wall of service/render/sandbox.py: a thread that can read only
+    the scene's folder and the installed software, instantiating serially so that no file is
+    opened on Mitsuba's shared pool threads outside that wall."""
+    def load():
+        with _sandboxed_resolver(mi):
+            return _parse(lambda: mi.parser.instantiate(parsed.config, parsed.state), parsed.label, parsed.explain)
+
+    if parsed.readable is None:
+        return load()
+    parsed.config.parallel = False
+    return run_walled(load, [parsed.readable])
 
 
 @contextmanager
