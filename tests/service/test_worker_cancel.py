@@ -1,0 +1,62 @@
+"""When a cancel comes too late to matter: the worker with a real store, real renders and the
+cancel delivered at an exact point (right after an iteration is published), so the outcome does
+not depend on timing."""
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from service.jobs.store import CANCELED, COMPLETED, JobStore
+from service.jobs.worker import JobWorker
+from service.loop.spec import LoopSpec
+
+
+class CancelAfterEachIteration(JobWorker):
+    """A worker whose user presses cancel the moment each iteration is checkpointed and
+    published: for the last iteration, that is after all the job's work is done."""
+
+    def _finish_iteration(self, job_id, loop, files, record, timings):
+        timings = super()._finish_iteration(job_id, loop, files, record, timings)
+        self.cancel(job_id)
+        return timings
+
+
+@pytest.fixture
+def store(tmp_path):
+    s = JobStore(tmp_path)
+    yield s
+    s.close()
+
+
+def run_job(store: JobStore, worker: JobWorker, iterations: int, timeout: float = 120.0):
+    spec = LoopSpec(scene="cornell-box", width=16, height=16, spp_first=4, max_iterations=iterations)
+    record = store.create(spec.to_stored(), spec.lam)
+    worker.submit(record.id)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        record = store.get(record.id)
+        if record.finished:
+            return record
+        time.sleep(0.05)
+    raise AssertionError(f"job did not finish within {timeout} s: {store.get(record.id)}")
+
+
+def test_cancel_after_the_last_iteration_leaves_the_job_completed(store, tiny_networks):
+    worker = CancelAfterEachIteration(store, tiny_networks)
+    try:
+        done = run_job(store, worker, iterations=1)
+    finally:
+        worker.stop()
+    assert (done.state, done.stop_reason, done.iteration) == (COMPLETED, "max_iterations", 1)
+    assert worker.files(done.id).result_path(0).is_file()
+
+
+def test_cancel_after_an_earlier_iteration_cancels_the_job(store, tiny_networks):
+    worker = CancelAfterEachIteration(store, tiny_networks)
+    try:
+        done = run_job(store, worker, iterations=3)
+    finally:
+        worker.stop()
+    assert (done.state, done.stop_reason, done.iteration) == (CANCELED, "canceled", 1)
+    assert worker.files(done.id).result_path(0).is_file()  # what was rendered is kept
