@@ -13,7 +13,7 @@ from bench.models_report import main as models_main
 from bench.quality_report import run_quality_report
 from bench.sampler_report import bench_memory, bench_sampler, write_memory_report, write_sampler_report
 
-HELP = "measure and write reports to docs/"
+HELP = "measure and write reports (to ./bench-reports; -o docs regenerates the committed ones)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -26,7 +26,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", type=int, default=256, help="image side for --sampler (default 256)")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel for --sampler (default 64)")
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("-o", "--out", type=Path, default=Path("docs"))
+    # Not docs/: a run inside the repository must not overwrite the committed reports by default.
+    p.add_argument("-o", "--out", type=Path, default=Path("bench-reports"),
+                   help="folder the reports go to (default ./bench-reports; the committed ones live in docs/)")
     p.add_argument("--references", action="store_true",
                    help="render the development suite's references (scenes/dev, mi.render as written; use a GPU)")
     p.add_argument("--references-dir", type=Path, default=DEFAULT_REFERENCE_DIR)

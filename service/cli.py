@@ -15,7 +15,8 @@ from service import denoise_command, train_command
 from service.api.security import LOOPBACK_HOSTS, SecuritySettings, is_loopback
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.jobs.retention import Retention
-from service.loop.spec import ALLOCATORS, DEFAULT_ITERATIONS, SERVICE_LIMITS, LAMBDA_RANGE, LoopSpec, LoopSpecError
+from service.loop.spec import (ALLOCATORS, DEFAULT_ITERATIONS, LAMBDA_RANGE, SERVICE_LIMITS, LoopSpec, LoopSpecError,
+                               default_allocator)
 from service.dataset import command as dataset_command
 
 EXIT_USAGE = 2
@@ -48,9 +49,10 @@ def add_render_parser(sub) -> None:
     p.add_argument("--list", action="store_true", help="print the built-in scenes and exit")
     p.add_argument("--explain", action="store_true",
                    help="print the effects report (which integrator runs and why, what is simulated) and exit")
-    p.add_argument("--width", type=int)
-    p.add_argument("--height", type=int)
-    p.add_argument("--frames", type=int, default=d.frames, help=f"frames of the scene's animation (default {d.frames})")
+    p.add_argument("--width", type=int, help="image width in pixels (with --height; default: the scene's film)")
+    p.add_argument("--height", type=int, help="image height in pixels (with --width; default: the scene's film)")
+    p.add_argument("--frames", type=int, default=d.frames,
+                   help=f"frames of the scene's animation; the scene must use $frame (default {d.frames})")
     p.add_argument("--spp", type=int, help="one uniform pass of N samples per pixel, no adaptive iterations")
     p.add_argument("--spp-first", type=int, default=d.spp_first,
                    help=f"samples per pixel of iteration 0 (default {d.spp_first})")
@@ -59,7 +61,7 @@ def add_render_parser(sub) -> None:
     stop.add_argument("--spp-budget", type=float, help="mean samples per pixel, all iterations together")
     stop.add_argument("--time-limit", type=float, help="seconds")
     stop.add_argument("--target-error", type=float, help="stop when the mean predicted SMAPE is at most this")
-    p.add_argument("--allocator", default=d.allocator, help=" | ".join(ALLOCATORS) + f" (default {d.allocator})")
+    p.add_argument("--allocator", help=" | ".join(ALLOCATORS) + f": where new samples go (default {default_allocator(True)}; {default_allocator(False)} with --no-denoise)")
     p.add_argument("--no-denoise", action="store_true", help="write the plain Monte Carlo estimate")
     p.add_argument("--lambda", dest="lam", type=float, default=d.lam,
                    help=f"λ in [{LAMBDA_RANGE[0]:g}, {LAMBDA_RANGE[1]:g}] (default {d.lam:g})")
@@ -125,6 +127,9 @@ def run_render(args) -> int:
         return 0
     if args.output is None:
         raise CliError("render needs -o OUT.exr")
+    from service.exr import require_exr_path
+
+    require_exr_path(args.output)  # before the render, not after it
 
     from tqdm import tqdm
 
@@ -232,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
         module.add_parser(sub)
     # The measurement wing (bench/) is not part of the product: `main` hands `renderloop bench …`
     # to it before parsing; this entry only lists the command in --help.
-    sub.add_parser("bench", help="measure and write reports to docs/ (renderloop bench --help)")
+    sub.add_parser("bench", help="measure and write reports (renderloop bench --help)")
     return parser
 
 

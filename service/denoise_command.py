@@ -17,7 +17,8 @@ def add_parser(sub) -> None:
     lam.add_argument("--lambda-map", type=Path, help="single-channel EXR (layer `lambda` or R) of per-pixel λ")
     p.add_argument("--frames", type=Path, nargs="+", default=[],
                    help="neighbour frames in sequence order, the input among them or not (temporal window)")
-    p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("-o", "--output", type=Path, required=True, help="output EXR path")
+    p.add_argument("--png", action="store_true", help="also write a tonemapped PNG beside the EXR")
     p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
                    "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
     p.set_defaults(handler=run_denoise)
@@ -26,14 +27,18 @@ def add_parser(sub) -> None:
 def run_denoise(args) -> int:
     # torch, OpenEXR and the networks: imported only when the command runs (`--help` stays fast)
     from models.pretrained import load_networks
-    from service.exr import ExrError
+    from service.exr import ExrError, require_exr_path
     from service.exr_denoise import denoise_exr
+    from service.images import tonemap, write_png
     from service.loop.tensors import configure_torch_threads
 
+    require_exr_path(args.output)
     if args.lambda_map is None and lambda_problem(args.lam):  # fail before the weights load
         raise ExrError(f"--lambda: {lambda_problem(args.lam)} (got {args.lam})")
     configure_torch_threads()
     networks = load_networks(args.weights)
     frame = denoise_exr(args.input, args.output, networks, lam=args.lam, lambda_map=args.lambda_map, frames=args.frames)
     print(f"wrote {args.output}  (mean predicted SMAPE {frame.error.mean():.4f})")
+    if args.png:
+        print(f"wrote {write_png(args.output.with_suffix('.png'), tonemap(frame.color))}")
     return 0

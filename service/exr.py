@@ -81,6 +81,15 @@ def _channel(array: np.ndarray, dtype) -> np.ndarray:
     return np.ascontiguousarray(array, dtype=dtype)
 
 
+def require_exr_path(path: str | Path) -> Path:
+    """An output path for EXR bytes must say so: `-o x.png` would be an EXR no viewer opens
+    as a PNG (the PNG is `--png`, written beside the EXR)."""
+    path = Path(path)
+    if path.suffix.lower() != ".exr":
+        raise ExrError(f"output {path.name!r} must end in .exr (add --png for a tonemapped PNG beside it)")
+    return path
+
+
 def write_exr(path: str | Path, frame: ExrFrame) -> Path:
     path = Path(path)
     height, width = frame.shape

@@ -61,6 +61,28 @@ def test_bad_input_gives_one_clear_line_and_a_nonzero_exit(tmp_path, args, messa
     assert result.stderr.strip().count("\n") == 0 or "usage" in result.stderr
 
 
+def test_an_output_that_is_not_exr_is_refused_before_rendering(tmp_path):
+    for args in (["render", "cornell-box", "--spp", "1", "--no-denoise"], ["denoise", tmp_path / "in.exr"]):
+        result = renderloop(*args, "-o", tmp_path / "x.png")
+        assert result.returncode == 2 and "must end in .exr" in result.stderr and "--png" in result.stderr
+        assert not (tmp_path / "x.png").exists()
+
+
+def test_no_denoise_loop_steers_by_variance_without_being_told(tmp_path):
+    out = tmp_path / "x.exr"
+    result = renderloop("render", "fireflies", "--width", 16, "--height", 16, "--iterations", 3, "--no-denoise",
+                        "-o", out)
+    assert result.returncode == 0, result.stderr
+    spp = read_exr(out).spp
+    assert spp.sum() == 64 * 16 * 16 and spp.min() < spp.max()  # adaptive: the variance allocator ran
+
+
+def test_a_sequence_of_a_scene_without_frame_is_refused_in_one_line(write_scene_xml, tmp_path):
+    scene = write_scene_xml('<shape type="sphere"/>')
+    result = renderloop("render", scene, "--frames", 2, "--spp", 1, "--no-denoise", "-o", tmp_path / "o.exr")
+    assert result.returncode == 2 and "$frame" in result.stderr and result.stderr.strip().count("\n") == 0
+
+
 def test_malformed_xml_is_reported_without_a_traceback(tmp_path):
     scene = tmp_path / "broken.xml"
     scene.write_text("<scene version='3.0.0'><shape type='sphere'></scene>")
@@ -74,8 +96,9 @@ def test_denoise_takes_a_no_denoise_render_end_to_end(tmp_path):
     assert renderloop("render", "cornell-box", "--width", 24, "--height", 24, "--spp", 16, "--no-denoise",
                       "-o", noisy).returncode == 0
     out = tmp_path / "denoised.exr"
-    result = renderloop("denoise", noisy, "--lambda", 3, "-o", out)
+    result = renderloop("denoise", noisy, "--lambda", 3, "--png", "-o", out)
     assert result.returncode == 0, result.stderr
+    assert (tmp_path / "denoised.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     frame, source = read_exr(out), read_exr(noisy)
     assert np.isfinite(frame.color).all() and (frame.color >= 0).all()
     assert not np.array_equal(frame.color, source.noisy)  # it was filtered

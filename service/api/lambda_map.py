@@ -8,9 +8,11 @@ from PIL import Image, UnidentifiedImageError
 
 from service.api.schemas import LambdaRect
 from service.exr import ExrError, exr_channels_from_bytes
-from service.loop.spec import lambda_problem
+from service.loop.spec import LAMBDA_RANGE, lambda_problem
 
 MAX_MAP_BYTES = 64 * 1024 * 1024
+# Integer image modes → their full-scale value; "I" is how Pillow may open a 16-bit PNG.
+MASK_FULL_SCALE = {"L": 255.0, "I;16": 65535.0, "I": 65535.0}
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
 
@@ -54,13 +56,26 @@ def _decode_image(data: bytes, max_pixels: int) -> np.ndarray:
         image.load()
     except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as exc:
         raise LambdaMapError("λ map is neither a PNG nor an EXR image") from exc
-    if image.mode not in ("L", "I", "I;16", "F"):
+    if image.mode not in MASK_FULL_SCALE and image.mode != "F":
         raise LambdaMapError(f"λ map must be single-channel (grey), got image mode {image.mode}")
-    return np.asarray(image)
+    values = np.asarray(image, dtype=np.float32)
+    if image.mode == "F":
+        return values  # float pixels are λ itself, like an EXR's
+    return mask_to_lambda(values, MASK_FULL_SCALE[image.mode])
+
+
+def mask_to_lambda(values: np.ndarray, full_scale: float) -> np.ndarray:
+    """An integer grey mask (what a paint program saves) spans LAMBDA_RANGE linearly:
+    0 → the smallest λ (smoothest), full scale → the largest (most detail)."""
+    low, high = LAMBDA_RANGE
+    if values.size and float(values.max()) > full_scale:
+        raise LambdaMapError(f"λ mask values must lie in [0, {full_scale:g}]")
+    return (low + (high - low) * values / full_scale).astype(np.float32)
 
 
 def decode_map(data: bytes, shape: tuple[int, int]) -> np.ndarray:
-    """An uploaded single-channel image whose pixel values are λ, checked against the job."""
+    """An uploaded single-channel image, checked against the job: EXR (or float) pixels are
+    λ itself; an 8- or 16-bit grey PNG is a mask mapped linearly onto LAMBDA_RANGE."""
     if len(data) > MAX_MAP_BYTES:
         raise LambdaMapError(f"λ map upload exceeds {MAX_MAP_BYTES // (1024 * 1024)} MiB")
     # Header first: a few hundred KB can declare gigapixels. Nothing larger than the job's

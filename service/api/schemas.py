@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 from datetime import datetime, timezone
 from typing import Annotated, Any, Literal, get_type_hints
 
@@ -35,6 +36,7 @@ _BOUNDS: dict[str, dict[str, Any]] = {
     "lam": {"alias": "lambda", "json_schema_extra": {"minimum": LAMBDA_MIN, "maximum": LAMBDA_MAX}},
     "seed": {"ge": 0, "le": MAX_SEED},
     "params": {"description": "the scene's $name parameters, like Mitsuba's -D name=value"},
+    "allocator": {"description": "null: 'error' with the denoiser, 'variance' without"},
 }
 # Strict: "32" is not a width and "yes" not a boolean; NaN and ±Infinity are no numbers here.
 _STRICT = ConfigDict(extra="forbid", populate_by_name=True, strict=True, allow_inf_nan=False)
@@ -43,7 +45,7 @@ _STRICT = ConfigDict(extra="forbid", populate_by_name=True, strict=True, allow_i
 def _spec_fields() -> dict[str, tuple[Any, Any]]:
     """Every LoopSpec field but `scene`, with its type, default and bounds."""
     hints = get_type_hints(LoopSpec)
-    hints["allocator"] = Allocator
+    hints["allocator"] = Allocator | None
     out = {}
     for f in dataclasses.fields(LoopSpec):
         if f.name == "scene":
@@ -73,9 +75,22 @@ class _SpecBody(BaseModel):
         return self
 
 
+def builtin_scene_name(value: str) -> str:
+    """A JSON body names a built-in scene; a file name there means the user wanted an upload,
+    so say how to make one instead of quoting the pattern."""
+    if not re.match(BUILTIN_SCENE_PATTERN, value):
+        raise ValueError(f"{value!r} is not a built-in scene name (GET /scenes lists them). To render your own scene "
+                         "file, upload it: multipart POST /jobs with spec={\"scene\": \"scene.xml\"} and the zipped "
+                         "folder as bundle")
+    return value
+
+
 JobCreate = create_model(
     "JobCreate", __base__=_SpecBody, __doc__="POST /jobs as JSON: `scene` names a built-in scene.",
-    scene=(str, Field(min_length=1, max_length=128, pattern=BUILTIN_SCENE_PATTERN)), **_spec_fields(),
+    # The pattern is documented in the schema and checked by builtin_scene_name (a clearer message).
+    scene=(Annotated[str, AfterValidator(builtin_scene_name)],
+           Field(min_length=1, max_length=128, json_schema_extra={"pattern": BUILTIN_SCENE_PATTERN})),
+    **_spec_fields(),
 )
 BundleJobCreate = create_model(
     "BundleJobCreate", __base__=_SpecBody,

@@ -61,7 +61,8 @@ def check_effective_job(spec: LoopSpec, root: Path | None = None, limits: JobLim
     names none (a job without width/height must not escape the sample cap). Parsing the scene
     here also turns a broken scene into a 422 at submit instead of a failed job later."""
     try:
-        width, height = film_size(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root)
+        width, height = film_size(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root,
+                                  frames=spec.frames)
         check_limits(spec, width, height, limits)
     except (SceneError, LoopSpecError) as exc:
         raise invalid("spec", str(exc)) from exc

@@ -30,6 +30,17 @@ class IterationInterrupted(RuntimeError):
     """`should_stop` became true inside an iteration: this loop's in-memory state is partial."""
 
 
+def _scene_label(scene: str, scene_root: Path | None) -> str:
+    """The scene as its author names it: a bundle's XML relative to the bundle, never the
+    server's path to it (it ends up in every result EXR's header)."""
+    if scene_root is None:
+        return scene
+    try:
+        return Path(scene).resolve().relative_to(Path(scene_root).resolve()).as_posix()
+    except ValueError:
+        return Path(scene).name
+
+
 class RenderLoop:
     def __init__(self, spec: LoopSpec, networks: Networks | None = None, *, state: LoopState | None = None,
                  scene_root: Path | None = None):
@@ -40,6 +51,7 @@ class RenderLoop:
         if spec.denoise and networks is None:
             raise LoopSpecError("denoising needs the networks: pass them (models.pretrained.load_networks)")
         self.spec = spec
+        self.scene_label = _scene_label(spec.scene, scene_root)
         # Each frame is loaded once; the effects report reads the loaded frames.
         loaded = load_frames(spec.scene, frames=spec.frames, width=spec.width, height=spec.height, params=spec.params,
                              root=scene_root)
@@ -217,7 +229,7 @@ class RenderLoop:
     def result_frames(self) -> list[ExrFrame]:
         """One ExrFrame per frame in the project layout (built by service.exr)."""
         images = self.denoised()
-        header = {"scene": self.spec.scene, "iteration": self.state.iteration, "variant": active_variant()}
+        header = {"scene": self.scene_label, "iteration": self.state.iteration, "variant": active_variant()}
         return [
             result_frame(buf, images[f] if images else buf.mean, error=self.state.error_maps[f],
                          lam=self.state.lam_map if self.spec.denoise else None, header={**header, "frame": f})

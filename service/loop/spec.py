@@ -61,6 +61,12 @@ def estimated_memory(width: int, height: int, frames: int) -> float:
     return BASE_JOB_BYTES + BYTES_PER_PIXEL_FRAME * width * height * frames
 
 
+def default_allocator(denoise: object) -> str:
+    """The error allocator predicts the *denoised* error, so a job without the denoiser
+    steers by variance instead."""
+    return "error" if denoise is not False else "variance"
+
+
 @dataclass
 class LoopSpec:
     """A render job. `scene` is a built-in scene name or a path to a Mitsuba XML file."""
@@ -74,11 +80,15 @@ class LoopSpec:
     spp_budget: float | None = None  # mean samples per pixel, all iterations together
     time_limit: float | None = None  # seconds of loop wall time
     target_error: float | None = None  # stop once mean predicted SMAPE <= this
-    allocator: str = "error"
+    allocator: str | None = None  # None: "error" with the denoiser, "variance" without (it needs none)
     denoise: bool = True
     lam: float = 1.0  # default λ (1 = symmetric loss)
     seed: int = 0
     params: dict[str, str] = field(default_factory=dict)  # the scene's `$name` parameters (Mitsuba's -D)
+
+    def __post_init__(self) -> None:
+        if self.allocator is None:
+            self.allocator = default_allocator(self.denoise)
 
     def to_stored(self) -> dict[str, Any]:
         """The spec as kept in a job record (JSON; `lambda` under its public name)."""

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from service.render.runtime import mitsuba
-from service.render.scenes import LoadedScene, SceneError, load_scene_info
+from service.render.scenes import LoadedScene, SceneError, check_sequence, load_scene_info
 
 # Mitsuba's own default max_depth (unbounded; Russian roulette ends paths): what a scene that
 # declares no integrator, or an integrator without max_depth, gets — as in mi.render.
@@ -76,8 +76,9 @@ def load_frames(
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise SceneError(f"frames must be an integer >= 1, got {frames!r}")
     first = load_scene_info(source, width=width, height=height, frame=0, params=params, root=root)
+    check_sequence(Path(str(source)).name, first.declares_frame, frames)
     if not first.declares_frame:
-        return [first] * frames
+        return [first]
     return [first] + [load_scene_info(source, width=width, height=height, frame=f, params=params, root=root)
                       for f in range(1, frames)]
 

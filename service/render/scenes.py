@@ -106,11 +106,12 @@ def load_scene_info(
 
 
 def film_size(source: str | Path, *, width: int | None = None, height: int | None = None,
-              params: dict[str, str] | None = None, root: str | Path | None = None) -> tuple[int, int]:
+              params: dict[str, str] | None = None, root: str | Path | None = None, frames: int = 1) -> tuple[int, int]:
     """(width, height) the scene renders at — the request's size, else its film's — read from
     the parsed description without instantiating anything (no meshes or textures loaded)."""
     mi = mitsuba()
     parsed = _parse_scene(mi, source, width, height, 0, params, root)
+    check_sequence(parsed.label, parsed.declares_frame, frames)
     _conform(mi, parsed.state, width, height, parsed.label)
     # What instantiating would refuse, found without loading anything (a submit check).
     plugins = mi.PluginManager.instance()
@@ -167,6 +168,14 @@ def _parse_scene(mi, source: str | Path, width: int | None, height: int | None, 
     label = builtin.name if builtin is not None else Path(source).name
     _parse(lambda: mi.parser.transform_all(config, state), label, explain)
     return _Parsed(config, state, label, declares_frame, explain, readable)
+
+
+def check_sequence(label: str, declares_frame: bool, frames: int) -> None:
+    """Refuse a sequence of a scene that cannot change between frames: N identical renders
+    would cost N times the samples and say nothing."""
+    if frames > 1 and not declares_frame:
+        raise SceneError(f"{label} does not use $frame, so all {frames} frames would be the same image; render "
+                         f"1 frame, or declare <default name=\"{FRAME_PARAMETER}\" value=\"0\"/> and animate with ${FRAME_PARAMETER}")
 
 
 def _check_override(width: int | None, height: int | None) -> tuple[int | None, int | None]:

@@ -202,3 +202,24 @@ def test_scenes_lists_every_builtin_with_its_size_and_effects_report(client):
     assert {"cornell-box", "fireflies", "veiled"} <= set(scenes)
     assert scenes["veiled"]["effects"]["media"] is True and scenes["veiled"]["effects"]["integrator"] == "volpath"
     assert scenes["cornell-box"]["width"] > 0 and "integrator_reason" in scenes["cornell-box"]["effects"]
+
+
+def test_a_file_name_as_json_scene_says_to_upload_a_bundle(client):
+    response = client.post("/jobs", json={"scene": "cbox.xml", "max_iterations": 1})
+    assert response.status_code == 422
+    detail = response.json()["detail"]
+    assert "cbox.xml" in detail and "bundle" in detail and "GET /scenes" in detail and "^[" not in detail
+
+
+STATIC_SCENE = """<scene version="3.0.0">
+  <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="8"/>
+  <integer name="height" value="8"/></film></sensor>
+  <shape type="sphere"/>
+</scene>"""
+
+
+def test_a_sequence_of_a_scene_without_frame_is_refused_at_submit(client):
+    response = upload(client, zip_bytes({"scene.xml": STATIC_SCENE}), '{"frames": 3, "max_iterations": 1}')
+    assert response.status_code == 422, response.text
+    assert "$frame" in response.json()["detail"] and "3 frames" in response.json()["detail"]
+    assert upload(client, zip_bytes({"scene.xml": STATIC_SCENE}), '{"frames": 1, "max_iterations": 1}').status_code == 202

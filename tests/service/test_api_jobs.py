@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from service.api import imaging
 from service.exr import read_exr
-from service_harness import finished, wait_for
+from service_harness import finished, wait_for, zip_bytes
 
 NO_DENOISE = {"denoise": False, "allocator": "variance"}
 
@@ -191,9 +192,10 @@ def test_lambda_map_kept_and_used_without_denoiser(client, tmp_path):
     assert job["lambda_value"] is None  # a per-pixel map now
 
 
-def png_bytes(values: np.ndarray, mode: str) -> bytes:
+def png_bytes(values: np.ndarray, mode: str | None) -> bytes:
     buffer = io.BytesIO()
-    Image.fromarray(values, mode=mode).save(buffer, format="PNG")
+    image = Image.fromarray(values, mode=mode) if mode else Image.fromarray(values)  # uint16 → 16-bit grey
+    image.save(buffer, format="PNG")
     return buffer.getvalue()
 
 
@@ -203,8 +205,8 @@ def test_lambda_map_upload_checks(client):
     wrong_size = png_bytes(np.full((16, 16), 3, np.uint8), "L")
     response = client.put(f"/jobs/{job_id}/lambda", files={"map": ("lam.png", wrong_size, "image/png")})
     assert response.status_code == 422 and "16×16" in response.json()["detail"]
-    out_of_range = png_bytes(np.full((32, 32), 20, np.uint8), "L")
-    response = client.put(f"/jobs/{job_id}/lambda", files={"map": ("lam.png", out_of_range, "image/png")})
+    out_of_range = imaging.exr_bytes("lambda", np.full((32, 32), 20.0, np.float32))  # EXR pixels are λ itself
+    response = client.put(f"/jobs/{job_id}/lambda", files={"map": ("lam.exr", out_of_range, "image/x-exr")})
     assert response.status_code == 422 and "[1, 10]" in response.json()["detail"]
     rgb = png_bytes(np.full((32, 32, 3), 3, np.uint8), "RGB")
     response = client.put(f"/jobs/{job_id}/lambda", files={"map": ("lam.png", rgb, "image/png")})
@@ -212,6 +214,20 @@ def test_lambda_map_upload_checks(client):
     good = png_bytes(np.full((32, 32), 5, np.uint8), "L")
     response = client.put(f"/jobs/{job_id}/lambda", files={"map": ("lam.png", good, "image/png")})
     assert response.status_code == 200 and response.json()["version"] >= 2
+
+
+@pytest.mark.parametrize("dtype, mode, full", [(np.uint8, "L", 255), (np.uint16, None, 65535)])
+def test_grey_png_mask_maps_linearly_onto_the_lambda_range(client, tmp_path, dtype, mode, full):
+    job_id = submit(client, width=32, height=32, max_iterations=1, **NO_DENOISE)
+    wait_for(client, job_id, finished)
+    mask = np.zeros((32, 32), dtype)
+    mask[:, 16:] = full  # left half black, right half white
+    mask[0, 0] = full // 3
+    response = client.put(f"/jobs/{job_id}/lambda", files={"map": ("mask.png", png_bytes(mask, mode), "image/png")})
+    assert response.status_code == 200, response.text
+    lam = exr_from(client.get(f"/jobs/{job_id}/preview", params={"layer": "lambda", "format": "exr"}), tmp_path).lam
+    assert np.all(lam[1:, :16] == 1.0) and np.all(lam[:, 16:] == 10.0)
+    assert lam[0, 0] == pytest.approx(1.0 + 9.0 * (full // 3) / full)
 
 
 def test_lambda_change_redenoises_from_cached_features(client):
@@ -259,3 +275,17 @@ def test_lambda_during_the_run_is_used_by_later_iterations(client, tmp_path):
     assert final["state"] == "completed"
     frame = exr_from(client.get(f"/jobs/{job_id}/result.exr"), tmp_path)
     assert np.all(frame.lam == 6.0)
+
+
+def test_result_header_names_a_bundle_scene_relative_to_the_bundle(client, tmp_path):
+    scene = ('<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm"><integer name="width" '
+             'value="8"/><integer name="height" value="8"/></film></sensor><shape type="sphere"/>'
+             '<emitter type="constant"/></scene>')
+    archive = zip_bytes({"shots/a.xml": scene})
+    response = client.post("/jobs", data={"spec": json.dumps({"scene": "shots/a.xml", "max_iterations": 1})},
+                           files={"bundle": ("s.zip", archive, "application/zip")})
+    assert response.status_code == 202, response.text
+    job_id = response.json()["id"]
+    assert wait_for(client, job_id, finished)["state"] == "completed"
+    frame = exr_from(client.get(f"/jobs/{job_id}/result.exr"), tmp_path)
+    assert frame.header["scene"] == "shots/a.xml"  # not the server's path to the job folder
