@@ -18,7 +18,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-from service.jobs.db import Database, open_database
+from service.jobs.db.connect import Database, open_database
 from service.jobs.db.schema import JOBS
 
 

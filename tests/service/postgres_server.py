@@ -11,6 +11,7 @@ import re
 import shutil
 import subprocess
 import tempfile
+import time
 import uuid
 from pathlib import Path
 
@@ -92,3 +93,17 @@ class PostgresServer:
         with psycopg.connect(self.url(), autocommit=True) as conn:
             conn.execute(f"CREATE DATABASE {name}")
         return self.url(name)
+
+    def drop_connections(self, database_url: str) -> int:
+        """Ends every client connection to that database from the server side (what a server
+        restart does to them) and waits until they are gone; how many there were."""
+        name = database_url.rsplit("/", 1)[1]
+        with psycopg.connect(self.url(), autocommit=True) as conn:
+            others = "SELECT pid FROM pg_stat_activity WHERE datname = %s AND pid <> pg_backend_pid()"
+            pids = [row[0] for row in conn.execute(others, (name,)).fetchall()]
+            for pid in pids:
+                conn.execute("SELECT pg_terminate_backend(%s)", (pid,))
+            deadline = time.monotonic() + START_SECONDS
+            while conn.execute(others, (name,)).fetchall() and time.monotonic() < deadline:
+                time.sleep(0.05)
+        return len(pids)

@@ -13,7 +13,7 @@ import pytest
 
 from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.latest import LatestWins
-from service.jobs.db import open_database
+from service.jobs.db.connect import open_database
 from service.jobs.db.schema import JOBS
 from service.jobs.errors import StoreUnavailable
 from service.jobs.store import CANCELED, COMPLETED, QUEUED, RUNNING, JobStore
@@ -140,6 +140,17 @@ def test_a_database_made_before_the_effects_column_is_migrated(tmp_path, db_url)
 def test_a_list_offset_past_every_row_is_empty(store):
     store.create({}, None)
     assert store.list(offset=2**62) == [] and store.list(offset=1) == []
+
+
+def test_a_dropped_postgresql_connection_fails_one_statement_and_the_next_reconnects(tmp_path, postgres_server,
+                                                                                    postgres_url):
+    store = JobStore(tmp_path, postgres_url)
+    job = store.create({}, None)
+    assert postgres_server.drop_connections(postgres_url) == 1
+    with pytest.raises(StoreUnavailable, match="the job database at postgresql://renderloop@127.0.0.1"):
+        store.get(job.id)
+    assert store.claim(job.id) and store.get(job.id).state == RUNNING
+    store.close()
 
 
 def test_an_unsupported_database_url_is_refused(tmp_path):

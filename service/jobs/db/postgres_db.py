@@ -9,7 +9,8 @@ with SQLite; the statements are tiny.
 from __future__ import annotations
 
 import threading
-from typing import Any, Sequence
+from contextlib import contextmanager
+from typing import Any, Iterator, Sequence
 
 import psycopg
 from psycopg.rows import dict_row
@@ -68,12 +69,21 @@ class PostgresDatabase:
 
     def execute(self, sql: str, params: Sequence[Any] = ()) -> int:
         """One statement in its own transaction; the number of rows it changed."""
-        with self._lock:
+        with self._lock, self._reported():
             return self._connection().execute(to_pyformat(sql), tuple(params)).rowcount
 
     def query(self, sql: str, params: Sequence[Any] = ()) -> list[dict[str, Any]]:
-        with self._lock:
+        with self._lock, self._reported():
             return self._connection().execute(to_pyformat(sql), tuple(params)).fetchall()
+
+    @contextmanager
+    def _reported(self) -> Iterator[None]:
+        """A lost server fails the statement in flight (it may or may not have committed, so it
+        is not retried) as StoreUnavailable — a 503 — and the next statement reconnects."""
+        try:
+            yield
+        except psycopg.OperationalError as exc:
+            raise StoreUnavailable(f"the job database at {self.location} failed: {exc}".strip()) from exc
 
     def close(self) -> None:
         with self._lock:
