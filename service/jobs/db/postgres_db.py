@@ -34,6 +34,11 @@ def to_pyformat(sql: str) -> str:
     return sql.replace("?", "%s")
 
 
+def one_line(exc: Exception) -> str:
+    """libpq's messages span lines (a hint on the next); errors here are one line."""
+    return " ".join(str(exc).split())
+
+
 class PostgresDatabase:
     insertion_order = "seq"
 
@@ -47,7 +52,7 @@ class PostgresDatabase:
             return psycopg.connect(self.url, autocommit=True, row_factory=dict_row,
                                    connect_timeout=CONNECT_TIMEOUT_SECONDS)
         except psycopg.OperationalError as exc:
-            raise StoreUnavailable(f"cannot connect to PostgreSQL at {self.location}: {exc}".strip()) from exc
+            raise StoreUnavailable(f"cannot connect to PostgreSQL at {self.location}: {one_line(exc)}") from exc
 
     def _connection(self) -> psycopg.Connection:
         """The open connection; a new one when the server dropped the last (e.g. it restarted).
@@ -83,7 +88,7 @@ class PostgresDatabase:
         try:
             yield
         except psycopg.OperationalError as exc:
-            raise StoreUnavailable(f"the job database at {self.location} failed: {exc}".strip()) from exc
+            raise StoreUnavailable(f"the job database at {self.location} failed: {one_line(exc)}") from exc
 
     def close(self) -> None:
         with self._lock:
