@@ -83,11 +83,6 @@ class JobStore:
         self._db.ensure_schema(JOBS)
         self._order = self._db.insertion_order
 
-    @property
-    def location(self) -> str:
-        """Where the records live (a path, or a URL without its password)."""
-        return self._db.location
-
     def close(self) -> None:
         self._db.close()
 
