@@ -14,6 +14,8 @@ from pathlib import Path
 from service import denoise_command, train_command
 from service.api.security import LOOPBACK_HOSTS, SecuritySettings, is_loopback
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
+from service.jobs.db.url import is_postgres_url, without_password
+from service.jobs.errors import StoreUnavailable
 from service.jobs.retention import Retention
 from service.loop.spec import (ALLOCATORS, DEFAULT_ITERATIONS, LAMBDA_RANGE, SERVICE_LIMITS, LoopSpec, LoopSpecError,
                                default_allocator)
@@ -162,6 +164,9 @@ def add_serve_parser(sub) -> None:
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--data-dir", type=Path, default=Path(os.environ.get("RENDERLOOP_DATA_DIR", "data")))
+    p.add_argument("--db", metavar="URL", default=os.environ.get("RENDERLOOP_DB") or None,
+                   help="job records in PostgreSQL, e.g. postgresql://user@host:5432/renderloop, shared by several "
+                        "servers (default: $RENDERLOOP_DB, else DATA_DIR/jobs.sqlite); job files stay in the data dir")
     p.add_argument("--concurrency", type=int, default=1, help="jobs rendered at once (default 1)")
     p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
                    "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
@@ -217,12 +222,18 @@ def run_serve(args) -> int:
             raise CliError(f"--{name.replace('_', '-')} must be > 0")
     retention = Retention(keep_days=args.keep_days,
                           max_disk_bytes=args.max_disk_gb * 2**30 if args.max_disk_gb else None)
+    if args.db and not is_postgres_url(args.db):
+        raise CliError(f"--db must be a postgresql:// URL (got {without_password(args.db)!r})")
     auth = " -H 'authorization: Bearer $RENDERLOOP_TOKEN'" if security.token else ""
-    print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir})")
+    jobs = f", jobs: {without_password(args.db)}" if args.db else ""
+    print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir}{jobs})")
     print(f"try: curl -X POST http://{args.host}:{args.port}/jobs{auth} -H 'content-type: application/json' "
           "-d '{\"scene\": \"cornell-box\", \"width\": 64, \"height\": 64, \"max_iterations\": 3}'")
-    serve(args.host, args.port, args.data_dir, args.concurrency, networks=load_cli_networks(args.weights),
-          security=security, bundle_limits=limits, job_limits=job_limits, retention=retention)
+    try:
+        serve(args.host, args.port, args.data_dir, args.concurrency, networks=load_cli_networks(args.weights),
+              security=security, bundle_limits=limits, job_limits=job_limits, retention=retention, db_url=args.db)
+    except StoreUnavailable as exc:
+        raise CliError(str(exc)) from exc
     return 0
 
 

@@ -1,4 +1,5 @@
 """`renderloop` as a user runs it: real subprocesses, real renders, one-line errors."""
+import socket
 import subprocess
 import sys
 
@@ -87,7 +88,7 @@ def test_malformed_xml_is_reported_without_a_traceback(tmp_path):
     scene = tmp_path / "broken.xml"
     scene.write_text("<scene version='3.0.0'><shape type='sphere'></scene>")
     result = renderloop("render", scene, "--spp", "1", "--no-denoise", "-o", tmp_path / "o.exr")
-    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
     assert "broken.xml" in result.stderr
 
 
@@ -154,6 +155,22 @@ def test_denoise_says_in_one_line_what_an_exr_from_mi_render_lacks(tmp_path):
     mi.Bitmap(mi.render(scene, spp=4), channel_names=["R", "G", "B", "albedo.R", "albedo.G", "albedo.B",
                                                        "nn.X", "nn.Y", "nn.Z"]).write(str(exr))
     result = renderloop("denoise", exr, "-o", tmp_path / "out.exr")
-    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "variance.R/G/B" in lines[0] and "--no-denoise" in lines[0]
+
+
+def test_serve_refuses_a_db_url_that_is_not_postgresql(tmp_path):
+    result = renderloop("serve", "--data-dir", tmp_path / "data", "--db", "mysql://admin:pw@db/jobs")
+    assert result.returncode == 2
+    assert result.stderr.strip() == "renderloop: error: --db must be a postgresql:// URL (got 'mysql://admin:***@db/jobs')"
+
+
+def test_serve_with_an_unreachable_postgresql_says_so_in_one_line_without_the_password(tmp_path):
+    with socket.socket() as sock:  # a port nothing listens on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    result = renderloop("serve", "--data-dir", tmp_path / "data", "--db", f"postgresql://render:s3cret@127.0.0.1:{port}/jobs")
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
+    assert f"renderloop: error: cannot connect to PostgreSQL at postgresql://render:***@127.0.0.1:{port}/jobs" in result.stderr
+    assert "s3cret" not in result.stderr + result.stdout

@@ -32,8 +32,11 @@ MAX_UPLOAD_BYTES = bundle.MAX_BUNDLE_BYTES + FORM_OVERHEAD_BYTES  # with the def
 def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
                security: SecuritySettings = SecuritySettings(),
                bundle_limits: bundle.BundleLimits = bundle.BundleLimits(),
-               job_limits: JobLimits = SERVICE_LIMITS, retention: Retention = Retention()) -> FastAPI:
-    store = JobStore(Path(data_dir))
+               job_limits: JobLimits = SERVICE_LIMITS, retention: Retention = Retention(),
+               db_url: str | None = None) -> FastAPI:
+    """`db_url`: None for the SQLite file in `data_dir`, or a postgresql:// URL; job files stay
+    under `data_dir` either way."""
+    store = JobStore(Path(data_dir), db_url)
     worker = JobWorker(store, networks, concurrency=concurrency)
     housekeeper = Housekeeper(store, retention)
 

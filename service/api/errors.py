@@ -12,7 +12,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.lambda_map import LambdaMapError
 from service.jobs.bundle import BundleError
-from service.jobs.errors import JobConflict, JobNotFound
+from service.jobs.errors import JobConflict, JobNotFound, StoreUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,13 @@ async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
     return JSONResponse({"detail": str(exc.detail)}, status_code=exc.status_code, headers=exc.headers)
 
 
+async def _store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:
+    # The database's address stays in the server log, not in the answer.
+    log.warning("job database unavailable on %s %s: %s", request.method, request.url.path, exc)
+    return JSONResponse({"detail": "the job database is unavailable; retry in a moment"}, status_code=503,
+                        headers={"Retry-After": "5"})
+
+
 async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
     log.exception("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
     return _json(500, f"internal server error ({exc.__class__.__name__}); the server log has the details")
@@ -59,6 +66,7 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(BundleError, lambda _r, e: _json(422, str(e)))
     app.add_exception_handler(LambdaMapError, lambda _r, e: _json(422, str(e)))
     app.add_exception_handler(UploadTooLarge, lambda _r, e: _json(413, str(e)))
+    app.add_exception_handler(StoreUnavailable, _store_unavailable)
     app.add_exception_handler(Exception, _unexpected)
 
 

@@ -1,7 +1,8 @@
-"""`renderloop serve`: the API on uvicorn with the embedded SQLite store under a data dir.
+"""`renderloop serve`: the API on uvicorn with the job store under a data dir (its SQLite file,
+or PostgreSQL with `--db postgresql://…`; job files stay in the data dir).
 
 `app_from_env` is a uvicorn factory (`uvicorn --factory service.api.serve:app_from_env`)
-reading RENDERLOOP_DATA_DIR / RENDERLOOP_CONCURRENCY / RENDERLOOP_WEIGHTS_DIR /
+reading RENDERLOOP_DATA_DIR / RENDERLOOP_DB / RENDERLOOP_CONCURRENCY / RENDERLOOP_WEIGHTS_DIR /
 RENDERLOOP_TORCH_THREADS / RENDERLOOP_TOKEN / RENDERLOOP_ALLOWED_HOSTS / RENDERLOOP_CORS_ORIGINS.
 `renderloop serve` (service/cli.py) is the one command line.
 """
@@ -23,6 +24,7 @@ from service.loop.spec import SERVICE_LIMITS, JobLimits
 from service.loop.tensors import configure_torch_threads
 
 DATA_DIR_ENV = "RENDERLOOP_DATA_DIR"
+DB_ENV = "RENDERLOOP_DB"  # a postgresql:// URL; unset or empty: the SQLite file in the data dir
 CONCURRENCY_ENV = "RENDERLOOP_CONCURRENCY"
 MAX_BUNDLE_MB_ENV = "RENDERLOOP_MAX_BUNDLE_MB"
 MAX_BUNDLE_FILES_ENV = "RENDERLOOP_MAX_BUNDLE_FILES"
@@ -52,7 +54,7 @@ def app_from_env() -> FastAPI:
     return create_app(default_data_dir(), networks=load_networks(),
                       concurrency=int(os.environ.get(CONCURRENCY_ENV, "1")), security=SecuritySettings.from_env(),
                       bundle_limits=bundle_limits_from_env(), job_limits=job_limits_from_env(),
-                      retention=retention_from_env())
+                      retention=retention_from_env(), db_url=os.environ.get(DB_ENV) or None)
 
 
 def retention_from_env() -> Retention:
@@ -69,9 +71,9 @@ def job_limits_from_env() -> JobLimits:
 def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | None = None, concurrency: int = 1,
           *, networks: Networks, security: SecuritySettings = SecuritySettings(),
           bundle_limits: BundleLimits = BundleLimits(), job_limits: JobLimits = SERVICE_LIMITS,
-          retention: Retention = Retention()) -> None:
+          retention: Retention = Retention(), db_url: str | None = None) -> None:
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
     app = create_app(data_dir, networks=networks, concurrency=concurrency, security=security,
-                     bundle_limits=bundle_limits, job_limits=job_limits, retention=retention)
+                     bundle_limits=bundle_limits, job_limits=job_limits, retention=retention, db_url=db_url)
     uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS)

@@ -8,3 +8,8 @@ class JobNotFound(LookupError):
 
 class JobConflict(RuntimeError):
     """The request makes no sense in the job's current state (409); the message says why."""
+
+
+class StoreUnavailable(RuntimeError):
+    """The job database cannot be opened (a wrong --db URL, a server that is down); the message
+    names it without its password."""

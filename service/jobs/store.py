@@ -1,21 +1,25 @@
-"""Job records in one SQLite file (`DATA/jobs.sqlite`) and the per-job artifacts folder.
+"""Job records in a database (the SQLite file `DATA/jobs.sqlite` by default, or PostgreSQL via
+`serve --db postgresql://…`, see service/jobs/db/) and the per-job artifacts folder, which
+stays on disk under the data dir whatever the database.
 
-SQLite in WAL mode lets the HTTP handlers read while a worker thread writes, and it survives
-`kill -9`: a committed row is on disk. State changes are single conditional UPDATEs so a
-cancel and a worker claiming the same job cannot both win.
+Crash safety: every state change is one conditional statement (`UPDATE … WHERE state = ?`,
+`UPDATE … RETURNING`), never a read followed by a write, so a cancel and a worker claiming
+the same job cannot both win, between threads and between server processes alike, and a
+committed row survives `kill -9`.
 """
 from __future__ import annotations
 
 import json
 import shutil
-import sqlite3
-import threading
 import time
 import uuid
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
+
+from service.jobs.db.connect import Database, open_database
+from service.jobs.db.schema import JOBS
 
 
 class JobState(StrEnum):
@@ -31,31 +35,6 @@ class JobState(StrEnum):
 QUEUED, RUNNING, COMPLETED, FAILED, CANCELED = JobState
 STATES = tuple(state.value for state in JobState)
 TERMINAL_STATES = frozenset({COMPLETED, FAILED, CANCELED})
-DB_NAME = "jobs.sqlite"
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS jobs (
-    id              TEXT PRIMARY KEY,
-    state           TEXT NOT NULL,
-    spec            TEXT NOT NULL,
-    iteration       INTEGER NOT NULL DEFAULT 0,
-    spp             REAL NOT NULL DEFAULT 0,
-    predicted_error REAL,
-    stop_reason     TEXT,
-    timings         TEXT NOT NULL DEFAULT '{}',
-    error           TEXT,
-    created_at      REAL NOT NULL,
-    started_at      REAL,
-    finished_at     REAL,
-    preview_version INTEGER NOT NULL DEFAULT 0,
-    lambda_value    REAL,
-    resumed_from    INTEGER,
-    effects         TEXT
-);
-CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state);
-"""
-# Columns added after the first release, for data folders made before them.
-_ADDED_COLUMNS = {"effects": "TEXT"}
 
 
 @dataclass
@@ -84,7 +63,7 @@ class JobRecord:
         return self.state in TERMINAL_STATES
 
     @classmethod
-    def from_row(cls, row: sqlite3.Row) -> "JobRecord":
+    def from_row(cls, row: dict[str, Any]) -> "JobRecord":
         values = dict(row)
         values["spec"] = json.loads(values["spec"])
         values["timings"] = json.loads(values["timings"])
@@ -95,61 +74,47 @@ class JobRecord:
 class JobStore:
     """Thread-safe access to the jobs table plus the artifacts layout under `data_dir`."""
 
-    def __init__(self, data_dir: Path) -> None:
+    def __init__(self, data_dir: Path, db_url: str | None = None) -> None:
+        """`db_url` None: the SQLite file in `data_dir`; a postgresql:// URL: that database."""
         self.data_dir = Path(data_dir)
         self.jobs_dir = self.data_dir / "jobs"
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
-        # One connection shared by all threads behind a lock: the statements are tiny, and a
-        # single writer sidesteps SQLITE_BUSY between our own threads.
-        self._lock = threading.RLock()
-        self._db = sqlite3.connect(
-            self.data_dir / DB_NAME, check_same_thread=False, isolation_level=None, timeout=10.0
-        )
-        self._db.row_factory = sqlite3.Row
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable across process kills
-        self._db.executescript(_SCHEMA)
-        present = {row["name"] for row in self._db.execute("PRAGMA table_info(jobs)")}
-        for column, kind in _ADDED_COLUMNS.items():
-            if column not in present:
-                self._db.execute(f"ALTER TABLE jobs ADD COLUMN {column} {kind}")
+        self._db: Database = open_database(self.data_dir, db_url)
+        self._db.ensure_schema(JOBS)
+        self._order = self._db.insertion_order
 
     def close(self) -> None:
-        with self._lock:
-            self._db.close()
+        self._db.close()
 
     def job_dir(self, job_id: str) -> Path:
         return self.jobs_dir / job_id
 
-    def _execute(self, sql: str, params: tuple = ()) -> sqlite3.Cursor:
-        with self._lock:
-            return self._db.execute(sql, params)
+    def _select(self, tail: str, params: tuple = ()) -> list[JobRecord]:
+        # Named columns, not `*`: a backend's own columns (PostgreSQL's seq) stay out of records.
+        rows = self._db.query(f"SELECT {_COLUMNS} FROM jobs {tail}", params)
+        return [JobRecord.from_row(row) for row in rows]
 
     # -- reads ------------------------------------------------------------------------------
 
     def get(self, job_id: str) -> JobRecord | None:
-        row = self._execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return JobRecord.from_row(row) if row else None
+        records = self._select("WHERE id = ?", (job_id,))
+        return records[0] if records else None
 
     def list(self, state: str | None = None, limit: int = 100, offset: int = 0) -> list[JobRecord]:
         where, params = ("WHERE state = ?", (state,)) if state else ("", ())
-        rows = self._execute(
-            f"SELECT * FROM jobs {where} ORDER BY created_at DESC, rowid DESC LIMIT ? OFFSET ?",
-            (*params, limit, offset),
-        ).fetchall()
-        return [JobRecord.from_row(r) for r in rows]
+        return self._select(f"{where} ORDER BY created_at DESC, {self._order} DESC LIMIT ? OFFSET ?",
+                            (*params, limit, offset))
 
     def ids_in_state(self, state: str) -> list[str]:
-        rows = self._execute(
-            "SELECT id FROM jobs WHERE state = ? ORDER BY created_at, rowid", (state,)
-        ).fetchall()
+        rows = self._db.query(f"SELECT id FROM jobs WHERE state = ? ORDER BY created_at, {self._order}",
+                              (state,))
         return [r["id"] for r in rows]
 
     # -- writes -----------------------------------------------------------------------------
 
     def create(self, spec: dict[str, Any], lambda_value: float | None, job_id: str | None = None) -> JobRecord:
         job_id = job_id or uuid.uuid4().hex
-        self._execute(
+        self._db.execute(
             "INSERT INTO jobs (id, state, spec, created_at, lambda_value) VALUES (?, ?, ?, ?, ?)",
             (job_id, QUEUED, json.dumps(spec), time.time(), lambda_value),
         )
@@ -164,11 +129,10 @@ class JobStore:
 
     def claim(self, job_id: str) -> bool:
         """queued → running; False when someone else got there first (e.g. a cancel)."""
-        cursor = self._execute(
+        return self._db.execute(
             "UPDATE jobs SET state = ?, started_at = COALESCE(started_at, ?) WHERE id = ? AND state = ?",
             (RUNNING, time.time(), job_id, QUEUED),
-        )
-        return cursor.rowcount == 1
+        ) == 1
 
     def record_iteration(
         self,
@@ -179,33 +143,32 @@ class JobStore:
         timings: dict[str, float],
         stop_reason: str | None = None,
     ) -> None:
-        self._execute(
+        self._db.execute(
             "UPDATE jobs SET iteration = ?, spp = ?, predicted_error = ?, timings = ?, "
             "stop_reason = COALESCE(?, stop_reason) WHERE id = ?",
             (iteration, spp, predicted_error, json.dumps(timings), stop_reason, job_id),
         )
 
     def bump_preview_version(self, job_id: str) -> int:
-        with self._lock:
-            self._db.execute(
-                "UPDATE jobs SET preview_version = preview_version + 1 WHERE id = ?", (job_id,)
-            )
-            row = self._db.execute("SELECT preview_version FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return int(row["preview_version"])
+        rows = self._db.query(
+            "UPDATE jobs SET preview_version = preview_version + 1 WHERE id = ? RETURNING preview_version",
+            (job_id,),
+        )
+        return int(rows[0]["preview_version"])
 
     def set_effects(self, job_id: str, effects: dict[str, Any]) -> None:
-        self._execute("UPDATE jobs SET effects = ? WHERE id = ?", (json.dumps(effects), job_id))
+        self._db.execute("UPDATE jobs SET effects = ? WHERE id = ?", (json.dumps(effects), job_id))
 
     def set_resumed_from(self, job_id: str, iteration: int) -> None:
-        self._execute("UPDATE jobs SET resumed_from = ? WHERE id = ?", (iteration, job_id))
+        self._db.execute("UPDATE jobs SET resumed_from = ? WHERE id = ?", (iteration, job_id))
 
     def set_lambda_value(self, job_id: str, value: float | None) -> None:
-        self._execute("UPDATE jobs SET lambda_value = ? WHERE id = ?", (value, job_id))
+        self._db.execute("UPDATE jobs SET lambda_value = ? WHERE id = ?", (value, job_id))
 
     def finish(self, job_id: str, state: str, stop_reason: str | None = None, error: str | None = None) -> None:
         if state not in TERMINAL_STATES:
             raise ValueError(f"{state!r} is not a terminal state")
-        self._execute(
+        self._db.execute(
             "UPDATE jobs SET state = ?, stop_reason = COALESCE(?, stop_reason), error = ?, finished_at = ? "
             "WHERE id = ?",
             (state, stop_reason, error, time.time(), job_id),
@@ -213,23 +176,26 @@ class JobStore:
 
     def delete(self, job_id: str) -> None:
         """The record and the job's folder; the caller makes sure nothing renders it any more."""
-        self._execute("DELETE FROM jobs WHERE id = ?", (job_id,))
+        self._db.execute("DELETE FROM jobs WHERE id = ?", (job_id,))
         shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
 
     def cancel_if_queued(self, job_id: str) -> bool:
-        cursor = self._execute(
+        return self._db.execute(
             "UPDATE jobs SET state = ?, stop_reason = 'canceled', finished_at = ? WHERE id = ? AND state = ?",
             (CANCELED, time.time(), job_id, QUEUED),
-        )
-        return cursor.rowcount == 1
+        ) == 1
 
     def requeue(self, job_id: str) -> None:
         """running → queued: the job resumes from its checkpoint when a worker picks it up."""
-        self._execute("UPDATE jobs SET state = ? WHERE id = ? AND state = ?", (QUEUED, job_id, RUNNING))
+        self._db.execute("UPDATE jobs SET state = ? WHERE id = ? AND state = ?", (QUEUED, job_id, RUNNING))
 
     def requeue_running(self) -> list[str]:
-        """After a crash or restart nothing is running any more: put those jobs back in line."""
-        ids = self.ids_in_state(RUNNING)
-        for job_id in ids:
-            self.requeue(job_id)
-        return ids
+        """After a crash or restart nothing is running any more: put those jobs back in line.
+        One statement, so a job that finishes meanwhile is not dragged back to queued."""
+        rows = self._db.query(
+            "UPDATE jobs SET state = ? WHERE state = ? RETURNING id, created_at", (QUEUED, RUNNING)
+        )
+        return [r["id"] for r in sorted(rows, key=lambda r: r["created_at"])]
+
+
+_COLUMNS = ", ".join(JOBS.column_names)

@@ -1,4 +1,5 @@
-"""Fixtures: a real uvicorn server per test (see service_harness) and an httpx client."""
+"""Fixtures: a real uvicorn server per test (see service_harness), an httpx client, and the job
+databases: SQLite in tmp_path and a real PostgreSQL server (see postgres_server)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,6 +8,7 @@ from typing import Callable, Iterator
 import httpx
 import pytest
 
+from postgres_server import PostgresServer, find_bin_dir
 from service_harness import Server
 
 
@@ -44,3 +46,28 @@ def module_server(tmp_path_factory, request) -> Iterator[Server]:
 def client(server) -> Iterator[httpx.Client]:
     with httpx.Client(base_url=server.url, timeout=60) as c:
         yield c
+
+
+@pytest.fixture(scope="session")
+def postgres_server() -> Iterator[PostgresServer]:
+    """One PostgreSQL server for the whole session (starting one costs seconds)."""
+    bin_dir = find_bin_dir()
+    if bin_dir is None:
+        pytest.skip("PostgreSQL server binaries (initdb, pg_ctl) not found: install Debian's 'postgresql' "
+                    "package (scripts/ensure-postgres.sh does it as root)")
+    server = PostgresServer(bin_dir).start()
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def postgres_url(postgres_server) -> str:
+    """A fresh database on the session's server, for one test."""
+    return postgres_server.new_database()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def db_url(request) -> str | None:
+    """The job database a store test runs on: None for the SQLite file in the data dir, or a
+    fresh PostgreSQL database; every test using it runs once on each."""
+    return None if request.param == "sqlite" else request.getfixturevalue("postgres_url")

@@ -1,33 +1,64 @@
-"""The SQLite job store and the per-job artifacts folder, on a real file in tmp_path."""
+"""The job store on both databases — a real SQLite file in tmp_path and a real PostgreSQL server
+(conftest's db_url runs each store test once on each) — and the per-job artifacts folder."""
 from __future__ import annotations
 
 import sqlite3
 import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.latest import LatestWins
+from service.jobs.db.connect import open_database
+from service.jobs.db.schema import JOBS
+from service.jobs.errors import StoreUnavailable
 from service.jobs.store import CANCELED, COMPLETED, QUEUED, RUNNING, JobStore
+from service_harness import free_port
 
 
 @pytest.fixture
-def store(tmp_path):
-    s = JobStore(tmp_path)
+def store(tmp_path, db_url):
+    s = JobStore(tmp_path, db_url)
     yield s
     s.close()
 
 
-def test_create_and_read_back(store, tmp_path):
+def test_create_and_read_back(store):
     record = store.create({"scene": "cornell-box", "width": 16}, lambda_value=2.0)
     assert len(record.id) == 32 and record.state == QUEUED
     again = store.get(record.id)
     assert again.spec == {"scene": "cornell-box", "width": 16}
     assert again.lambda_value == 2.0 and again.preview_version == 0
     assert store.job_dir(record.id).is_dir()
+
+
+def test_the_default_store_is_a_sqlite_file_in_wal_mode(tmp_path):
+    JobStore(tmp_path).close()
     journal = sqlite3.connect(tmp_path / "jobs.sqlite").execute("PRAGMA journal_mode").fetchone()[0]
     assert journal == "wal"
+
+
+def test_a_postgresql_store_keeps_records_in_the_server_and_files_in_the_data_dir(tmp_path, postgres_url):
+    store = JobStore(tmp_path / "data", postgres_url)
+    job = store.create({}, None)
+    assert store.job_dir(job.id) == tmp_path / "data" / "jobs" / job.id and store.job_dir(job.id).is_dir()
+    assert not (tmp_path / "data" / "jobs.sqlite").exists()
+    store.close()
+    other_host = JobStore(tmp_path / "elsewhere", postgres_url)  # a second node sees the same records
+    assert other_host.get(job.id).state == QUEUED
+    other_host.close()
+
+
+def test_timestamps_keep_sub_second_precision(store):
+    before = time.time()
+    job = store.create({}, None)
+    store.claim(job.id)
+    record = store.get(job.id)
+    assert before <= record.created_at <= record.started_at <= time.time()  # a 32-bit float is off by minutes
 
 
 def test_state_transitions(store):
@@ -50,15 +81,88 @@ def test_cancel_only_wins_while_queued(store):
     assert not store.cancel_if_queued(running.id) and store.get(running.id).state == RUNNING
 
 
-def test_restart_requeues_running_jobs(tmp_path):
-    first = JobStore(tmp_path)
-    job = first.create({}, None)
-    first.claim(job.id)
-    first.close()  # the process "dies" with the job marked running
-    second = JobStore(tmp_path)
-    assert second.requeue_running() == [job.id]
-    assert second.get(job.id).state == QUEUED and second.ids_in_state(QUEUED) == [job.id]
+def test_restart_requeues_running_jobs(tmp_path, db_url):
+    first = JobStore(tmp_path, db_url)
+    older, job, done = first.create({}, None), first.create({}, None), first.create({}, None)
+    for j in (job, older, done):
+        first.claim(j.id)
+    first.finish(done.id, COMPLETED)
+    first.close()  # the process "dies" with two jobs marked running
+    second = JobStore(tmp_path, db_url)
+    assert second.requeue_running() == [older.id, job.id]  # oldest first, the finished one untouched
+    assert second.get(job.id).state == QUEUED and second.ids_in_state(QUEUED) == [older.id, job.id]
+    assert second.get(done.id).state == COMPLETED and second.requeue_running() == []
     second.close()
+
+
+def test_two_servers_racing_to_claim_and_cancel_give_each_job_exactly_one_winner(tmp_path, db_url):
+    """Two stores are two server processes' connections; claims and cancels run in threads."""
+    stores = [JobStore(tmp_path, db_url) for _ in range(2)]
+    jobs = [stores[0].create({}, None).id for _ in range(20)]
+
+    def attempt(store: JobStore, action: str, job: str) -> tuple[str, str] | None:
+        won = store.claim(job) if action == "claim" else store.cancel_if_queued(job)
+        return (job, action) if won else None
+
+    attempts = [(store, action, job) for job in jobs for store in stores for action in ("claim", "cancel") * 2]
+    with ThreadPoolExecutor(8) as pool:
+        winners = [w for w in pool.map(lambda a: attempt(*a), attempts) if w]
+    assert sorted(job for job, _ in winners) == sorted(jobs)  # one winner per job, never two
+    for job, action in winners:
+        assert stores[1].get(job).state == (RUNNING if action == "claim" else CANCELED)
+    for s in stores:
+        s.close()
+
+
+def test_concurrent_preview_bumps_from_two_servers_each_get_their_own_version(tmp_path, db_url):
+    stores = [JobStore(tmp_path, db_url) for _ in range(2)]
+    job = stores[0].create({}, None).id
+    with ThreadPoolExecutor(8) as pool:
+        versions = list(pool.map(lambda i: stores[i % 2].bump_preview_version(job), range(40)))
+    assert sorted(versions) == list(range(1, 41)) and stores[1].get(job).preview_version == 40
+    for s in stores:
+        s.close()
+
+
+def test_a_database_made_before_the_effects_column_is_migrated(tmp_path, db_url):
+    first_release = replace(JOBS, columns=tuple(c for c in JOBS.columns if c.name != "effects"), added=())
+    old = open_database(tmp_path, db_url)
+    old.ensure_schema(first_release)
+    old.execute("INSERT INTO jobs (id, state, spec, created_at) VALUES (?, ?, ?, ?)", ("old", QUEUED, "{}", 1.0))
+    old.close()
+    store = JobStore(tmp_path, db_url)
+    assert store.get("old").effects is None
+    store.set_effects("old", {"integrator": "path"})
+    assert store.get("old").effects == {"integrator": "path"}
+    store.close()
+
+
+def test_a_list_offset_past_every_row_is_empty(store):
+    store.create({}, None)
+    assert store.list(offset=2**62) == [] and store.list(offset=1) == []
+
+
+def test_a_dropped_postgresql_connection_fails_one_statement_and_the_next_reconnects(tmp_path, postgres_server,
+                                                                                    postgres_url):
+    store = JobStore(tmp_path, postgres_url)
+    job = store.create({}, None)
+    assert postgres_server.drop_connections(postgres_url) == 1
+    with pytest.raises(StoreUnavailable, match="the job database at postgresql://renderloop@127.0.0.1"):
+        store.get(job.id)
+    assert store.claim(job.id) and store.get(job.id).state == RUNNING
+    store.close()
+
+
+def test_an_unsupported_database_url_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="unsupported job database 'mysql://db/jobs'"):
+        JobStore(tmp_path, "mysql://db/jobs")
+
+
+def test_an_unreachable_postgresql_server_is_named_without_its_password(tmp_path):
+    url = f"postgresql://render:s3cret@127.0.0.1:{free_port()}/jobs"
+    with pytest.raises(StoreUnavailable, match=r"cannot connect to PostgreSQL at postgresql://render:\*\*\*@") as caught:
+        JobStore(tmp_path, url)
+    assert "s3cret" not in str(caught.value)
 
 
 def test_list_is_newest_first_and_filters_by_state(store):

@@ -1,4 +1,5 @@
-"""Retention: old finished jobs and the oldest ones over the disk cap go; unfinished ones stay."""
+"""Retention: old finished jobs and the oldest ones over the disk cap go; unfinished ones stay
+(the sweeps run on both job databases, SQLite and PostgreSQL: conftest's db_url)."""
 from __future__ import annotations
 
 import time
@@ -18,8 +19,8 @@ def finished_job(store: JobStore, state: str = COMPLETED, size: int = 0) -> str:
     return record.id
 
 
-def test_finished_jobs_older_than_keep_days_are_removed_and_unfinished_ones_kept(tmp_path):
-    store = JobStore(tmp_path)
+def test_finished_jobs_older_than_keep_days_are_removed_and_unfinished_ones_kept(tmp_path, db_url):
+    store = JobStore(tmp_path, db_url)
     old, failed = finished_job(store), finished_job(store, FAILED)
     queued = store.create({}, None).id
     running = store.create({}, None).id
@@ -30,8 +31,8 @@ def test_finished_jobs_older_than_keep_days_are_removed_and_unfinished_ones_kept
     assert store.get(queued) is not None and store.get(running) is not None
 
 
-def test_over_the_disk_cap_the_oldest_finished_jobs_go_first(tmp_path):
-    store = JobStore(tmp_path)
+def test_over_the_disk_cap_the_oldest_finished_jobs_go_first(tmp_path, db_url):
+    store = JobStore(tmp_path, db_url)
     first, second, third = (finished_job(store, size=100_000) for _ in range(3))
     cap = folder_bytes(tmp_path) - 150_000  # two of the three must go
     removed = sweep(store, Retention(max_disk_bytes=cap))
@@ -39,8 +40,8 @@ def test_over_the_disk_cap_the_oldest_finished_jobs_go_first(tmp_path):
     assert folder_bytes(tmp_path) <= cap
 
 
-def test_no_policy_removes_nothing(tmp_path):
-    store = JobStore(tmp_path)
+def test_no_policy_removes_nothing(tmp_path, db_url):
+    store = JobStore(tmp_path, db_url)
     finished_job(store)
     assert sweep(store, Retention(), now=time.time() + 10**9) == []
 
