@@ -12,7 +12,7 @@ import re
 from functools import lru_cache
 from pathlib import Path
 
-# Dr.Jit 1.5 aborts inside LLVM 15/16 on `fminimum` (measured, shared/DESIGN.md).
+# Dr.Jit 1.5 aborts inside LLVM 15/16 on `fminimum` (measured; docs/design.md, "Runtime facts").
 MIN_LLVM_MAJOR = 17
 LLVM_SEARCH_GLOBS = (
     "/usr/lib/x86_64-linux-gnu/libLLVM*.so*",
