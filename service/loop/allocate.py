@@ -296,6 +296,7 @@ def allocate_samples(
     cap_fraction_per_pixel: float | None = None,
     max_per_pixel: int | None = None,
     seed: int = 0,
+    floor_only: np.ndarray | None = None,
 ) -> np.ndarray:
     """Integer samples per pixel, (H, W) int64, summing exactly to `budget`.
 
@@ -307,6 +308,9 @@ def allocate_samples(
         budget / absolute); the tighter wins; neither → DEFAULT_CAP_MULTIPLE × budget / pixels.
         A cap too small for the budget is raised to ⌈budget / pixels⌉: samples are never lost.
     seed: only breaks ties between equal rounding remainders.
+    floor_only: (H, W) bool, pixels that get only the floor whatever their neighbours (their
+        samples all agreed: nothing to gain). Applied after dilation, which would otherwise
+        spread a hard neighbour's weight onto them.
     """
     budget = operator.index(budget)
     _validate(weights, budget, floor_fraction, clamp_percentile, dilate_radius,
@@ -317,6 +321,10 @@ def allocate_samples(
     w = _sanitise(weights)
     w = _clamp_outliers(w, clamp_percentile)
     w = _max_filter(w, dilate_radius)
+    if floor_only is not None:
+        if np.shape(floor_only) != shape:
+            raise ValueError(f"floor_only mask {np.shape(floor_only)} does not match the weights {shape}")
+        w = np.where(floor_only, 0.0, w)
     shares = _shares(w, floor_fraction)
     cap = _effective_cap(budget, w.size, cap_fraction_per_pixel, max_per_pixel)
     x = _water_fill(shares, budget, cap)

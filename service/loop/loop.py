@@ -131,11 +131,10 @@ class RenderLoop:
                 relative_variance=buf.relative_variance(),
                 shape=buf.shape,
             )
-            if spec.allocator != "uniform":
-                # Pixels whose samples all agreed (empty background, flat emitters) gain
-                # nothing from more: they get only the allocator's uniform floor.
-                weights = np.where(buf.converged(), 0.0, weights)
-            counts.append(allocate_samples(weights, budget, seed=spec.seed * 1000 + state.iteration))
+            # Pixels whose samples all agreed (empty background, flat emitters) gain nothing
+            # from more: they get only the allocator's uniform floor.
+            settled = buf.converged() if spec.allocator != "uniform" else None
+            counts.append(allocate_samples(weights, budget, seed=spec.seed * 1000 + state.iteration, floor_only=settled))
         timings["allocate"] = time.perf_counter() - t0
         return counts
 

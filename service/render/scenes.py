@@ -23,6 +23,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import drjit as dr
+
 from service.render.builtin import BUILTIN_BY_NAME, BUILTIN_SCENES
 from service.render.flatten import FlatScene, FlattenError, flatten_scene
 from service.render.integrators import film_refusal, integrator_refusal, sensor_refusal
@@ -367,7 +369,22 @@ def _instantiate(mi, parsed: _Parsed):
     if parsed.readable is None:
         return load()
     parsed.config.parallel = False
-    return run_walled(load, [parsed.readable])
+
+    def walled_load():
+        _new_jit_scope(mi)  # this thread uses arrays the caller's thread made
+        return load()
+
+    scene = run_walled(walled_load, [parsed.readable])
+    _new_jit_scope(mi)  # and the caller's thread now uses arrays the load made
+    return scene
+
+
+def _new_jit_scope(mi) -> None:
+    """Dr.Jit orders a thread's work in basic blocks; work handed between threads needs a new
+    one on the receiving side (drjit.detail.new_scope), or evaluating it fails."""
+    backend = dr.backend_v(mi.Float)
+    if backend != dr.JitBackend.Invalid:
+        dr.detail.new_scope(backend)
 
 
 @contextmanager

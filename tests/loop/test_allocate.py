@@ -222,6 +222,19 @@ def test_all_mass_in_one_pixel_is_dilated_to_its_neighbours():
     assert block.min() > outside.max()
 
 
+def test_floor_only_pixels_next_to_a_hard_pixel_get_only_the_floor_despite_dilation():
+    weights = np.zeros((16, 16))
+    weights[8, 8] = 1.0
+    settled = np.zeros((16, 16), bool)
+    settled[8, 9] = settled[7, 7] = True  # neighbours the dilation would reach
+    budget = 16 * 16 * 8
+    counts = allocate_samples(weights, budget, floor_fraction=0.05, floor_only=settled, seed=1)
+    assert int(counts.sum()) == budget
+    far = counts[:4, :4]  # zero weight, nowhere near the hard pixel: the floor (plus the cap's spill)
+    assert counts[settled].max() <= far.max()
+    assert counts[8, 7] > 4 * far.max()  # an unsettled neighbour still gets the dilated weight
+
+
 def test_all_mass_in_a_corner_pixel_dilates_inside_the_image():
     weights = np.zeros((5, 5))
     weights[0, 0] = 1.0
