@@ -124,6 +124,10 @@ def read_exr(path: str | Path) -> ExrFrame:
             raw_header = dict(exr.header())
     except Exception as exc:  # OpenEXR raises plain RuntimeError on corrupt input
         raise ExrError(f"{path}: not a readable EXR file ({exc})") from exc
+    return _frame_from_channels(channels, raw_header, str(path))
+
+
+def _frame_from_channels(channels: dict[str, np.ndarray], raw_header: dict, source: str) -> ExrFrame:
     frame = ExrFrame(header={k: raw_header[k] for k in HEADER_KEYS + REFERENCE_HEADER_KEYS if k in raw_header})
     for name, (prefix, suffixes) in VECTOR_LAYERS.items():
         names = [prefix + s for s in suffixes]
@@ -135,7 +139,7 @@ def read_exr(path: str | Path) -> ExrFrame:
             setattr(frame, name, channels[channel].astype(dtype))
     frame.extra = {n[len(EXTRA_PREFIX):]: c.astype(np.float32) for n, c in channels.items() if n.startswith(EXTRA_PREFIX)}
     if all(getattr(frame, f) is None for f in list(VECTOR_LAYERS) + list(SCALAR_LAYERS)):
-        raise ExrError(f"{path}: no renderloop layers (expected R,G,B or noisy.R/G/B)")
+        raise ExrError(f"{source}: no renderloop layers (expected R,G,B or noisy.R/G/B)")
     return frame
 
 
@@ -167,3 +171,11 @@ def exr_channels_from_bytes(data: bytes, *, max_pixels: int) -> dict[str, np.nda
             raise
         except Exception as exc:  # OpenEXR raises plain RuntimeError on corrupt input
             raise ExrError(f"not a readable EXR file ({exc})") from exc
+
+
+def exr_from_bytes(data: bytes) -> ExrFrame:
+    """An EXR in the project layout held in memory (a preview or result fetched over HTTP)."""
+    with tempfile.TemporaryDirectory(prefix="renderloop-exr-") as folder:
+        path = Path(folder) / "download.exr"
+        path.write_bytes(data)
+        return read_exr(path)
