@@ -81,6 +81,11 @@ def _channel(array: np.ndarray, dtype) -> np.ndarray:
     return np.ascontiguousarray(array, dtype=dtype)
 
 
+def frame_path(out: Path, frame: int, frames: int) -> Path:
+    """OUT.exr for one frame; OUT_0000.exr, OUT_0001.exr, … for a sequence."""
+    return out if frames == 1 else out.with_name(f"{out.stem}_{frame:04d}{out.suffix}")
+
+
 def write_exr(path: str | Path, frame: ExrFrame) -> Path:
     path = Path(path)
     height, width = frame.shape
