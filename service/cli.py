@@ -17,7 +17,6 @@ from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.jobs.retention import Retention
 from service.loop.spec import ALLOCATORS, DEFAULT_ITERATIONS, SERVICE_LIMITS, LAMBDA_RANGE, LoopSpec, LoopSpecError
 from service.dataset import command as dataset_command
-from service.exr import frame_path
 
 EXIT_USAGE = 2
 
@@ -124,7 +123,7 @@ def run_render(args) -> int:
 
     from tqdm import tqdm
 
-    from service.exr import write_exr
+    from service.exr import frame_path, write_exr
     from service.images import tonemap, write_png
     from service.loop.loop import RenderLoop
 

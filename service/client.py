@@ -30,11 +30,11 @@ import numpy as np
 from tqdm import tqdm
 
 from service.api.imaging import EXR_FIELDS
+from service.api.security import TOKEN_ENV
 from service.atomic import atomic_write
 from service.exr import ExrFrame, exr_from_bytes, exr_to_bytes
 
 SERVER_ENV = "RENDERLOOP_SERVER"
-TOKEN_ENV = "RENDERLOOP_TOKEN"
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 FINISHED_STATES = ("completed", "failed", "canceled")
 POLL_SECONDS = 0.5
@@ -73,6 +73,10 @@ class InvalidRequest(RenderloopError):
 
 class ServerUnreachable(RenderloopError):
     """No answer from the server at all."""
+
+
+class JobDidNotComplete(RenderloopError):
+    """A job waited for ended failed or canceled (`renderloop submit --wait`)."""
 
 
 ERROR_TYPES: dict[int, type[RenderloopError]] = {401: AuthenticationRequired, 404: NotFound, 409: Conflict,

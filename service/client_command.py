@@ -1,26 +1,19 @@
 """`renderloop submit SCENE …` and `renderloop jobs`: arguments → service.client.RenderloopClient
-against a running server (`renderloop serve`)."""
+against a running server (`renderloop serve`). The client (httpx, OpenEXR) is imported when a
+command runs, so `renderloop --help` stays light; the client itself resolves the server and
+token defaults from the environment."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-from service.client import DEFAULT_SERVER, SERVER_ENV, TOKEN_ENV, RenderloopClient, RenderloopError
-from service.exr import frame_path
 from service.loop.spec import LAMBDA_RANGE
 
 JOB_COLUMNS = ("ID", "STATE", "ITER", "SPP", "ERROR", "SCENE", "CREATED")
 
 
-class JobDidNotComplete(RenderloopError):
-    """`submit --wait`: the job ended failed or canceled (printed as one error line, exit 2)."""
-
-
 def add_server_arguments(p) -> None:
-    p.add_argument("--server", default=os.environ.get(SERVER_ENV) or DEFAULT_SERVER,
-                   help=f"the service's URL (default: ${SERVER_ENV}, else {DEFAULT_SERVER})")
-    p.add_argument("--token", default=os.environ.get(TOKEN_ENV),
-                   help=f"bearer token when the server needs one (default: ${TOKEN_ENV})")
+    p.add_argument("--server", help="the service's URL (default: $RENDERLOOP_SERVER, else http://127.0.0.1:8000)")
+    p.add_argument("--token", help="bearer token when the server needs one (default: $RENDERLOOP_TOKEN)")
 
 
 def add_parsers(sub) -> None:
@@ -51,7 +44,10 @@ def submit_spec(args) -> dict:
 
 
 def run_submit(args) -> int:
-    with RenderloopClient(args.server, args.token or None) as client:
+    from service.client import JobDidNotComplete, RenderloopClient
+    from service.exr import frame_path
+
+    with RenderloopClient(args.server, args.token) as client:
         job_id = client.submit(args.scene, **submit_spec(args))
         print(job_id, flush=True)  # stdout carries the id alone, for scripts: ID=$(renderloop submit …)
         if not (args.wait or args.output):
@@ -83,7 +79,9 @@ def format_table(rows: list[tuple[str, ...]]) -> str:
 
 
 def run_jobs(args) -> int:
-    with RenderloopClient(args.server, args.token or None) as client:
+    from service.client import RenderloopClient
+
+    with RenderloopClient(args.server, args.token) as client:
         jobs = client.jobs(state=args.state, limit=args.limit)
     if not jobs:
         print("no jobs")
