@@ -1,4 +1,4 @@
-"""`renderloop render|denoise|serve|bench|dataset|train` (DESIGN.md, CLI contract).
+"""`renderloop render|denoise|serve|submit|jobs|bench|dataset|train` (DESIGN.md, CLI contract).
 
 Every user error ends as one `renderloop: error: …` line and exit status 2; tracebacks are
 for bugs only.
@@ -11,7 +11,7 @@ import os
 import sys
 from pathlib import Path
 
-from service import denoise_command, train_command
+from service import client_command, denoise_command, train_command
 from service.api.security import LOOPBACK_HOSTS, SecuritySettings, is_loopback
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.jobs.db.url import is_postgres_url, without_password
@@ -26,11 +26,6 @@ EXIT_USAGE = 2
 
 class CliError(Exception):
     """A user-facing error: printed as one line, exit status 2."""
-
-
-def frame_path(out: Path, frame: int, frames: int) -> Path:
-    """OUT.exr for one frame; OUT_0000.exr, OUT_0001.exr, … for a sequence."""
-    return out if frames == 1 else out.with_name(f"{out.stem}_{frame:04d}{out.suffix}")
 
 
 def load_cli_networks(weights: Path | None):
@@ -135,7 +130,7 @@ def run_render(args) -> int:
 
     from tqdm import tqdm
 
-    from service.exr import write_exr
+    from service.exr import frame_path, write_exr
     from service.images import tonemap, write_png
     from service.loop.loop import RenderLoop
 
@@ -246,6 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_serve_parser(sub)
     for module in (dataset_command, train_command, denoise_command):
         module.add_parser(sub)
+    client_command.add_parsers(sub)
     # The measurement wing (bench/) is not part of the product: `main` hands `renderloop bench …`
     # to it before parsing; this entry only lists the command in --help.
     sub.add_parser("bench", help="measure and write reports (renderloop bench --help)")
@@ -255,13 +251,14 @@ def build_parser() -> argparse.ArgumentParser:
 def user_errors() -> tuple[type[BaseException], ...]:
     """Exception types that describe bad input rather than a bug."""
     from models.checkpoint import CheckpointError
+    from service.client import RenderloopError
     from service.dataset.build import DatasetError
     from service.exr import ExrError
     from service.render.runtime import RuntimeSetupError
     from service.render.scenes import SceneError
 
     return (CliError, ExrError, RuntimeSetupError, FileNotFoundError, SceneError, LoopSpecError,
-            CheckpointError, DatasetError)
+            CheckpointError, DatasetError, RenderloopError, TimeoutError)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -90,6 +90,11 @@ def require_exr_path(path: str | Path) -> Path:
     return path
 
 
+def frame_path(out: Path, frame: int, frames: int) -> Path:
+    """OUT.exr for one frame; OUT_0000.exr, OUT_0001.exr, … for a sequence."""
+    return out if frames == 1 else out.with_name(f"{out.stem}_{frame:04d}{out.suffix}")
+
+
 def write_exr(path: str | Path, frame: ExrFrame) -> Path:
     path = Path(path)
     height, width = frame.shape
@@ -133,6 +138,10 @@ def read_exr(path: str | Path) -> ExrFrame:
             raw_header = dict(exr.header())
     except Exception as exc:  # OpenEXR raises plain RuntimeError on corrupt input
         raise ExrError(f"{path}: not a readable EXR file ({exc})") from exc
+    return _frame_from_channels(channels, raw_header, str(path))
+
+
+def _frame_from_channels(channels: dict[str, np.ndarray], raw_header: dict, source: str) -> ExrFrame:
     frame = ExrFrame(header={k: raw_header[k] for k in HEADER_KEYS + REFERENCE_HEADER_KEYS if k in raw_header})
     for name, (prefix, suffixes) in VECTOR_LAYERS.items():
         names = [prefix + s for s in suffixes]
@@ -144,7 +153,7 @@ def read_exr(path: str | Path) -> ExrFrame:
             setattr(frame, name, channels[channel].astype(dtype))
     frame.extra = {n[len(EXTRA_PREFIX):]: c.astype(np.float32) for n, c in channels.items() if n.startswith(EXTRA_PREFIX)}
     if all(getattr(frame, f) is None for f in list(VECTOR_LAYERS) + list(SCALAR_LAYERS)):
-        raise ExrError(f"{path}: no renderloop layers (expected R,G,B or noisy.R/G/B)")
+        raise ExrError(f"{source}: no renderloop layers (expected R,G,B or noisy.R/G/B)")
     return frame
 
 
@@ -176,3 +185,11 @@ def exr_channels_from_bytes(data: bytes, *, max_pixels: int) -> dict[str, np.nda
             raise
         except Exception as exc:  # OpenEXR raises plain RuntimeError on corrupt input
             raise ExrError(f"not a readable EXR file ({exc})") from exc
+
+
+def exr_from_bytes(data: bytes) -> ExrFrame:
+    """An EXR in the project layout held in memory (a preview or result fetched over HTTP)."""
+    with tempfile.TemporaryDirectory(prefix="renderloop-exr-") as folder:
+        path = Path(folder) / "download.exr"
+        path.write_bytes(data)
+        return read_exr(path)

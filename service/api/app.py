@@ -13,6 +13,7 @@ from fastapi.openapi.utils import get_openapi
 
 from models.pretrained import Networks
 from service.api.errors import BodySizeLimit, install_error_handlers
+from service.api.metrics import ServiceMetrics
 from service.api.routes import router
 from service.api.schemas import BundleJobCreate, JobCreate, LambdaUpdate
 from service.api.security import RequestGuard, SecuritySettings
@@ -37,7 +38,8 @@ def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
     """`db_url`: None for the SQLite file in `data_dir`, or a postgresql:// URL; job files stay
     under `data_dir` either way."""
     store = JobStore(Path(data_dir), db_url)
-    worker = JobWorker(store, networks, concurrency=concurrency)
+    metrics = ServiceMetrics(store)
+    worker = JobWorker(store, networks, concurrency=concurrency, observer=metrics)
     housekeeper = Housekeeper(store, retention)
 
     @asynccontextmanager
@@ -54,7 +56,7 @@ def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
         worker.stop()
 
     app = FastAPI(title="renderloop", version="0.1.0", lifespan=lifespan)
-    app.state.store, app.state.worker = store, worker
+    app.state.store, app.state.worker, app.state.metrics = store, worker, metrics
     app.state.bundle_limits, app.state.job_limits = bundle_limits, job_limits
     app.add_middleware(BodySizeLimit, max_bytes=bundle_limits.max_bytes + FORM_OVERHEAD_BYTES)
     if security.cors_origins:

@@ -9,6 +9,8 @@ from service.images import colormap, tonemap
 from service.loop.spec import LAMBDA_RANGE
 
 RADIANCE_LAYERS = ("denoised", "noisy")
+# Preview layer -> the ExrFrame field that carries it in a `format=exr` preview (the client reads it back).
+EXR_FIELDS = {"denoised": "color", "noisy": "noisy", "error": "error", "spp": "spp", "lambda": "lam"}
 
 
 def _scalar_range(layer: str, values: np.ndarray) -> tuple[float, float]:
@@ -31,7 +33,7 @@ def to_rgb8(layer: str, values: np.ndarray, exposure: float = 0.0) -> np.ndarray
 
 def exr_bytes(layer: str, values: np.ndarray) -> bytes:
     """The raw layer as an EXR in the project layout (radiance as R,G,B; scalars by name)."""
-    field = {"denoised": "color", "noisy": "noisy", "error": "error", "lambda": "lam"}.get(layer, layer)
+    field = EXR_FIELDS[layer]
     if layer == "spp":
         values = values.astype(np.uint32)
     return exr_to_bytes(ExrFrame(**{field: values}, header={"layer": layer}))

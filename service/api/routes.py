@@ -15,9 +15,11 @@ from fastapi.responses import FileResponse, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from service.api import imaging
+from service.api.metrics import MEDIA_TYPE as METRICS_MEDIA_TYPE, ServiceMetrics
 from service.api.lambda_map import constant, decode_map, paint_rects
 from service.api.schemas import (ErrorBody, Health, ImageFormat, JobCreate, JobCreated, JobList, JobStatus,
-                                 LambdaResult, LambdaUpdate, Layer, SceneInfo, SceneList)
+                                 LambdaResult, LambdaUpdate, Layer, MAX_SEQUENCE, SEQUENCE_DESCRIPTION, SceneInfo,
+                                 SceneList)
 from service.api.submit import (builtin_job, invalid, is_multipart, json_body, parse_bundle_spec, unpack_bundle,
                                 uploads, validated)
 from service.images import png_bytes
@@ -63,7 +65,8 @@ SUBMIT_BODY = _json_or_multipart(JobCreate, {
                   "description": "or the XML and its assets, sub-folders in the file names"}}})
 LAMBDA_BODY = _json_or_multipart(LambdaUpdate, {
     "type": "object", "required": ["map"], "properties": {
-        "map": {"type": "string", "format": "binary", "description": "single-channel PNG/EXR whose pixels are λ"}}})
+        "map": {"type": "string", "format": "binary", "description": "single-channel PNG/EXR whose pixels are λ"},
+        "sequence": {"type": "integer", "minimum": 0, "maximum": MAX_SEQUENCE, "description": SEQUENCE_DESCRIPTION}}})
 
 
 def get_store(request: Request) -> JobStore:
@@ -72,6 +75,10 @@ def get_store(request: Request) -> JobStore:
 
 def get_worker(request: Request) -> JobWorker:
     return request.app.state.worker
+
+
+def get_metrics(request: Request) -> ServiceMetrics:
+    return request.app.state.metrics
 
 
 Store = Annotated[JobStore, Depends(get_store)]
@@ -190,7 +197,7 @@ def lambda_from_json(worker: JobWorker, job_id: str, update: LambdaUpdate, shape
 
 
 def apply_lambda(store: JobStore, worker: JobWorker, job_id: str, update: LambdaUpdate | None,
-                 upload: bytes | None) -> LambdaResult:
+                 upload: bytes | None, sequence: int | None = None) -> LambdaResult:
     record = require_job(store, job_id)
     if record.state in (FAILED, CANCELED):
         raise JobConflict(f"job is {record.state}: λ cannot change any more")
@@ -198,22 +205,35 @@ def apply_lambda(store: JobStore, worker: JobWorker, job_id: str, update: Lambda
     if shape is None:
         raise JobConflict("the image size is not known before the first iteration; retry once a preview exists")
     lam = decode_map(upload, shape) if upload is not None else lambda_from_json(worker, job_id, update, shape)
-    applied = worker.set_lambda(job_id, lam, update.value if update is not None else None)
+    if update is not None:
+        sequence = update.sequence
+    applied = worker.set_lambda(job_id, lam, update.value if update is not None else None, sequence)
     return LambdaResult(version=applied.version, full_passes=applied.full_passes, tail_passes=applied.tail_passes)
+
+
+def form_sequence(raw: object) -> int | None:
+    """The optional `sequence` form field of a map upload, checked like the JSON field."""
+    if raw is None:
+        return None
+    if not isinstance(raw, str) or not raw.isdigit() or int(raw) > MAX_SEQUENCE:
+        raise invalid("sequence", f"must be an integer in [0, {MAX_SEQUENCE}]")
+    return int(raw)
 
 
 @router.put("/jobs/{job_id}/lambda", response_model=LambdaResult, responses=JOB_ERRORS, openapi_extra=LAMBDA_BODY)
 async def put_lambda(job_id: str, request: Request, store: Store, worker: Worker) -> LambdaResult:
     """JSON `{"value": 2.5}` or `{"rects": [{"x","y","w","h","value"}]}` (painted over the
-    current map), or multipart with a single-channel PNG/EXR `map` whose pixels are λ."""
+    current map), or multipart with a single-channel PNG/EXR `map` whose pixels are λ. An
+    optional `sequence` orders one client's edits (see LambdaUpdate)."""
     await run_in_threadpool(require_job, store, job_id)
     if is_multipart(request):
         form = await request.form(max_files=1, max_fields=4)
         maps = uploads(form, "map")
         if not maps:
             raise invalid("map", "upload the λ map as form field 'map'")
+        sequence = form_sequence(form.get("sequence"))
         data = await maps[0].read()
-        return await run_in_threadpool(apply_lambda, store, worker, job_id, None, data)
+        return await run_in_threadpool(apply_lambda, store, worker, job_id, None, data, sequence)
     update: LambdaUpdate = validated(LambdaUpdate, await json_body(request))
     return await run_in_threadpool(apply_lambda, store, worker, job_id, update, None)
 
@@ -276,6 +296,16 @@ def builtin_scene_list() -> SceneList:
 def list_scenes() -> SceneList:
     """The built-in scenes a JSON job may name, with what each calls for."""
     return builtin_scene_list()
+
+
+@router.get("/metrics", response_class=Response, responses={
+    200: {"content": {"text/plain": {"schema": {"type": "string"}}},
+          "description": "Prometheus text format: renderloop_jobs{state}, renderloop_iteration_stage_seconds{stage}, "
+                         "renderloop_lambda_edit_seconds, renderloop_samples_rendered_total, "
+                         "renderloop_iterations_total"}})
+def metrics(service_metrics: Annotated[ServiceMetrics, Depends(get_metrics)]) -> Response:
+    """Prometheus metrics of this server (needs the bearer token when one is set)."""
+    return Response(service_metrics.exposition(), media_type=METRICS_MEDIA_TYPE)
 
 
 @router.get("/healthz", response_model=Health)

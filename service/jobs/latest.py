@@ -4,6 +4,11 @@ slider is dragged, and only the last one matters.
 `submit` replaces whatever is still waiting and returns a ticket; one drain thread per
 mailbox applies the newest value; `wait(ticket)` returns the result of the first application
 at or after that ticket, so superseded requests get the version that holds the latest λ.
+
+Arrival order is not always the order a client issued its edits in (two connections, a slow
+thread): a request may carry the client's own `order` (a number that grows with each edit),
+and one below an order already seen is a straggler — dropped, its caller answered with the
+newer request's result.
 """
 from __future__ import annotations
 
@@ -25,9 +30,14 @@ class LatestWins(Generic[T, R]):
         self._result: R | None = None
         self._failure: tuple[int, BaseException] | None = None  # (ticket, error) of the last failure
         self._draining = False
+        self._newest_order: int | None = None
 
-    def submit(self, value: T) -> int:
+    def submit(self, value: T, order: int | None = None) -> int:
         with self._cond:
+            if order is not None:
+                if self._newest_order is not None and order < self._newest_order:
+                    return self._next_ticket - 1  # a straggler: wait for the newer edit instead
+                self._newest_order = order
             ticket = self._next_ticket
             self._next_ticket += 1
             self._pending = (ticket, value)

@@ -16,6 +16,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -72,11 +73,36 @@ def _add_timings(total: dict[str, float], more: dict[str, float]) -> dict[str, f
     return merged
 
 
+class WorkerObserver(Protocol):
+    """Told what the worker did, for monitoring (service.api.metrics)."""
+
+    def iteration_finished(self, timings: dict[str, float], samples: int) -> None:
+        """One iteration: seconds per stage, samples it rendered over all frames."""
+
+    def lambda_applied(self, seconds: float) -> None:
+        """A λ edit, from its request to the preview version that shows it."""
+
+
+class NoObserver:
+    def iteration_finished(self, timings: dict[str, float], samples: int) -> None:
+        pass
+
+    def lambda_applied(self, seconds: float) -> None:
+        pass
+
+
+def total_samples(buffers: list) -> int:
+    """Samples accumulated in a job's frame buffers, all frames together."""
+    return sum(int(buf.spp.sum()) for buf in buffers)
+
+
 class JobWorker:
-    def __init__(self, store: JobStore, networks: Networks, concurrency: int = 1) -> None:
+    def __init__(self, store: JobStore, networks: Networks, concurrency: int = 1,
+                 observer: WorkerObserver = NoObserver()) -> None:
         if concurrency < 1:
             raise ValueError("concurrency must be >= 1")
         self.store = store
+        self.observer = observer
         self.networks = networks  # loaded once at start-up, shared by every job's loop
         self._pool = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="render")
         self._lock = threading.Lock()
@@ -171,9 +197,12 @@ class JobWorker:
         should_stop = lambda: cancel.is_set() or self._stopping.is_set()  # noqa: E731
         timings = dict(record.timings)
         last: IterationRecord | None = None
+        samples = total_samples(loop.state.buffers)  # a resumed job's earlier samples are not counted again
         try:
             for last in loop.run(should_stop=should_stop):
                 timings = self._finish_iteration(job_id, loop, files, last, timings)
+                self.observer.iteration_finished(last.timings, total_samples(last.buffers) - samples)
+                samples = total_samples(last.buffers)
         except IterationInterrupted:
             # Stopped inside an iteration (within one wavefront chunk): the in-memory buffers
             # are partial, the checkpoint of the last finished iteration is what counts.
@@ -291,14 +320,19 @@ class JobWorker:
             return lam
         return np.full(shape, job_spec(record).lam, dtype=np.float32)
 
-    def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None) -> LambdaApplied:
+    def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None,
+                   sequence: int | None = None) -> LambdaApplied:
         """Keep `lam` with the job and re-denoise from cached features. Under a burst only the
-        newest request is applied; every caller gets the version that shows it."""
+        newest request is applied (newest by the client's `sequence` when it sends one, else
+        by arrival); every caller gets the version that shows it."""
+        started = time.perf_counter()
         record = self._require(job_id)
         if record.state in (FAILED, CANCELED):
             raise JobConflict(f"job {job_id} is {record.state}: there is nothing left to re-denoise")
         mailbox = self._lambda_mailbox(job_id)
-        return mailbox.wait(mailbox.submit((lam, value)), timeout=LAMBDA_WAIT_SECONDS)
+        applied = mailbox.wait(mailbox.submit((lam, value), order=sequence), timeout=LAMBDA_WAIT_SECONDS)
+        self.observer.lambda_applied(time.perf_counter() - started)
+        return applied
 
     def _lambda_mailbox(self, job_id: str) -> LatestWins[tuple[np.ndarray, float | None], LambdaApplied]:
         with self._lock:

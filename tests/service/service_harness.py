@@ -90,6 +90,13 @@ def finished(job: dict) -> bool:
     return job["state"] in ("completed", "failed", "canceled")
 
 
+def renderloop_cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """`renderloop ARGS…` as a real subprocess, without the caller's RENDERLOOP_SERVER/TOKEN."""
+    environment = {k: v for k, v in os.environ.items() if k not in ("RENDERLOOP_SERVER", "RENDERLOOP_TOKEN")}
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=300, env={**environment, **(env or {})})
+
+
 def zip_bytes(members: dict[str, bytes | str], symlinks: dict[str, str] = {}) -> bytes:
     """A zip with the given members, plus symlink entries (name → target) as a hostile bundle has."""
     buffer = io.BytesIO()

@@ -202,6 +202,17 @@ def test_latest_wins_skips_superseded_requests():
     assert results[-1] == 40 and all(r in (0, 40) for r in results)
 
 
+def test_latest_wins_drops_a_request_ordered_before_one_already_seen():
+    applied: list[str] = []
+    box = LatestWins(lambda value: applied.append(value) or value)
+    newer = box.submit("third", order=3)
+    assert box.wait(newer, timeout=5) == "third"
+    late = box.submit("second", order=2)  # issued before "third", arrived after it
+    assert box.wait(late, timeout=5) == "third" and applied == ["third"]
+    assert box.wait(box.submit("unordered"), timeout=5) == "unordered"  # no order: arrival decides
+    assert box.wait(box.submit("fourth", order=4), timeout=5) == "fourth"
+
+
 def test_latest_wins_reports_failures():
     def apply(value: int) -> int:
         raise ValueError(f"bad {value}")
