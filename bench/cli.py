@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from bench.dev_suite_report import run_dev_suite_report
+from bench.calibration_report import run_calibration_report
 from bench.dev_references import DEFAULT_REFERENCE_DIR, write_references
 from bench.loop_report import add_arguments as add_loop_arguments, run_loop_command
 from bench.models_report import main as models_main
@@ -35,9 +36,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reference-spp", type=int, default=None,
                    help="samples per pixel of every reference (default 16384; 65536 for the noisiest scenes)")
     p.add_argument("--only", nargs="+", default=None, metavar="SCENE",
-                   help="with --references or --dev-suite: these development scenes only")
+                   help="with --references, --dev-suite or --calibration: these development scenes only")
     p.add_argument("--dev-suite", action="store_true",
                    help="KPCN vs OIDN at 16 spp and the loop vs uniform + OIDN at 128 spp on scenes/dev → docs/dev-suite.md")
+    p.add_argument("--calibration", action="store_true",
+                   help="predicted vs true error per iteration and where --target-error stops, on scenes/dev → calibration.md")
     add_loop_arguments(p)  # --loop [--quick] --weights --cache
 
 
@@ -62,6 +65,9 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.references:
         written = write_references(args.references_dir, spp=args.reference_spp, only=args.only)
         print(f"wrote {len(written)} reference(s) to {args.references_dir}")
+        return 0
+    if args.calibration:
+        print(f"wrote {run_calibration_report(args.out, weights_dir=args.weights, only=args.only)}")
         return 0
     if args.dev_suite:
         print(f"wrote {run_dev_suite_report(args.out, weights_dir=args.weights, only=args.only)}")

@@ -281,7 +281,7 @@ def test_result_header_names_a_bundle_scene_relative_to_the_bundle(client, tmp_p
     scene = ('<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm"><integer name="width" '
              'value="8"/><integer name="height" value="8"/></film></sensor><shape type="sphere"/>'
              '<emitter type="constant"/></scene>')
-    archive = zip_bytes({"shots/a.xml": scene})
+    archive = zip_bytes({"shots/a.xml": scene, "notes.txt": "two top-level entries: no folder is stripped"})
     response = client.post("/jobs", data={"spec": json.dumps({"scene": "shots/a.xml", "max_iterations": 1})},
                            files={"bundle": ("s.zip", archive, "application/zip")})
     assert response.status_code == 202, response.text

@@ -1,0 +1,112 @@
+"""`renderloop bench --calibration`: can a user trust the predicted error? On the hand-written
+development scenes (never trained on) and their committed references.
+
+Per scene, one adaptive loop (error allocator, 16 → 256 spp mean) at the scene's own size; per
+iteration the mean predicted SMAPE of the denoised image next to its true SMAPE against the
+reference, and the per-image Spearman rank correlation of the predicted and true error maps.
+A loop with `--target-error E` stops at the first iteration whose mean prediction is ≤ E, and
+the loop is deterministic for a seed, so the same records say where each E would stop and how
+far the true SMAPE is from E there.
+"""
+from __future__ import annotations
+
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+
+from bench.common import fill, fmt, image_metrics, load_bench_networks, pinned_torch_threads, provenance, true_error_map
+from bench.dev_references import DEFAULT_REFERENCE_DIR, dev_scenes, load_reference
+from bench.quality_measures import spearman
+from service.loop.loop import RenderLoop
+from service.loop.spec import LoopSpec
+from service.render.runtime import active_variant
+
+REPORT_NAME = "calibration.md"
+ITERATIONS = 5  # 16 → 32 → 64 → 128 → 256 spp mean
+TARGETS = (0.01, 0.02, 0.05)
+TRUSTED = 0.25  # issue 14: the true SMAPE at a target-error stop within 25 % of the target
+MEAN_TOLERANCE = 0.20  # issue 14: predicted mean within 20 % of the true mean
+TORCH_THREADS = 1
+
+
+@dataclass(frozen=True)
+class IterationScore:
+    spp: float
+    predicted: float
+    true: float
+    spearman: float
+
+    @property
+    def ratio(self) -> float:
+        return self.predicted / self.true if self.true > 0 else float("nan")
+
+
+def score_scene(path: Path, reference, networks) -> list[IterationScore]:
+    spec = LoopSpec(scene=str(path), max_iterations=ITERATIONS, allocator="error")
+    scores = []
+    for record in RenderLoop(spec, networks).run():
+        denoised, predicted = record.denoised[0], record.error[0]
+        scores.append(IterationScore(record.spp_mean, float(predicted.mean()),
+                                     image_metrics(denoised, reference)["smape"],
+                                     spearman(predicted, true_error_map(denoised, reference))))
+    return scores
+
+
+def stop_for_target(scores: list[IterationScore], target: float) -> IterationScore | None:
+    """Where `--target-error target` would stop: the first iteration predicted at or below it."""
+    return next((s for s in scores if s.predicted <= target), None)
+
+
+def run_calibration_report(out_dir: Path, *, weights_dir: Path | None = None, only: list[str] | None = None,
+                           reference_dir: Path = DEFAULT_REFERENCE_DIR) -> Path:
+    nets = load_bench_networks(weights_dir)
+    results: dict[str, list[IterationScore]] = {}
+    with pinned_torch_threads(TORCH_THREADS):
+        for scene in dev_scenes(only):
+            reference, _ = load_reference(reference_dir, scene, None if scene.frames == 1 else 0)
+            results[scene.name] = score_scene(scene.path, reference, nets.networks)
+            last = results[scene.name][-1]
+            print(f"bench --calibration: {scene.name}: predicted {last.predicted:.4f} true {last.true:.4f} "
+                  f"spearman {last.spearman:.2f}", flush=True)
+    return write_calibration_report(results, out_dir, nets.description)
+
+
+def _per_iteration_table(results: dict[str, list[IterationScore]]) -> str:
+    rows = []
+    for name, scores in results.items():
+        cells = " | ".join(f"{fmt(s.predicted)} / {fmt(s.true)} ({s.spearman:.2f})" for s in scores)
+        rows.append(f"| {name} | {cells} |")
+    return "\n".join(rows)
+
+
+def _target_table(results: dict[str, list[IterationScore]]) -> str:
+    rows = []
+    final_spp = f"{max(scores[-1].spp for scores in results.values()):g}"
+    for target in TARGETS:
+        reached = [(name, stop_for_target(scores, target)) for name, scores in results.items()]
+        stops = [(name, s) for name, s in reached if s is not None]
+        trusted = sum(abs(s.true / target - 1) <= TRUSTED for _, s in stops)
+        cells = ", ".join(f"{name} {s.spp:g} spp → {s.true / target:.2f}×" for name, s in stops) or "—"
+        never = len(reached) - len(stops)
+        rows.append(f"| {target:g} | {len(stops)} ({never} never reach it by {final_spp} spp) | {trusted} | {cells} |")
+    return "\n".join(rows)
+
+
+def write_calibration_report(results: dict[str, list[IterationScore]], out_dir: Path, weights: str) -> Path:
+    iterations = min(len(scores) for scores in results.values())
+    spp_header = " | ".join(f"{next(iter(results.values()))[i].spp:g} spp" for i in range(iterations))
+    medians = []
+    for i in range(iterations):
+        ratios = [scores[i].ratio for scores in results.values()]
+        within = sum(abs(r - 1) <= MEAN_TOLERANCE for r in ratios)
+        rho = statistics.median(scores[i].spearman for scores in results.values())
+        medians.append(f"| {results[next(iter(results))][i].spp:g} | {statistics.median(ratios):.2f} | "
+                       f"{within} of {len(ratios)} | {rho:.2f} |")
+    target_table = _target_table(results)
+    path = out_dir / REPORT_NAME
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path.write_text(fill(
+        "calibration.md", provenance=provenance(variant=active_variant()), weights=weights, count=len(results),
+        spp_header=spp_header, spp_rule="|".join(["---:"] * iterations), per_iteration=_per_iteration_table(results),
+        medians="\n".join(medians), targets=target_table, trusted=f"{TRUSTED:.0%}", tolerance=f"{MEAN_TOLERANCE:.0%}"))
+    return path
