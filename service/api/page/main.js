@@ -155,6 +155,10 @@ function bindTools() {
     viewer.setTool(button.dataset.tool);
   }));
   document.getElementById("jobs-refresh").addEventListener("click", () => refreshJobs());
+  // Jobs submitted elsewhere (CLI, scripts) have no stream here yet: look again on coming back.
+  document.addEventListener("visibilitychange", () => {
+    if (document.visibilityState === "visible") refreshJobs();
+  });
   tokenForm.addEventListener("submit", (event) => {
     event.preventDefault();
     setToken(tokenInput.value.trim());
