@@ -163,8 +163,9 @@ class Page:
         pointer.pointer_up()
         actions.perform()
 
-    def drag_slider(self, css: str, pixels: int) -> None:
-        ActionChains(self.driver).drag_and_drop_by_offset(self.find(css), pixels, 0).perform()
+    def drag(self, css: str, dx: int, dy: int) -> None:
+        """Press on the element's centre, move by (dx, dy), release: a slider or a pan."""
+        ActionChains(self.driver).drag_and_drop_by_offset(self.find(css), dx, dy).perform()
 
     def image_pixel(self, image: str, x: int, y: int) -> list[int]:
         """RGBA of one pixel of an <img> as the browser decoded it."""

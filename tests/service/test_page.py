@@ -4,6 +4,7 @@ download, and the token field. Small jobs (32², the shipped networks) keep it t
 from __future__ import annotations
 
 import time
+import zipfile
 
 import httpx
 import numpy as np
@@ -11,7 +12,7 @@ import pytest
 
 from browser_harness import Page, missing_browser, start_browser, wait_until
 from service.exr import exr_channels_from_bytes
-from service_harness import Server, wait_for
+from service_harness import REPO, Server, wait_for
 
 pytestmark = pytest.mark.skipif(missing_browser() is not None, reason=f"no browser: {missing_browser()}")
 
@@ -79,7 +80,7 @@ def test_dragging_the_lambda_slider_ends_on_the_last_value_and_shows_a_new_previ
     wait_until(lambda: page.shown_version() == job["preview_version"], "the finished job's preview")
     slider = page.find("#lambda-slider")
     wait_until(lambda: slider.is_enabled(), "the λ slider to be enabled")
-    page.drag_slider("#lambda-slider", 40)
+    page.drag("#lambda-slider", 40, 0)
     wanted = float(slider.get_attribute("value"))
     assert wanted > 1.0
     wait_until(lambda: page.shown_version() > job["preview_version"], "a preview after the λ change")
@@ -134,6 +135,44 @@ def test_the_exr_button_downloads_the_result(page, api, driver, tmp_path):
     path = wait_until(lambda: next(iter(tmp_path.glob("*.exr")), None), "the downloaded EXR")
     time.sleep(0.2)  # the browser renames the file once complete; the bytes are all there then
     assert path.read_bytes() == api.get(f"/jobs/{job['id']}/result.exr").content
+
+
+def test_a_zipped_scene_folder_chosen_in_the_drop_zone_is_uploaded_and_rendered(page, api, tmp_path):
+    folder = REPO / "scenes" / "dev" / "fine_texture"  # scene.xml + the texture it names
+    archive = tmp_path / "fine_texture.zip"
+    with zipfile.ZipFile(archive, "w") as zf:
+        for path in folder.iterdir():
+            zf.write(path, f"fine_texture/{path.name}")
+    page.wait_for_scenes()
+    page.find("#bundle-input").send_keys(str(archive))
+    wait_until(lambda: "fine_texture.zip" in page.find("#drop-label").text, "the zip to be chosen")
+    assert not page.find("#scene-select").is_enabled()
+    job_id = page.submit(width=32, height=32, max_iterations=1)
+    wait_until(lambda: page.state(job_id) == "completed", "the uploaded scene to render")
+    assert api.get(f"/jobs/{job_id}").json()["spec"]["bundle_scene"] == "scene.xml"
+
+
+def test_zoom_pan_split_and_exposure_change_what_the_viewer_shows(page, api):
+    job = finished_job(api)
+    page.select(job["id"])
+    wait_until(lambda: page.shown_version() == job["preview_version"], "the preview")
+    stage = page.find("#stage")
+    assert float(stage.get_attribute("data-scale")) > 4  # 32² fitted to the viewport
+    page.click('#zoom-buttons [data-zoom="1"]')
+    wait_until(lambda: stage.get_attribute("data-scale") == "1", "1:1 zoom")
+    start = stage.rect
+    page.drag("#viewport", 40, 25)
+    moved = stage.rect
+    assert (round(moved["x"] - start["x"]), round(moved["y"] - start["y"])) == (40, 25)
+    page.click("#split")
+    wait_until(lambda: page.find("#image-b").is_displayed(), "the A/B split")
+    assert "layer=noisy" in page.find("#image-a").get_attribute("src")
+    assert "layer=denoised" in page.find("#image-b").get_attribute("src")
+    page.drag("#exposure", 60, 0)
+    exposure = page.find("#exposure").get_attribute("value")
+    assert float(exposure) > 0
+    wait_until(lambda: f"exposure={exposure}&" in page.find("#image-b").get_attribute("src") + "&",
+               "a preview at the new exposure")
 
 
 def test_a_refused_submit_shows_the_servers_message(page):
