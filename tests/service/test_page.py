@@ -59,7 +59,7 @@ def test_submitting_a_32px_job_shows_each_new_preview_version_pushed_by_the_even
     page.js("""window.versionsSeen = [];
         new MutationObserver(() => window.versionsSeen.push(document.getElementById('preview-version').dataset.version))
           .observe(document.getElementById('preview-version'), {attributes: true});""")
-    job_id = page.submit(width=32, height=32, max_iterations=7)
+    job_id = page.submit(width=32, height=32, max_iterations=8, spp_first=32)
     wait_until(lambda: page.state(job_id) == "completed", "the row to say completed")
     final = api.get(f"/jobs/{job_id}").json()
     wait_until(lambda: page.shown_version() == final["preview_version"], "the last preview version on screen")

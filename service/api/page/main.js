@@ -171,4 +171,6 @@ function bindTools() {
 
 onUnauthorized(askForToken);
 bindTools();
+viewer.show(null);
+lambda.setJob(null);
 loadAll();
