@@ -65,7 +65,7 @@ def test_submitting_a_32px_job_shows_each_new_preview_version_pushed_by_the_even
     wait_until(lambda: page.shown_version() == final["preview_version"], "the last preview version on screen")
     seen = [int(v) for v in page.js("return window.versionsSeen") if v]
     assert len(set(seen)) >= 2 and seen == sorted(seen), f"the preview did not move on while rendering: {seen}"
-    assert final["spec"]["width"] == 32 and final["spec"]["max_iterations"] == 7
+    assert (final["spec"]["width"], final["spec"]["max_iterations"], final["spec"]["spp_first"]) == (32, 8, 32)
     row = page.row_text(job_id)
     assert "completed" in row and f"{final['spp']:.1f}" in row and f"{final['predicted_error']:.4f}" in row
     urls = page.resource_urls()

@@ -1,10 +1,11 @@
 // Live job status from the server-sent events (GET /jobs/{id}/events): one EventSource per
-// unfinished job, at most MAX_STREAMS at once because a browser keeps only ~6 connections per
-// server over HTTP/1.1 and the previews need some. Polling only where EventSource is missing.
+// unfinished job, at most MAX_STREAMS at once because a browser keeps only 6 connections per
+// server over HTTP/1.1 and the previews and λ edits need the rest. A job not followed is seen
+// again whenever a followed one ends (the list is reloaded then). Polling only where EventSource is missing.
 
 import { api } from "./api.js";
 
-const MAX_STREAMS = 3;
+const MAX_STREAMS = 2;
 const POLL_MS = 1000;
 
 export class JobFeed {

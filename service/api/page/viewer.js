@@ -110,11 +110,12 @@ export class Viewer {
     if (!this.job || job.id !== this.job.id) return;
     const overlayBefore = this.overlayWanted();
     this.job = job;
-    if (job.preview_version > this.version || overlayBefore !== this.overlayWanted()) this.showVersion(job.preview_version);
+    if (job.preview_version > this.version) this.showVersion(job.preview_version);
+    else if (overlayBefore !== this.overlayWanted()) this.reload();
   }
 
   showVersion(version) {
-    if (version < this.version) return;  // an older answer arriving late changes nothing
+    if (version <= this.version) return;  // shown already, or an older answer arriving late
     this.version = version;
     this.reload();
   }
