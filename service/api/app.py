@@ -1,5 +1,5 @@
 """The FastAPI application: one job store and one worker per data folder, the routes of
-service.api.routes, the error handlers that turn every refusal into a 4xx with a message."""
+service.api.routes, the page of service.api.page, the error handlers that turn every refusal into a 4xx with a message."""
 from __future__ import annotations
 
 import logging
@@ -14,6 +14,7 @@ from fastapi.openapi.utils import get_openapi
 from models.pretrained import Networks
 from service.api.errors import BodySizeLimit, install_error_handlers
 from service.api.metrics import ServiceMetrics
+from service.api.page import install_page
 from service.api.routes import router
 from service.api.schemas import BundleJobCreate, JobCreate, LambdaUpdate
 from service.api.security import RequestGuard, SecuritySettings
@@ -65,6 +66,7 @@ def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
     app.add_middleware(RequestGuard, settings=security)  # added last: runs first
     install_error_handlers(app)
     app.include_router(router)
+    install_page(app)
     app.openapi = lambda: openapi_document(app)
     return app
 

@@ -1,5 +1,5 @@
 """Who may talk to the service, and from where: a bearer token on every endpoint but
-/healthz, a Host allow-list (a DNS-rebinding page reaches 127.0.0.1 under its own name), JSON
+/healthz and the page's static files, a Host allow-list (a DNS-rebinding page reaches 127.0.0.1 under its own name), JSON
 bodies only as `application/json` (a cross-site form can send `text/plain` without a CORS
 preflight), and CORS closed unless origins are named. docs/security.md has the threat model."""
 from __future__ import annotations
@@ -16,11 +16,19 @@ TOKEN_ENV = "RENDERLOOP_TOKEN"
 ALLOWED_HOSTS_ENV = "RENDERLOOP_ALLOWED_HOSTS"
 CORS_ORIGINS_ENV = "RENDERLOOP_CORS_ORIGINS"
 LOOPBACK_HOSTS = ("localhost", "127.0.0.1", "::1")
-OPEN_PATHS = frozenset({"/healthz"})
+# The page and its static files carry no secret and must load before anyone has typed a
+# token (service/api/page.py); every API call the page makes is guarded as usual.
+OPEN_PATHS = frozenset({"/healthz", "/"})
+OPEN_PREFIXES = ("/page/",)
 # Browser elements that cannot send headers (EventSource, <img>) may carry the token in the
 # query string, on these read-only GET routes only.
 QUERY_TOKEN_SUFFIXES = ("/events", "/preview")
 BODY_TYPES = ("application/json", "multipart/form-data")
+
+
+def is_open(path: str) -> bool:
+    """Paths served without a token: the health check and the page (never the API)."""
+    return path in OPEN_PATHS or path.startswith(OPEN_PREFIXES)
 
 
 def is_loopback(host: str) -> bool:
@@ -79,7 +87,7 @@ class RequestGuard:
         method, path = scope["method"], scope["path"]
         if method == "OPTIONS":
             return None  # CORS preflight: answered (or refused) by the CORS middleware
-        if self.settings.token is not None and path not in OPEN_PATHS and not self._authorised(scope, headers):
+        if self.settings.token is not None and not is_open(path) and not self._authorised(scope, headers):
             return _refuse(401, "this server needs a token: send 'Authorization: Bearer <token>'",
                            {"WWW-Authenticate": "Bearer"})
         if method in ("POST", "PUT", "PATCH") and _has_body(headers):

@@ -1,6 +1,7 @@
 """Authentication and cross-site protection against a real server started with a token."""
 from __future__ import annotations
 
+import http.client
 import os
 import subprocess
 import sys
@@ -31,6 +32,27 @@ def test_every_endpoint_but_healthz_needs_the_token(server):
         assert anonymous.post("/jobs", json=JOB).status_code == 401
         wrong = anonymous.get("/jobs", headers={"Authorization": "Bearer nope"})
         assert wrong.status_code == 401
+
+
+def test_the_page_and_its_files_load_without_a_token_so_it_can_ask_for_one(server):
+    with httpx.Client(base_url=server.url, timeout=30) as anonymous:
+        page = anonymous.get("/")
+        assert page.status_code == 200 and "text/html" in page.headers["content-type"]
+        assert "frame-ancestors 'none'" in page.headers["content-security-policy"]
+        for path in ("/page/main.js", "/page/api.js", "/page/page.css"):
+            assert anonymous.get(path).status_code == 200, path
+        assert anonymous.get("/page/missing.js").status_code == 404
+        assert anonymous.get("/page/").status_code == 404  # the folder lists nothing
+    # The open prefix opens the page's folder only, not the API behind a dotted path (sent
+    # as written: http.client does not normalise `..` the way httpx does).
+    for path in ("/page/../jobs", "/page/%2e%2e/jobs", "/page/../openapi.json", "/page/../page.py"):
+        connection = http.client.HTTPConnection("127.0.0.1", server.port, timeout=30)
+        connection.request("GET", path)
+        response = connection.getresponse()
+        assert response.status in (401, 404) and b'"jobs"' not in response.read(), path
+        connection.close()
+    response = httpx.get(server.url + "/", headers={"Host": "evil.example"})
+    assert response.status_code == 400  # the Host allow-list still applies to the page
 
 
 def test_the_right_token_is_accepted_and_a_job_is_created(server):

@@ -1,0 +1,1 @@
+"""The measurement wing: benchmarks and reports (never imported by the product)."""

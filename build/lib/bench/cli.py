@@ -1,0 +1,93 @@
+"""`renderloop bench …`: which report to measure and write. `add_parser(sub)` registers the
+subcommand on the product's CLI; `main(argv)` parses on its own (`python -m bench.cli`)."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from bench.dev_suite_report import run_dev_suite_report
+from bench.dev_references import DEFAULT_REFERENCE_DIR, write_references
+from bench.loop_report import add_arguments as add_loop_arguments, run_loop_command
+from bench.models_report import main as models_main
+from bench.quality_report import run_quality_report
+from bench.sampler_report import bench_memory, bench_sampler, write_memory_report, write_sampler_report
+
+HELP = "measure and write reports to docs/"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sampler", action="store_true", help="renderer samples/s vs mi.render at equal samples")
+    p.add_argument("--models", action="store_true", help="denoiser / λ tail forward time and memory → docs/models-speed.md")
+    p.add_argument("--memory", action="store_true",
+                   help="peak RSS of one 1024² x 64 spp render pass (chunked wavefront) in a fresh process")
+    p.add_argument("--denoiser", action="store_true", help="denoiser quality on held-out scenes (needs --data)")
+    p.add_argument("--data", type=Path, help="data set with a held-out split (for --denoiser)")
+    p.add_argument("--size", type=int, default=256, help="image side for --sampler (default 256)")
+    p.add_argument("--spp", type=int, default=64, help="samples per pixel for --sampler (default 64)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("-o", "--out", type=Path, default=Path("docs"))
+    p.add_argument("--references", action="store_true",
+                   help="render the development suite's references (scenes/dev, mi.render as written; use a GPU)")
+    p.add_argument("--references-dir", type=Path, default=DEFAULT_REFERENCE_DIR)
+    p.add_argument("--reference-spp", type=int, default=None,
+                   help="samples per pixel of every reference (default 16384; 65536 for the noisiest scenes)")
+    p.add_argument("--only", nargs="+", default=None, metavar="SCENE",
+                   help="with --references or --dev-suite: these development scenes only")
+    p.add_argument("--dev-suite", action="store_true",
+                   help="KPCN vs OIDN at 16 spp and the loop vs uniform + OIDN at 128 spp on scenes/dev → docs/dev-suite.md")
+    add_loop_arguments(p)  # --loop [--quick] --weights --cache
+
+
+def add_parser(sub) -> None:
+    """Register `bench` on the product CLI's subparsers."""
+    p = sub.add_parser("bench", help=HELP, description=HELP)
+    add_arguments(p)
+    p.set_defaults(handler=run_bench)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="renderloop bench", description=HELP)
+    add_arguments(p)
+    return p
+
+
+def main(argv: list[str]) -> int:
+    return run_bench(build_parser().parse_args(argv))
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    if args.references:
+        written = write_references(args.references_dir, spp=args.reference_spp, only=args.only)
+        print(f"wrote {len(written)} reference(s) to {args.references_dir}")
+        return 0
+    if args.dev_suite:
+        print(f"wrote {run_dev_suite_report(args.out, weights_dir=args.weights, only=args.only)}")
+        return 0
+    if args.loop:
+        return run_loop_command(args)
+    if args.memory:
+        memory = bench_memory()
+        print(f"memory: peak RSS {memory.peak_rss_gb:.2f} GB; wrote {write_memory_report(memory, args.out)}")
+    if not (args.sampler or args.models or args.denoiser or args.memory):
+        args.sampler = True
+    if args.sampler:
+        results = bench_sampler(args.size, args.spp, args.repeats)
+        for r in results:
+            print(f"sampler: {r.case.label}: ours {r.ours_msps:.2f} M samples/s, mi.render {r.mi_render_msps:.2f}"
+                  f" → ratio {r.ratio:.2f}x")
+        print(f"wrote {write_sampler_report(results, args.out)}")
+    if args.models:
+        # The defaults (256² and 512², 2 threads); `python -m bench.models_report --help` has the options.
+        print(f"wrote {models_main([], out=args.out)}")
+    if args.denoiser:
+        if args.data is None:
+            print("renderloop bench: error: --denoiser needs --data DIR with a held-out split", file=sys.stderr)
+            return 2
+        weights = {} if args.weights is None else {"weights_dir": args.weights}
+        print(f"wrote {run_quality_report(args.data, args.out, **weights)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,251 @@
+"""What every report shares, written once: provenance, torch-thread pinning, network loading,
+reference renders and their cache, metrics, and the one call of Intel Open Image Denoise.
+
+Both the loop benchmark and the denoiser quality report take their OIDN figures, their
+references and their metric values from here, so their numbers are comparable.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import math
+import os
+import platform
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from string import Template
+
+import numpy as np
+import torch
+
+from models.losses import SMAPE_EPS, smape, smape_map
+from models.metrics import psnr, relmse, ssim
+from models.pretrained import DENOISER_FILE, ERROR_PREDICTOR_FILE, Networks, load_networks, weights_dir
+from models.checkpoint import read_checkpoint
+from service.images import linear_to_srgb
+from service.render.builtin import BUILTIN_BY_NAME
+from service.render.effects import inspect_scene, make_integrator
+from service.render.framebuffer import FrameBuffer
+from service.render.renderer import render_samples
+from service.render.runtime import active_variant
+from service.render.scenes import load_scene
+from service.loop.tensors import nchw
+
+# Every reference render draws from its own stream: a reference that shared samples with an
+# input would flatter that input.
+REFERENCE_SEED = 7_777_777
+# The metric names every report uses, in this order.
+METRIC_NAMES = ("smape", "relmse", "psnr", "dssim")
+# How OIDN is run everywhere, stated in every report that shows it. "high" is also what OIDN's
+# RT filter does when no quality is set, so the loop benchmark's earlier low-level call (no
+# quality given) ran the same setting; the one call below names it.
+OIDN_SETTINGS = "RT filter, `hdr=True`, quality high, noisy colour + albedo + normal"
+# Report prose lives in bench/templates/*.md (string.Template: $name, $$ for a dollar sign).
+TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
+
+OidnDenoise = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
+# --- provenance -------------------------------------------------------------------------------
+
+def command_line() -> str:
+    return "renderloop " + " ".join(sys.argv[1:])
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                             cwd=Path(__file__).resolve().parent, timeout=5)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def load_average() -> str:
+    """The machine's 1/5/15-minute load: it is shared, and other jobs slow every timing."""
+    return "/".join(f"{x:.1f}" for x in os.getloadavg())
+
+
+def machine_line() -> str:
+    cpu = cpu_name()
+    return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__} "
+            f"({torch.get_num_threads()} thread{'s' if torch.get_num_threads() > 1 else ''})")
+
+
+def provenance(command: str | None = None, variant: str | None = None) -> str:
+    """The block every report starts with: command, machine, variant, commit, date."""
+    lines = [f"Command: `{command or command_line()}`", f"Machine: {machine_line()}"]
+    if variant:
+        lines.append(f"Mitsuba variant: `{variant}`")
+    lines.append(f"Date: {_dt.datetime.now().astimezone().isoformat(timespec='minutes')}; commit {git_commit()}; "
+                 f"load average {load_average()}")
+    return "  \n".join(lines)  # markdown line breaks: one fact per line
+
+
+def fill(template: str, **fields: object) -> str:
+    """bench/templates/`template` with every $field substituted; a missing field is an error."""
+    return Template((TEMPLATES_DIR / template).read_text()).substitute(fields)
+
+
+def fmt(x: float, spec: str = ".4f") -> str:
+    """A number for a report table: 'n/a' when it is not finite."""
+    return format(x, spec) if math.isfinite(x) else "n/a"
+
+
+@contextmanager
+def pinned_torch_threads(threads: int) -> Iterator[None]:
+    """Run with `threads` torch intra-op threads and restore the caller's setting afterwards.
+
+    On a shared 2-core host one thread can be many times faster than two (docs/benchmarks.md)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+# --- networks ---------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class BenchNetworks:
+    networks: Networks
+    folder: Path
+    description: str  # where the weights came from and what they are, for the report
+
+
+def load_bench_networks(folder: str | Path | None = None) -> BenchNetworks:
+    directory = weights_dir(folder)
+    parts = []
+    for name in (DENOISER_FILE, ERROR_PREDICTOR_FILE):
+        path = directory / name
+        digest = hashlib.sha1(path.read_bytes()).hexdigest()[:10] if path.is_file() else "missing"
+        extra = (read_checkpoint(path).get("extra") or {}) if path.is_file() else {}
+        summary = ", ".join(f"{k}={v}" for k, v in extra.items() if isinstance(v, (int, float, str)))[:160]
+        parts.append(f"`{name}` sha1 {digest}" + (f" ({summary})" if summary else ""))
+    return BenchNetworks(load_networks(directory), directory, f"{directory}: " + "; ".join(parts))
+
+
+# --- references -------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Reference:
+    mean: np.ndarray  # (H, W, 3) float32
+    variance: np.ndarray  # (H, W, 3) variance of the mean
+
+    @property
+    def relative_error(self) -> float:
+        """Mean relative standard error of its pixels, with SMAPE's ε: the floor it puts
+        under any error measured against it."""
+        return float(np.mean(np.sqrt(np.maximum(self.variance, 0.0)) / (np.abs(self.mean) + SMAPE_EPS)))
+
+
+def cached_reference(path: Path, render: Callable[[int], tuple[np.ndarray, np.ndarray]]) -> Reference:
+    """The reference stored at `path` (.npz with mean and variance), rendered once by
+    `render(REFERENCE_SEED) -> (mean, variance)` when missing. The key in the file name is the
+    caller's: it must change whenever the scene, size, spp or variant does."""
+    if path.is_file():
+        with np.load(path) as stored:
+            return Reference(stored["mean"], stored["variance"])
+    mean, variance = render(REFERENCE_SEED)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.stem}.partial.npz")
+    np.savez(partial, mean=np.asarray(mean, np.float32), variance=np.asarray(variance, np.float32))
+    os.replace(partial, path)  # an interrupted run never leaves a torn cache file
+    return Reference(np.asarray(mean, np.float32), np.asarray(variance, np.float32))
+
+
+def scene_fingerprint(source: str) -> str:
+    """Changes whenever the scene description does, so a stale cached reference is never used."""
+    builtin = BUILTIN_BY_NAME.get(source)
+    text = repr(builtin.build(0)) if builtin is not None else Path(source).read_text()
+    return hashlib.sha1(text.encode()).hexdigest()[:12]
+
+
+def scene_reference(source: str, label: str, size: int, spp: int, cache_dir: Path) -> Reference:
+    """The size² reference of a built-in name or XML path at `spp`, rendered once by the loop's
+    renderer and integrator choice (so a loop image differs from it only by noise and denoiser
+    error) and then read from `cache_dir`."""
+    name = f"{label}_{scene_fingerprint(source)}_{size}x{size}_{spp}spp_{active_variant()}_seed{REFERENCE_SEED}.npz"
+
+    def render(seed: int) -> tuple[np.ndarray, np.ndarray]:
+        integrator = make_integrator(inspect_scene(source, width=size, height=size))
+        buffer = FrameBuffer.empty(size, size)
+        render_samples(load_scene(source, width=size, height=size), np.full((size, size), spp), buffer,
+                       integrator=integrator, seed=seed)
+        return buffer.mean, buffer.variance
+
+    return cached_reference(cache_dir / name, render)
+
+
+# --- metrics ----------------------------------------------------------------------------------
+
+def sanitize(t: torch.Tensor) -> torch.Tensor:
+    """Non-finite → 0 and negatives → 0: radiance, as every metric here expects it."""
+    return torch.nan_to_num(t.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+
+
+def display(t: torch.Tensor) -> torch.Tensor:
+    """Linear HDR → clamped sRGB in [0, 1], where PSNR and SSIM are defined."""
+    return torch.from_numpy(linear_to_srgb(t.numpy()).astype(np.float32))
+
+
+def score(image: torch.Tensor, reference: torch.Tensor) -> dict[str, float]:
+    """SMAPE and relMSE on linear radiance; PSNR and DSSIM (1 − SSIM) on clipped sRGB."""
+    d, r = sanitize(image), sanitize(reference)
+    sd, sr = display(d), display(r)
+    return {"smape": float(smape(d, r)), "relmse": float(relmse(d, r)),
+            "psnr": float(psnr(sd, sr)), "dssim": float(1.0 - ssim(sd, sr))}
+
+
+def image_metrics(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
+    """`score` for (H, W, 3) arrays."""
+    return score(nchw(image), nchw(reference))
+
+
+def true_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(H, W) per-pixel SMAPE of `image` against `reference`, both sanitised as `score` does."""
+    return smape_map(sanitize(nchw(image)), sanitize(nchw(reference)))[0, 0].numpy()
+
+
+# --- Intel Open Image Denoise -----------------------------------------------------------------
+
+def _hwc(t: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    a = np.nan_to_num(np.asarray(t, dtype=np.float32), nan=0.0, posinf=hi, neginf=lo)
+    return np.ascontiguousarray(np.clip(a, lo, hi), dtype=np.float32)
+
+
+def oidn_denoiser() -> tuple[OidnDenoise | None, str]:
+    """(color, albedo, normal) HWC → denoised HWC through `pyoidn`, or None and why not.
+
+    The second value describes the call (or the reason it is missing) for the report."""
+    try:
+        import pyoidn  # optional: the reports say OIDN was skipped when it is missing
+    except Exception as exc:  # not installed, or its shared library does not load here
+        return None, f"`pyoidn` is not available here ({type(exc).__name__}: {exc}); OIDN was skipped."
+    try:
+        installed = f" {version('pyoidn')}"
+    except PackageNotFoundError:
+        installed = ""
+
+    def denoise(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        out = pyoidn.denoise(_hwc(color, 0.0, 1e6), _hwc(albedo, 0.0, 1.0), _hwc(normal, -1.0, 1.0),
+                             hdr=True, quality="high")
+        return np.maximum(np.asarray(out, dtype=np.float32), 0.0)
+
+    return denoise, f"Intel Open Image Denoise through `pyoidn`{installed} ({OIDN_SETTINGS})."

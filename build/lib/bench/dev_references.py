@@ -1,0 +1,117 @@
+"""High-spp references of the development suite (scenes/dev/, never trained on): `mi.render`
+of each scene exactly as written (its own integrator, sampler and filter), averaged over
+independent passes, one EXR per scene and frame.
+
+They take hours on a 2-core CPU and seconds to minutes on a GPU, so they are rendered once
+(`renderloop bench --references`, on `cuda_ad_rgb` where a GPU is lent) and committed under
+scenes/dev/references/. Every file records the scene's content hash, spp, passes, seeds and
+variant; a stale reference (scene edited since) is detected by that hash.
+"""
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import drjit as dr
+import numpy as np
+from defusedxml import ElementTree
+
+from bench.common import REFERENCE_SEED
+from service.exr import ExrFrame, read_exr, write_exr
+from service.render.runtime import active_variant, mitsuba
+
+DEV_SCENES = Path(__file__).resolve().parents[1] / "scenes" / "dev"
+DEFAULT_REFERENCE_DIR = DEV_SCENES / "references"
+DEFAULT_SPP = 16384
+# Scenes whose 16k-spp image is still visibly noisy (tiny bright light, fog, caustics).
+HIGH_VARIANCE_SPP = {"lamp_room": 65536, "fog_spot": 65536, "glass_box": 65536}
+PASS_SPP = 1024  # one mi.render call: bounded wavefront memory, and passes can be added later
+
+
+@dataclass(frozen=True)
+class DevScene:
+    name: str
+    path: Path
+    frames: int  # 1, or the length of the `frame`-animated sequence (its `frames` default)
+
+    @property
+    def content_hash(self) -> str:
+        """sha1 over the scene folder's files: changes whenever the scene or an asset does."""
+        digest = hashlib.sha1()
+        for file in sorted(p for p in self.path.parent.rglob("*") if p.is_file()):
+            digest.update(file.relative_to(self.path.parent).as_posix().encode())
+            digest.update(file.read_bytes())
+        return digest.hexdigest()[:16]
+
+
+def dev_scenes(only: list[str] | None = None) -> list[DevScene]:
+    scenes = []
+    for path in sorted(DEV_SCENES.glob("*/scene.xml")):
+        name = path.parent.name
+        if only and name not in only:
+            continue
+        defaults = {d.get("name"): d.get("value") for d in ElementTree.parse(str(path)).getroot().iter("default")}
+        frames = int(defaults.get("frames", 1)) if "frame" in defaults else 1
+        scenes.append(DevScene(name, path, frames))
+    if only and len(scenes) != len(set(only)):
+        known = ", ".join(p.parent.name for p in sorted(DEV_SCENES.glob("*/scene.xml")))
+        raise ValueError(f"unknown development scene(s) among {only}; known: {known}")
+    return scenes
+
+
+def reference_file(folder: Path, scene: str, width: int, height: int, spp: int, frame: int | None) -> Path:
+    suffix = "" if frame is None else f"_f{frame:03d}"
+    return folder / f"{scene}_{width}x{height}_{spp}spp{suffix}.exr"
+
+
+def render_reference(scene: DevScene, spp: int, frame: int | None) -> tuple[np.ndarray, int]:
+    """The mean of spp / PASS_SPP independent `mi.render` passes; returns (image, passes)."""
+    mi = mitsuba()
+    params = {} if frame is None else {"frame": str(frame)}
+    loaded = mi.load_file(str(scene.path), **params)
+    passes = max(1, spp // PASS_SPP)
+    total = None
+    for index in range(passes):
+        image = mi.render(loaded, spp=min(spp, PASS_SPP), seed=REFERENCE_SEED + index)
+        total = image if total is None else total + image
+        dr.eval(total)
+    return np.asarray(total / passes, dtype=np.float32)[..., :3], passes
+
+
+def write_references(folder: Path = DEFAULT_REFERENCE_DIR, *, spp: int | None = None,
+                     only: list[str] | None = None) -> list[Path]:
+    """Render and write every missing or stale reference; returns the files written."""
+    written = []
+    for scene in dev_scenes(only):
+        scene_spp = spp or HIGH_VARIANCE_SPP.get(scene.name, DEFAULT_SPP)
+        frames = [None] if scene.frames == 1 else list(range(scene.frames))
+        for frame in frames:
+            started = time.perf_counter()
+            image, passes = render_reference(scene, scene_spp, frame)
+            height, width = image.shape[:2]
+            path = reference_file(folder, scene.name, width, height, scene_spp, frame)
+            header = {"scene": scene.name, "content_hash": scene.content_hash, "spp": scene_spp, "passes": passes,
+                      "seeds": f"{REFERENCE_SEED}..{REFERENCE_SEED + passes - 1}", "variant": active_variant()}
+            write_exr(path, ExrFrame(color=image, header={**header, "frame": -1 if frame is None else frame}))
+            print(f"references: {path.name}: {time.perf_counter() - started:.1f} s, mean {image.mean():.4f}", flush=True)
+            written.append(path)
+    return written
+
+
+class StaleReference(ValueError):
+    """A reference was rendered from another version of its scene."""
+
+
+def load_reference(folder: Path, scene: DevScene, frame: int | None = None) -> tuple[np.ndarray, dict]:
+    """The committed reference of `scene` (any spp); refuses one rendered from another version."""
+    pattern = f"{scene.name}_*spp{'' if frame is None else f'_f{frame:03d}'}.exr"
+    candidates = sorted(folder.glob(pattern))
+    if not candidates:
+        raise FileNotFoundError(f"no reference for {scene.name} in {folder}: run `renderloop bench --references`")
+    stored = read_exr(candidates[-1])
+    if stored.header.get("content_hash") != scene.content_hash:
+        raise StaleReference(f"{candidates[-1].name} was rendered from another version of {scene.name}: "
+                             "re-run `renderloop bench --references --only " + scene.name + "`")
+    return stored.color, stored.header

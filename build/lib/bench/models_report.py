@@ -1,0 +1,147 @@
+"""CPU speed and memory of the default denoiser: `python -m bench.models_report`.
+
+Timing: median wall time of `repeats` runs after one warm-up, under torch.inference_mode,
+plus the process CPU time of the same runs. On a shared machine wall time includes waiting
+for the cores; with one thread, CPU time is close to what the run takes on an idle core.
+Memory: torch's CPU allocator is invisible to tracemalloc, so each case runs in a fresh
+spawned process and reports the growth of the process's peak resident set size
+(resource.getrusage ru_maxrss) caused by the timed runs, on top of the model and inputs
+already built. This counts every allocation (tensors, oneDNN scratch, allocator slack) but
+is only as fine as the OS page accounting: treat it as ±a few MB.
+"""
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import resource
+import statistics
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+
+from bench.common import fill, pinned_torch_threads, provenance
+from models.denoiser import Denoiser, DenoiserConfig
+from models.frames import FrameTensors
+
+# single-frame: no temporal, no pyramid (KPCN); multi-scale: 3 levels, one frame; temporal-3:
+# the full default model on a 3-frame window; lambda-tail(-map): apply() alone on a cached
+# temporal-3 prepare, with a global λ / a per-pixel λ map.
+CASES = ("single-frame", "multi-scale", "temporal-3", "lambda-tail", "lambda-tail-map")
+
+
+def _frame(h: int, w: int, gen: torch.Generator) -> FrameTensors:
+    r = lambda c: torch.rand(1, c, h, w, generator=gen)
+    return FrameTensors(color=r(3) * 4, variance=r(3), albedo=r(3), normal=r(3) * 2 - 1,
+                        depth=r(1), motion=(r(2) - 0.5) * 4)
+
+
+def _case(name: str, size: int, repeats: int, threads: int, queue, base: DenoiserConfig) -> None:
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    gen = torch.Generator().manual_seed(0)
+    cfg = {"single-frame": replace(base, temporal=False, multiscale=False),
+           "multi-scale": replace(base, temporal=False)}.get(name, base)
+    model = Denoiser(cfg).eval()
+    window = [_frame(size, size, gen) for _ in range(3 if cfg.temporal else 1)]
+    center = len(window) // 2
+    with torch.inference_mode():
+        if name.startswith("lambda-tail"):
+            cache = model.prepare(window, center)
+            lam = torch.rand(1, 1, size, size, generator=gen) * 9 + 1 if name.endswith("map") else 4.0
+            run = lambda: model.apply(cache, lam)
+        else:
+            run = lambda: model(window, center, 1.0)
+        run()                                               # warm-up (oneDNN primitive caches)
+        rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        times, cpu = [], []
+        for _ in range(repeats):
+            t0, c0 = time.perf_counter(), time.process_time()
+            run()
+            times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+        rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    queue.put({"model": name, "size": size, "threads": threads, "load_avg_1min": os.getloadavg()[0],
+               "ms_median": 1e3 * statistics.median(times),
+               "ms_min": 1e3 * min(times), "cpu_ms_median": 1e3 * statistics.median(cpu),
+               "peak_rss_growth_mb": (rss1 - rss0) / 1024, "peak_rss_mb": rss1 / 1024})
+
+
+def benchmark_models(sizes=(256, 512), repeats: int = 3, threads: int = 2, cases=CASES,
+                     config: DenoiserConfig | None = None) -> list[dict]:
+    """One dict per (case, size): model, size, threads, load_avg_1min (the machine's load
+    when the case finished: other processes share the cores), ms_median, ms_min, cpu_ms_median (process CPU time),
+    peak_rss_growth_mb, peak_rss_mb."""
+    ctx = mp.get_context("spawn")
+    rows = []
+    for size in sizes:
+        for name in cases:
+            queue = ctx.Queue()
+            proc = ctx.Process(target=_case, args=(name, size, repeats, threads, queue, config or DenoiserConfig()))
+            proc.start()
+            rows.append(queue.get())
+            proc.join()
+    return rows
+
+
+def write_models_report(rows: list[dict], config: DenoiserConfig, out: Path) -> Path:
+    """docs/models-speed.md: this run's table, with the command, machine and date."""
+    table = "\n".join(
+        f"| {r['model']} | {r['size']}² | {r['threads']} | {r['ms_median']:.0f} | {r['ms_min']:.0f} | "
+        f"{r['cpu_ms_median']:.0f} | {r['peak_rss_growth_mb']:.0f} | {r['load_avg_1min']:.1f} |" for r in rows)
+    path = out / "models-speed.md"
+    out.mkdir(parents=True, exist_ok=True)
+    path.write_text(fill("models.md", provenance=provenance(), config=config, table=table))
+    return path
+
+
+@dataclass(frozen=True)
+class ThreadTiming:
+    size: int
+    repeats: int
+    ms_median: dict[int, float]  # torch threads → median wall ms of one single-frame denoise
+
+
+def denoise_ms_by_threads(denoiser: Denoiser, size: int, thread_counts: tuple[int, ...] = (1, 2),
+                          repeats: int = 5) -> ThreadTiming:
+    """Median wall time of one single-frame forward pass of `denoiser` at size² per torch thread
+    count, in this process, interleaved so the machine's load hits every count alike. The loop
+    report quotes it as the reason its networks run on one thread."""
+    gen = torch.Generator().manual_seed(0)
+    window = [_frame(size, size, gen)]
+    times: dict[int, list[float]] = {t: [] for t in thread_counts}
+    with torch.inference_mode():
+        for threads in thread_counts:  # warm-up per count: oneDNN builds primitives per thread count
+            with pinned_torch_threads(threads):
+                denoiser(window, 0, 1.0)
+        for _ in range(repeats):
+            for threads in thread_counts:
+                with pinned_torch_threads(threads):
+                    t0 = time.perf_counter()
+                    denoiser(window, 0, 1.0)
+                    times[threads].append(time.perf_counter() - t0)
+    return ThreadTiming(size, repeats, {t: 1e3 * statistics.median(v) for t, v in times.items()})
+
+
+def main(argv: list[str] | None = None, out: Path | None = None) -> Path | None:
+    """python -m bench.models_report [SIZE ...] [--threads T] [--repeats R] [--width W] [--spatial-blocks B] [-o DIR]"""
+    parser = argparse.ArgumentParser(description="CPU benchmark of the default denoiser")
+    parser.add_argument("sizes", nargs="*", type=int, default=[256, 512])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--width", type=int, default=DenoiserConfig.width)
+    parser.add_argument("--spatial-blocks", type=int, default=DenoiserConfig.spatial_blocks)
+    parser.add_argument("-o", "--out", type=Path, default=out, help="write DIR/models-speed.md")
+    args = parser.parse_args(argv)
+    config = DenoiserConfig(width=args.width, spatial_blocks=args.spatial_blocks)
+    rows = benchmark_models(tuple(args.sizes), args.repeats, args.threads, config=config)
+    for r in rows:
+        print(f"{r['model']} {r['size']}² {r['threads']} thread(s): {r['ms_median']:.0f} ms median, "
+              f"{r['peak_rss_growth_mb']:.0f} MB peak RSS growth")
+    return write_models_report(rows, config, args.out) if args.out is not None else None
+
+
+if __name__ == "__main__":
+    main()

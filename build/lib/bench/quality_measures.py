@@ -1,0 +1,83 @@
+"""The quality report's measures beyond the common metrics: residual noise and kept detail
+along λ, temporal flicker, rank correlation of the error map."""
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy.stats import spearmanr
+from torch import Tensor
+
+from bench.common import display, sanitize as clean
+from models.losses import smape
+
+REC709_LUMA = (0.2126, 0.7152, 0.0722)  # ITU-R BT.709 luminance weights
+FLAT_QUANTILE = 0.5    # pixels whose reference gradient is in the lower half count as "flat"
+DETAIL_QUANTILE = 0.75  # the top quarter of reference gradients counts as "detail"
+
+
+def log_luminance(t: Tensor) -> Tensor:
+    """(1,3,H,W) → (1,1,H,W) log(1 + Rec.709 luminance): a scale-tolerant axis for detail measures."""
+    w = torch.tensor(REC709_LUMA, dtype=torch.float32).view(1, 3, 1, 1)
+    return torch.log1p((clean(t) * w).sum(1, keepdim=True))
+
+
+def high_pass(x: Tensor) -> Tensor:
+    """x − 3×3 box blur (replicate borders): the pixel-scale band where noise and fine detail live."""
+    return x - F.avg_pool2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
+
+
+def gradient_magnitude(x: Tensor) -> Tensor:
+    """Central-difference gradient magnitude (replicate borders)."""
+    p = F.pad(x, (1, 1, 1, 1), mode="replicate")
+    dx = (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]) / 2
+    dy = (p[..., 2:, 1:-1] - p[..., :-2, 1:-1]) / 2
+    return torch.sqrt(dx * dx + dy * dy)
+
+
+def pearson(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = a.ravel().astype(np.float64), b.ravel().astype(np.float64)
+    a, b = a - a.mean(), b - b.mean()
+    denom = math.sqrt(float((a * a).sum() * (b * b).sum()))
+    return float((a * b).sum() / denom) if denom > 0 else float("nan")
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> float:
+    """Rank correlation with average ranks for ties (scipy)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a constant input: nan is the honest answer
+        return float(spearmanr(a.ravel(), b.ravel())[0])
+
+
+def lambda_measures(d: Tensor, r: Tensor) -> dict[str, float]:
+    """Residual noise and kept detail of a result d against the reference r (see the report text)."""
+    ld, lr = log_luminance(d), log_luminance(r)
+    grad_r = gradient_magnitude(lr)
+    flat = grad_r <= torch.quantile(grad_r, FLAT_QUANTILE)
+    detail = grad_r >= torch.quantile(grad_r, DETAIL_QUANTILE)
+    hd, hr = high_pass(ld), high_pass(lr)
+    noise = float((hd - hr).abs()[flat].mean())
+    ref_energy = float(hr.abs()[detail].mean())
+    ratio = float(hd.abs()[detail].mean()) / ref_energy if ref_energy > 0 else float("nan")
+    return {"smape": float(smape(clean(d), clean(r))), "noise": noise, "detail": ratio,
+            "grad_corr": pearson(gradient_magnitude(ld).numpy(), grad_r.numpy())}
+
+
+def flicker(frames: Sequence[Tensor]) -> tuple[float, float]:
+    """Mean |consecutive difference|: in linear radiance, and in sRGB 0–255 units."""
+    linear = [float((clean(b) - clean(a)).abs().mean()) for a, b in zip(frames, frames[1:])]
+    shown = [float((display(clean(b)) - display(clean(a))).abs().mean()) * 255 for a, b in zip(frames, frames[1:])]
+    return float(np.mean(linear)), float(np.mean(shown))
+
+
+def nanstats(values: Iterable[float]) -> tuple[float, float, float, int]:
+    """(mean, min, max, n) over the finite values."""
+    v = np.array([x for x in values if np.isfinite(x)], dtype=np.float64)
+    if not v.size:
+        return float("nan"), float("nan"), float("nan"), 0
+    return float(v.mean()), float(v.min()), float(v.max()), int(v.size)
+

@@ -1,0 +1,86 @@
+"""Checkpoints: config (as a dict) + model kind + format version + state dict, so a model is
+rebuilt from the file alone and every mismatch fails loudly with CheckpointError."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn as nn
+
+from models.denoiser import Denoiser, DenoiserConfig
+from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+
+FORMAT_VERSION = 2
+# Format 1 denoisers predate the λ module's s(1) anchor; they load through an exact conversion.
+READABLE_VERSIONS = (1, FORMAT_VERSION)
+MODEL_KINDS: dict[str, tuple[type[nn.Module], type]] = {
+    Denoiser.kind: (Denoiser, DenoiserConfig),
+    ErrorPredictor.kind: (ErrorPredictor, ErrorPredictorConfig),
+}
+
+
+class CheckpointError(Exception):
+    """A checkpoint is missing, unreadable, of another kind/version, or does not fit its model."""
+
+
+def save_checkpoint(path: str | Path, model: nn.Module, extra: dict[str, Any] | None = None) -> Path:
+    kind = getattr(model, "kind", None)
+    if kind not in MODEL_KINDS:
+        raise CheckpointError(f"cannot save {type(model).__name__}: not one of {sorted(MODEL_KINDS)}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({
+        "format_version": FORMAT_VERSION,
+        "kind": kind,
+        "config": dataclasses.asdict(model.config),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "extra": extra or {},
+    }, path)
+    return path
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The raw checkpoint dict, after checking the file exists and has our format."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # corrupt, truncated, or not a torch file
+        raise CheckpointError(f"cannot read checkpoint {path}: {e}") from e
+    if not isinstance(ckpt, dict) or "format_version" not in ckpt:
+        raise CheckpointError(f"{path} is not a renderloop checkpoint (no format_version)")
+    if ckpt["format_version"] not in READABLE_VERSIONS:
+        raise CheckpointError(f"{path} has checkpoint format {ckpt['format_version']}, "
+                              f"this code reads formats {', '.join(map(str, READABLE_VERSIONS))}")
+    return ckpt
+
+
+def load_checkpoint(path: str | Path, expected_kind: str | None = None, device: str | torch.device = "cpu") -> nn.Module:
+    """Rebuild the model from its stored config and load the weights (eval mode).
+    The stored `extra` dict is attached as model.checkpoint_extra."""
+    ckpt = read_checkpoint(path)
+    kind = ckpt.get("kind")
+    if kind not in MODEL_KINDS:
+        raise CheckpointError(f"{path} holds unknown model kind {kind!r}; known: {sorted(MODEL_KINDS)}")
+    if expected_kind is not None and kind != expected_kind:
+        raise CheckpointError(f"{path} holds a {kind!r} model, expected {expected_kind!r}")
+    model_cls, config_cls = MODEL_KINDS[kind]
+    fields = {f.name for f in dataclasses.fields(config_cls)}
+    unknown = set(ckpt["config"]) - fields
+    if unknown:
+        raise CheckpointError(f"{path}: config fields {sorted(unknown)} unknown to {config_cls.__name__}")
+    try:
+        model = model_cls(config_cls(**ckpt["config"]))
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{path}: cannot build {kind} from its config: {e}") from e
+    try:
+        model.load_state_dict(ckpt["state_dict"])
+    except RuntimeError as e:
+        raise CheckpointError(f"{path}: weights do not fit the {kind} built from its config:\n{e}") from e
+    if kind == Denoiser.kind and ckpt["format_version"] == 1:
+        model.specialise.anchor_at_symmetric_()
+    model.checkpoint_extra = ckpt.get("extra", {})
+    return model.to(device).eval()

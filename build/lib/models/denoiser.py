@@ -1,0 +1,316 @@
+"""Temporal multi-scale kernel-predicting denoiser (Vogels et al. 2018), in one module.
+
+Per pyramid level, every frame of the window goes through
+
+    source encoder (2 conv3x3)  →  spatial feature extractor (residual blocks)
+    neighbours only: warp to the center frame → temporal feature extractor (3 residual blocks)
+    pre-λ kernel head (conv1x1)                                     ── prepare() stops here
+    λ-module: kernel head with λ-dependent weights → k² logits/frame ── apply() starts here
+    joint softmax over all frames' logits, filter demodulated radiance (eqs. 3–4)
+
+and the levels are merged coarse → fine by the scale compositor (eq. 5), then the albedo is
+multiplied back in. Everything λ-independent is computed once by `prepare`; `apply` is the
+cheap tail a user's λ edit re-runs.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from torch import Tensor
+
+from models.features import demodulate, feature_set, log_transform, remodulate, sanitize_frame
+from models.frames import FrameTensors
+from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
+from models.layers import Pointwise, cat_channels_last, conv3x3, res_blocks
+from models.warp import flow_to_center, warp
+
+from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN  # noqa: F401  (re-exported: eq. 6 range)
+
+
+@dataclass
+class DenoiserConfig:
+    source: str = "mitsuba-path"   # render source → encoder input (models.features.FEATURE_SETS)
+    width: int = 32                # feature channels everywhere between encoder and kernel head
+    spatial_blocks: int = 2        # residual blocks of the spatial feature extractor
+    temporal_blocks: int = 3       # residual blocks of the temporal feature extractor (paper: 3)
+    kernel_size: int = 5           # k; per level, so the 3-level pyramid reaches 5·4 = 20 px
+    levels: int = 3                # pyramid levels (paper: 3)
+    temporal_radius: int = 1       # M: window of 2M+1 frames the model is trained for
+    lambda_width: int = 16         # hidden channels of the λ module: kernel head input and λ-MLP width
+    lambda_rank: int = 2           # λ-dependent directions of the kernel head W(λ) = W₀ + Σ sᵣ(λ)ΔWᵣ
+    composite_width: int = 8       # channels of the per-pixel α CNN (eq. 5)
+    temporal: bool = True          # False: single-frame model, neighbours ignored
+    multiscale: bool = True        # False: finest level only, no compositing
+
+    @property
+    def n_levels(self) -> int:
+        return self.levels if self.multiscale else 1
+
+    @property
+    def alignment(self) -> int:
+        """Sizes must divide by 2^(levels-1) for the 2×2 pyramid; inputs are padded to it."""
+        return 2 ** (self.n_levels - 1)
+
+
+# --- tiny verbs ---------------------------------------------------------------------------
+
+def down(x: Tensor) -> Tensor:
+    """D: 2×2 average pooling (eq. 5)."""
+    return F.avg_pool2d(x, 2)
+
+
+def up(x: Tensor) -> Tensor:
+    """U: bilinear 2× upsampling (eq. 5); smoother than nearest, no block seams."""
+    return F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+
+
+def pad_to(x: Tensor, multiple: int) -> Tensor:
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % multiple, (-w) % multiple
+    return F.pad(x, (0, pw, 0, ph), mode="replicate") if (ph or pw) else x
+
+
+def down_frame(frame: FrameTensors) -> FrameTensors:
+    """One pyramid step: average buffers; variance of a 4-pixel mean is the mean variance ÷ 4,
+    motion in pixels halves with the resolution."""
+    scale = {"variance": 0.25, "motion": 0.5}
+    return frame.map(lambda name, t: down(t) * scale.get(name, 1.0))
+
+
+def lambda_code(lam: Tensor) -> Tensor:
+    """log λ / log 10 ∈ [0, 1]: the paper samples log λ uniformly, so this is the natural axis."""
+    return torch.log(lam.clamp(LAMBDA_MIN, LAMBDA_MAX)) / math.log(LAMBDA_MAX)
+
+
+# --- modules ------------------------------------------------------------------------------
+
+class Encoder(nn.Module):
+    """Source-specific: two 3×3 convs from that source's features to the shared width."""
+
+    def __init__(self, cin: int, width: int):
+        super().__init__()
+        self.conv1, self.conv2 = conv3x3(cin, width), conv3x3(width, width)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.relu_(self.conv2(F.relu_(self.conv1(x))))
+
+
+class TemporalExtractor(nn.Module):
+    """Fuses a neighbour's warped features with the center's; residual on the warped
+    features, so a window of one frame (no temporal work) sees the same feature space."""
+
+    def __init__(self, width: int, blocks: int):
+        super().__init__()
+        self.fuse = Pointwise(2 * width + 1, width)
+        self.blocks = res_blocks(width, blocks)
+
+    def forward(self, warped: Tensor, center: Tensor, valid: Tensor) -> Tensor:
+        x = cat_channels_last([warped, center, valid])
+        return warped + self.blocks(F.relu_(self.fuse(x)))
+
+
+class LambdaModule(nn.Module):
+    """Loss specialisation (Vogels §6), the last layer of the kernel predictor made
+    λ-dependent: a 2-layer MLP maps log λ to `rank` mixing coefficients s(λ), and the
+    pointwise kernel head is W(λ) = W₀ + Σᵣ (sᵣ(λ) − sᵣ(1))·ΔWᵣ (bias folded in as a constant
+    input channel). Anchoring at s(1) makes λ = 1 exactly the symmetric network W₀ whatever the
+    λ stage learns, so specialising never costs quality at the default λ (without the anchor
+    the λ stage cost 4 % SMAPE at λ = 1 with everything else frozen).
+    For a global λ this folds into ONE matrix product per level, so re-running
+    the tail costs a GEMM plus the filtering; a per-pixel λ map costs 1 + rank GEMMs
+    (measured faster than one GEMM over the stacked [h; s₁h; …]: 250 vs 300 ms at 512²)."""
+
+    def __init__(self, cin: int, width: int, k: int, rank: int):
+        super().__init__()
+        self.mix = nn.Sequential(Pointwise(1, width), nn.ReLU(), Pointwise(width, rank))
+        self.base = nn.Parameter(torch.empty(k * k, cin + 1).uniform_(-cin ** -0.5, cin ** -0.5))
+        self.delta = nn.Parameter(torch.zeros(rank, k * k, cin + 1))   # start as "no specialisation"
+
+    def forward(self, hidden: Tensor, code: Tensor) -> Tensor:
+        """hidden (N,F,C+1,H,W) with a ones channel last, code (N,1,H,W) or (N,1,1,1)
+        → logits (N,F·k²,H,W), one k×k kernel per frame."""
+        n, f, c, h, w = hidden.shape
+        flat = hidden.reshape(n * f, c, h * w)
+        s = self.mix(code) - self.mix(code.new_zeros(1, 1, 1, 1))          # (N,rank,h|1,w|1); code(λ=1) = 0
+        if s.shape[-1] == 1 and s.shape[-2] == 1:                           # global λ: fold
+            weight = self.base + torch.einsum("nr,rkc->nkc", s.flatten(1), self.delta)
+            logits = torch.bmm(weight.repeat_interleave(f, 0), flat)
+        else:                                                                # λ map: mix per pixel
+            logits = torch.bmm(self.base.expand(n * f, -1, -1), flat)
+            s = s.flatten(2).repeat_interleave(f, 0).unsqueeze(2)            # (N·F,rank,1,HW)
+            for r in range(self.delta.shape[0]):
+                logits = logits.addcmul_(torch.bmm(self.delta[r].expand(n * f, -1, -1), flat), s[:, r])
+        return logits.view(n, -1, h, w)
+
+    @torch.no_grad()
+    def anchor_at_symmetric_(self) -> None:
+        """Convert weights trained without the s(1) anchor (checkpoint format 1): W₀ += Σ sᵣ(1)ΔWᵣ
+        gives the same W(λ) for every λ under the anchored formula."""
+        s1 = self.mix(self.base.new_zeros(1, 1, 1, 1)).flatten()
+        self.base.add_(torch.einsum("r,rkc->kc", s1, self.delta))
+
+
+class ScaleCompositor(nn.Module):
+    """Eq. 5: o = i_f − α·U(D(i_f)) + α·U(i_c) = i_f + α·U(i_c − D(i_f)): swap the fine
+    result's low band for the coarse result's where α says so. α comes from a small CNN on
+    both results, evaluated at the coarse resolution and upsampled: which band to trust
+    is a low-frequency decision, and this keeps the λ tail 4× cheaper."""
+
+    def __init__(self, width: int):
+        super().__init__()
+        self.alpha = nn.Sequential(conv3x3(6, width), nn.ReLU(), conv3x3(width, 1))
+
+    def blend_weight(self, fine_low: Tensor, coarse: Tensor) -> Tensor:
+        """α ∈ (0, 1) at the coarse resolution (N,1,h,w)."""
+        return torch.sigmoid(self.alpha(torch.cat([log_transform(fine_low), log_transform(coarse)], 1)))
+
+    def forward(self, fine: Tensor, coarse: Tensor, alphas: list[Tensor] | None = None) -> Tensor:
+        fine_low = down(fine)
+        a = self.blend_weight(fine_low, coarse)
+        if alphas is not None:
+            alphas.append(a)
+        # Swapping bands can undershoot below 0 next to a firefly; radiance cannot be negative,
+        # and the next level's log transform needs x > -1.
+        return torch.addcmul(fine, up(a), up(coarse - fine_low)).clamp_min_(0)
+
+
+# --- the λ-independent state ---------------------------------------------------------------
+
+@dataclass
+class LevelCache:
+    padded: list[Tensor]   # demodulated radiance per frame, warped to the center (center first), kernel-padded
+    hidden: Tensor         # (N,F,C+1,H,W) pre-λ kernel-head features of all frames, ones channel last
+
+
+@dataclass
+class DenoiserCache:
+    levels: list[LevelCache]       # finest first
+    albedo: Tensor                 # padded center albedo for remodulation
+    size: tuple[int, int]          # original (H, W) to crop back to
+    n_bad: int = 0                 # NaN/Inf values replaced while sanitising the window
+
+
+class Denoiser(nn.Module):
+    kind: ClassVar[str] = "denoiser"
+
+    def __init__(self, config: DenoiserConfig | None = None):
+        super().__init__()
+        self.config = cfg = config or DenoiserConfig()
+        self.features = feature_set(cfg.source)              # unknown source fails here
+        self.encoder = Encoder(self.features.channels, cfg.width)
+        self.spatial = res_blocks(cfg.width, cfg.spatial_blocks)
+        self.temporal = TemporalExtractor(cfg.width, cfg.temporal_blocks) if cfg.temporal else None
+        self.kernel_head = Pointwise(cfg.width, cfg.lambda_width)
+        self.specialise = LambdaModule(cfg.lambda_width, cfg.lambda_width, cfg.kernel_size, cfg.lambda_rank)
+        self.composite = ScaleCompositor(cfg.composite_width) if cfg.multiscale else None
+
+    # -- prepare: everything before λ -----------------------------------------------------
+
+    def prepare(self, window: list[FrameTensors], center: int) -> DenoiserCache:
+        if not window:
+            raise ValueError("empty window")
+        if not -len(window) <= center < len(window):
+            raise IndexError(f"center {center} outside a window of {len(window)} frames")
+        center %= len(window)
+        if self.temporal is None:
+            window, center = [window[center]], 0
+        cleaned = [sanitize_frame(f) for f in window]
+        frames, n_bad = [f for f, _ in cleaned], sum(n for _, n in cleaned)
+        size = frames[center].size
+        align = self.config.alignment
+        frames = [f.map(lambda _, t: pad_to(t, align)) for f in frames]
+        albedo = frames[center].albedo
+
+        # Demodulate once at full resolution and pool the result: re-demodulating pooled buffers
+        # (D(c)/D(a) ≠ D(c/a) on textures and albedo edges) made every coarse result differ
+        # from D(fine) by a texture-shaped bias, and eq. 5 then learned α → 0.
+        images = [demodulate(f.color, f.albedo) for f in frames]
+        levels = []
+        for level in range(self.config.n_levels):
+            if level:
+                frames = [down_frame(f) for f in frames]
+                images = [down(i) for i in images]
+            levels.append(self._prepare_level(frames, images, center))
+        return DenoiserCache(levels, albedo, size, n_bad)
+
+    def _prepare_level(self, frames: list[FrameTensors], images: list[Tensor], center: int) -> LevelCache:
+        n = frames[0].color.shape[0]
+        # all frames as one channels-last batch: one pass through the shared convs
+        inputs = torch.cat([self.features.build(f).permute(0, 2, 3, 1) for f in frames], 0).permute(0, 3, 1, 2)
+        feats = self.spatial(self.encoder(inputs)).split(n, 0)
+        motions = [f.motion for f in frames]
+        c_feat, c_img = feats[center], images[center]
+        out_images, feats_to_center = [c_img], [c_feat]
+        for j in range(len(frames)):
+            if j == center:
+                continue
+            flow, valid = flow_to_center(motions, center, j)
+            if flow is None:                                   # static scene: nothing to warp
+                w_feat, w_img, valid = feats[j], images[j], torch.ones_like(c_img[:, :1])
+            else:
+                warped, v = warp(cat_channels_last([feats[j], images[j]]), flow)
+                valid = valid * v
+                w_feat, w_img = warped[:, :-3], warped[:, -3:]
+            t_feat = self.temporal(w_feat, c_feat, valid)
+            # Off-screen taps fall back to the center's own pixel: the joint softmax then only
+            # mixes real radiance, so the output stays in the convex hull.
+            out_images.append(valid * w_img + (1 - valid) * c_img)
+            feats_to_center.append(t_feat)
+        # (N,F,C+1,H,W) planes for the λ tail's GEMM; the last channel is the bias input
+        c_hid = self.config.lambda_width
+        hidden = c_img.new_ones(n, len(frames), c_hid + 1, *c_img.shape[-2:])
+        for j, f in enumerate(feats_to_center):
+            hidden[:, j, :c_hid] = F.relu_(self.kernel_head(f))
+        k = self.config.kernel_size
+        return LevelCache([pad_for_kernel(i, k).contiguous() for i in out_images], hidden)
+
+    # -- apply: the cheap λ tail ----------------------------------------------------------
+
+    def apply(self, cache: DenoiserCache, lam: float | Tensor = 1.0) -> Tensor:
+        return self.merge_levels(cache, self.filter_levels(cache, lam))
+
+    def filter_levels(self, cache: DenoiserCache, lam: float | Tensor = 1.0) -> list[Tensor]:
+        """Each pyramid level's own filtered, demodulated result (finest first, padded sizes)."""
+        k = self.config.kernel_size
+        code = self._lambda_code(cache, lam)
+        results = []
+        for level in cache.levels:
+            if code.shape[-2:] != (1, 1) and code.shape[-2:] != level.hidden.shape[-2:]:
+                code = down(code)           # per-pixel λ map follows the pyramid
+            weights = unnormalised_weights(self.specialise(level.hidden, code))   # joint softmax, eq. 4
+            results.append(filter_padded(level.padded, weights, k))             # eq. 3
+        return results
+
+    def merge_levels(self, cache: DenoiserCache, results: list[Tensor], alphas: list[Tensor] | None = None) -> Tensor:
+        """Scale compositor coarse → fine (eq. 5), albedo back in, crop to the input size.
+        alphas: a list to receive each step's α (coarsest step first), for diagnostics."""
+        out = results[-1]
+        for fine in reversed(results[:-1]):
+            out = self.composite(fine, out, alphas)
+        h, w = cache.size
+        return remodulate(out, cache.albedo)[..., :h, :w]
+
+    def _lambda_code(self, cache: DenoiserCache, lam: float | Tensor) -> Tensor:
+        """λ (float, (H,W) or (N|1,1,H,W)) → log-code at the padded size, or (N,1,1,1) if global."""
+        ref = cache.albedo
+        n = ref.shape[0]
+        if not isinstance(lam, Tensor):
+            lam = torch.tensor(float(lam))
+        lam = lam.to(device=ref.device, dtype=ref.dtype)
+        if lam.numel() == 1:
+            return lambda_code(torch.nan_to_num(lam, nan=LAMBDA_MIN).reshape(1, 1, 1, 1).expand(n, 1, 1, 1))
+        h, w = cache.size
+        if lam.dim() == 2 and lam.shape == (h, w):
+            lam = lam.view(1, 1, h, w)
+        if lam.dim() != 4 or lam.shape[1] != 1 or lam.shape[-2:] != (h, w) or lam.shape[0] not in (1, n):
+            raise ValueError(f"λ map must be a float or broadcastable to ({n},1,{h},{w}); got {tuple(lam.shape)}")
+        lam = torch.nan_to_num(lam, nan=LAMBDA_MIN).expand(n, 1, h, w)
+        return lambda_code(pad_to(lam, self.config.alignment))
+
+    def forward(self, window: list[FrameTensors], center: int, lam: float | Tensor = 1.0) -> Tensor:
+        return self.apply(self.prepare(window, center), lam)

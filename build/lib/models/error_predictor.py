@@ -1,0 +1,47 @@
+"""Error predictor (Vogels et al. 2018 §7): per-pixel SMAPE of the denoised image, estimated
+without a reference, so the adaptive sampler can send samples where the error is.
+
+    [encoder features of the noisy frame, log demodulated denoised] → conv3x3
+        → 6 residual blocks → conv3x3 → softplus (errors are ≥ 0)
+
+Trained with L1 against models.losses.smape_map(denoised, reference).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from torch import Tensor
+
+from models.features import HDR_MAX, demodulate, feature_set, log_transform, sanitize, sanitize_frame
+from models.frames import FrameTensors
+from models.layers import channels_last, conv3x3, res_blocks
+
+
+@dataclass
+class ErrorPredictorConfig:
+    source: str = "mitsuba-path"  # render source → input features (models.features.FEATURE_SETS)
+    width: int = 16               # narrow: it runs every sampling iteration, and only has to rank pixels
+    blocks: int = 6               # paper: six residual blocks
+
+
+class ErrorPredictor(nn.Module):
+    kind: ClassVar[str] = "error_predictor"
+
+    def __init__(self, config: ErrorPredictorConfig | None = None):
+        super().__init__()
+        self.config = cfg = config or ErrorPredictorConfig()
+        self.features = feature_set(cfg.source)              # unknown source fails here
+        self.head = conv3x3(self.features.channels + 3, cfg.width)
+        self.blocks = res_blocks(cfg.width, cfg.blocks)
+        self.out = conv3x3(cfg.width, 1)
+
+    def forward(self, frame: FrameTensors, denoised: Tensor) -> Tensor:
+        """frame: the noisy input; denoised (N,3,H,W) → (N,1,H,W) predicted SMAPE ≥ 0."""
+        f, _ = sanitize_frame(frame)
+        d, _ = sanitize(denoised.float(), 0.0, HDR_MAX)
+        x = channels_last(torch.cat([self.features.build(f), log_transform(demodulate(d, f.albedo))], 1))
+        return F.softplus(self.out(self.blocks(F.relu_(self.head(x))))).contiguous()

@@ -1,0 +1,135 @@
+"""Input transforms for the networks, in forward/inverse pairs with named constants.
+
+Vogels et al. 2018 §5 feed the network log(1+color), relative variance, log(1+albedo),
+normals and depth, with diffuse radiance demodulated by albedo. We have one radiance buffer,
+so the whole radiance is demodulated: texture detail then comes back exactly through the
+remodulation and the kernels only have to smooth illumination.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from models.frames import FrameTensors
+
+HDR_MAX = 1e6          # clamp for radiance-like buffers: beyond any real firefly, far below float32 max
+MOTION_MAX = 1e4       # pixels; anything larger is off-screen for every supported resolution anyway
+ALBEDO_EPS = 1e-2      # demodulation guard: black albedo divides by ε, not 0 (same ε as SMAPE, eq. 2)
+REL_VAR_EPS = 1e-2     # relative variance var/(mean²+ε): ε keeps dark pixels from exploding (eq. 2's ε)
+DEPTH_EPS = 1e-6       # per-image depth normalisation guard for all-zero (no-hit) depth
+
+
+# --- sanitising: bad values are replaced and counted, never propagated --------------------
+
+def sanitize(t: Tensor, lo: float = 0.0, hi: float = HDR_MAX) -> tuple[Tensor, int]:
+    """NaN/±Inf → 0 (counted), then clamp to [lo, hi] (negative radiance noise → 0 by default)."""
+    bad = ~torch.isfinite(t)
+    n_bad = int(bad.sum())
+    clean = torch.where(bad, torch.zeros((), dtype=t.dtype, device=t.device), t)
+    return clean.clamp(lo, hi), n_bad
+
+
+# Albedo is a reflectance: at most 1. Renderers that estimate it by evaluating a glossy lobe at
+# one direction (Mitsuba 3's default eval_diffuse_reflectance on a rough conductor) return the
+# lobe's peak instead — up to 55 seen on a Cr surface with roughness 0.05 — and demodulating by
+# that, then remodulating with a lens-jittered copy of it, sprinkled sparkles over the result.
+_RANGES = {  # buffer → valid range
+    "color": (0.0, HDR_MAX), "variance": (0.0, HDR_MAX), "albedo": (0.0, 1.0),
+    "normal": (-1.0, 1.0), "depth": (0.0, HDR_MAX), "motion": (-MOTION_MAX, MOTION_MAX),
+}
+
+
+def sanitize_frame(frame: FrameTensors) -> tuple[FrameTensors, int]:
+    """Sanitise every buffer of a frame; returns the clean frame and the total bad-value count."""
+    count = [0]
+
+    def clean(name: str, t: Tensor) -> Tensor:
+        c, n = sanitize(t.float(), *_RANGES[name])
+        count[0] += n
+        return c
+
+    return frame.map(clean), count[0]
+
+
+# --- forward/inverse pairs ----------------------------------------------------------------
+
+def log_transform(x: Tensor) -> Tensor:
+    """log(1+x): compresses HDR radiance into a range a CNN can read (Vogels §5)."""
+    return torch.log1p(x)
+
+
+def inverse_log_transform(y: Tensor) -> Tensor:
+    return torch.expm1(y)
+
+
+def demodulate(radiance: Tensor, albedo: Tensor) -> Tensor:
+    """radiance / (albedo + ε): strips texture so kernels only smooth illumination."""
+    return radiance / (albedo + ALBEDO_EPS)
+
+
+def remodulate(irradiance: Tensor, albedo: Tensor) -> Tensor:
+    """Inverse of demodulate: multiplies the texture back in."""
+    return irradiance * (albedo + ALBEDO_EPS)
+
+
+def relative_variance(variance: Tensor, mean: Tensor) -> Tensor:
+    """var / (mean² + ε): noise level independent of exposure."""
+    return variance / (mean * mean + REL_VAR_EPS)
+
+
+def normalize_depth(depth: Tensor) -> Tensor:
+    """Depth divided by its per-image maximum, so scene scale does not matter."""
+    peak = depth.flatten(1).amax(dim=1).view(-1, 1, 1, 1)
+    return depth / (peak + DEPTH_EPS)
+
+
+# --- encoder inputs, one builder per render source ----------------------------------------
+
+def path_features(f: FrameTensors) -> Tensor:
+    """(N,13,H,W) encoder input for the Mitsuba path tracer from an already sanitised frame: log
+    demodulated radiance, log(1+relative variance), log(1+albedo), normal, normalised depth."""
+    return torch.cat([
+        log_transform(demodulate(f.color, f.albedo)),
+        log_transform(relative_variance(f.variance, f.color)),
+        log_transform(f.albedo),
+        f.normal,
+        normalize_depth(f.depth),
+    ], dim=1)
+
+
+def radiance_features(f: FrameTensors) -> Tensor:
+    """(N,6,H,W) for sources without auxiliary buffers (e.g. an EXR of colour + variance);
+    the caller passes albedo = 1 so demodulation is a no-op."""
+    return torch.cat([
+        log_transform(demodulate(f.color, f.albedo)),
+        log_transform(relative_variance(f.variance, f.color)),
+    ], dim=1)
+
+
+@dataclass(frozen=True)
+class FeatureSet:
+    channels: int
+    build: Callable[[FrameTensors], Tensor]   # from a SANITISED frame
+
+
+FEATURE_SETS: dict[str, FeatureSet] = {
+    "mitsuba-path": FeatureSet(13, path_features),
+    "radiance-only": FeatureSet(6, radiance_features),
+}
+
+
+class UnknownSourceError(KeyError):
+    def __str__(self) -> str:  # KeyError would quote the whole message
+        return str(self.args[0])
+
+
+def feature_set(source: str) -> FeatureSet:
+    """Look up a render source's feature set; unknown names fail here, at construction."""
+    try:
+        return FEATURE_SETS[source]
+    except KeyError:
+        known = ", ".join(sorted(FEATURE_SETS))
+        raise UnknownSourceError(f"unknown render source {source!r}; known sources: {known}") from None

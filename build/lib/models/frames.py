@@ -1,0 +1,34 @@
+"""One frame's worth of tensors handed to the networks.
+
+Everything is NCHW float; radiance is linear HDR. Motion follows the EXR contract
+(DESIGN.md): pixel (x, y) in frame t was at (x + mx, y + my) in frame t-1.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Callable
+
+from torch import Tensor
+
+
+@dataclass
+class FrameTensors:
+    color: Tensor            # (N,3,H,W) noisy sample mean, linear HDR
+    variance: Tensor         # (N,3,H,W) variance of that mean (not of one sample)
+    albedo: Tensor           # (N,3,H,W) first-hit diffuse reflectance
+    normal: Tensor           # (N,3,H,W) shading normal, components in [-1, 1]
+    depth: Tensor            # (N,1,H,W) first-hit distance
+    motion: Tensor | None = None  # (N,2,H,W) pixels to the previous frame, or None = static
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.color.shape[-2]), int(self.color.shape[-1])
+
+    def map(self, fn: Callable[[str, Tensor], Tensor]) -> "FrameTensors":
+        """Apply fn(name, tensor) to every present buffer (padding, pooling, device moves)."""
+        fields = {k: fn(k, getattr(self, k)) for k in ("color", "variance", "albedo", "normal", "depth")}
+        fields["motion"] = None if self.motion is None else fn("motion", self.motion)
+        return replace(self, **fields)
+
+    def to(self, device) -> "FrameTensors":
+        return self.map(lambda _, t: t.to(device))

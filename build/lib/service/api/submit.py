@@ -1,0 +1,107 @@
+"""Turning a POST /jobs request into a stored job: parse strictly, validate with the one job
+spec (service/loop/spec.py), unpack a bundle, and check the service's limits on the effective
+job — the film size read from the scene when the request gives none."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+from fastapi import Request
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, ValidationError
+from starlette.datastructures import UploadFile
+
+from service.api.schemas import BundleJobCreate, JobCreate
+from service.jobs import bundle
+from service.jobs.artifacts import JobFiles
+from service.loop.spec import SERVICE_LIMITS, JobLimits, LoopSpec, LoopSpecError, check_limits
+from service.render.scenes import SceneError, builtin_scene_names, film_size
+
+JSON_MEDIA_TYPE = "application/json"
+
+
+def invalid(location: str, message: str) -> RequestValidationError:
+    """A 422 that reads like FastAPI's own."""
+    return RequestValidationError([{"loc": (location,), "msg": message}])
+
+
+def validated(model: type[BaseModel], data: object) -> BaseModel:
+    """Pydantic validation whose failure reads like FastAPI's own 422."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise RequestValidationError(exc.errors(include_url=False, include_context=False)) from exc
+
+
+async def json_body(request: Request) -> object:
+    try:
+        return await request.json()
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError, ValueError) as exc:
+        # ValueError: Python refuses integers of thousands of digits; RecursionError: deep nesting.
+        raise invalid("body", f"body is not valid JSON ({type(exc).__name__})") from exc
+
+
+def is_multipart(request: Request) -> bool:
+    return request.headers.get("content-type", "").startswith("multipart/form-data")
+
+
+def uploads(form, name: str) -> list[UploadFile]:
+    return [item for item in form.getlist(name) if isinstance(item, UploadFile)]
+
+
+def require_builtin(scene: str) -> None:
+    names = builtin_scene_names()
+    if scene not in names:
+        raise invalid("scene", f"unknown built-in scene {scene!r}; known: {', '.join(names)} (or upload a bundle)")
+
+
+def check_effective_job(spec: LoopSpec, root: Path | None = None, limits: JobLimits = SERVICE_LIMITS) -> None:
+    """Service limits on the job as it will run: the scene's own film size when the request
+    names none (a job without width/height must not escape the sample cap). Parsing the scene
+    here also turns a broken scene into a 422 at submit instead of a failed job later."""
+    try:
+        width, height = film_size(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root)
+        check_limits(spec, width, height, limits)
+    except (SceneError, LoopSpecError) as exc:
+        raise invalid("spec", str(exc)) from exc
+
+
+def builtin_job(body: object, limits: JobLimits = SERVICE_LIMITS) -> LoopSpec:
+    """The LoopSpec of a JSON request naming a built-in scene, limits checked."""
+    request: JobCreate = validated(JobCreate, body)
+    require_builtin(request.scene)
+    spec = request.loop_spec(request.scene)
+    check_effective_job(spec, None, limits)
+    return spec
+
+
+def parse_bundle_spec(raw: object) -> BundleJobCreate:
+    try:
+        data = json.loads(raw) if isinstance(raw, str) else None
+    except (json.JSONDecodeError, RecursionError, ValueError) as exc:
+        raise invalid("spec", f"not valid JSON ({type(exc).__name__})") from exc
+    return validated(BundleJobCreate, data if data is not None else {})
+
+
+def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, request: BundleJobCreate,
+                  limits: bundle.BundleLimits = bundle.BundleLimits(), job_limits: JobLimits = SERVICE_LIMITS) -> dict:
+    """Store the upload under the job's folder and return the stored spec (scene relative to
+    the bundle); on any problem the folder is removed and the error propagates."""
+    root = files.bundle_dir
+    root.mkdir(parents=True, exist_ok=True)
+    try:
+        if archive:
+            bundle.extract_zip(items[0].file, root, limits)
+        else:
+            bundle.save_files(((u.filename or "", u.file) for u in items), root, limits)
+        entry = bundle.prepare_bundle(root, request.scene, params=request.params)
+        relative = entry.relative_to(root.resolve()).as_posix()
+        spec = request.loop_spec(str(entry))
+        check_effective_job(spec, root, job_limits)
+    except BaseException:
+        shutil.rmtree(files.root, ignore_errors=True)
+        raise
+    stored = spec.to_stored()
+    stored["scene"] = relative
+    return {**stored, "bundle_scene": relative}

@@ -1,0 +1,270 @@
+"""`renderloop render|denoise|serve|bench|dataset|train` (DESIGN.md, CLI contract).
+
+Every user error ends as one `renderloop: error: …` line and exit status 2; tracebacks are
+for bugs only.
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+import os
+import sys
+from pathlib import Path
+
+from service import denoise_command, train_command
+from service.api.security import LOOPBACK_HOSTS, SecuritySettings, is_loopback
+from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
+from service.jobs.retention import Retention
+from service.loop.spec import ALLOCATORS, DEFAULT_ITERATIONS, SERVICE_LIMITS, LAMBDA_RANGE, LoopSpec, LoopSpecError
+from service.dataset import command as dataset_command
+
+EXIT_USAGE = 2
+
+
+class CliError(Exception):
+    """A user-facing error: printed as one line, exit status 2."""
+
+
+def frame_path(out: Path, frame: int, frames: int) -> Path:
+    """OUT.exr for one frame; OUT_0000.exr, OUT_0001.exr, … for a sequence."""
+    return out if frames == 1 else out.with_name(f"{out.stem}_{frame:04d}{out.suffix}")
+
+
+def load_cli_networks(weights: Path | None):
+    """Torch threads and networks, chosen once per command and passed down (DESIGN.md)."""
+    from models.pretrained import load_networks
+    from service.loop.tensors import configure_torch_threads
+
+    configure_torch_threads()
+    return load_networks(weights)
+
+
+# -- render -----------------------------------------------------------------------------------
+
+def add_render_parser(sub) -> None:
+    d = LoopSpec(scene="")  # the job spec's defaults (service/loop/spec.py) are the CLI's
+    p = sub.add_parser("render", help="render a scene with the adaptive loop (or one uniform pass)")
+    p.add_argument("scene", nargs="?", help="Mitsuba 3 XML file or built-in scene name (see --list)")
+    p.add_argument("--list", action="store_true", help="print the built-in scenes and exit")
+    p.add_argument("--explain", action="store_true",
+                   help="print the effects report (which integrator runs and why, what is simulated) and exit")
+    p.add_argument("--width", type=int)
+    p.add_argument("--height", type=int)
+    p.add_argument("--frames", type=int, default=d.frames, help=f"frames of the scene's animation (default {d.frames})")
+    p.add_argument("--spp", type=int, help="one uniform pass of N samples per pixel, no adaptive iterations")
+    p.add_argument("--spp-first", type=int, default=d.spp_first,
+                   help=f"samples per pixel of iteration 0 (default {d.spp_first})")
+    stop = p.add_argument_group(f"stopping rules (whichever comes first; default --iterations {DEFAULT_ITERATIONS})")
+    stop.add_argument("--iterations", type=int, help="maximum iterations")
+    stop.add_argument("--spp-budget", type=float, help="mean samples per pixel, all iterations together")
+    stop.add_argument("--time-limit", type=float, help="seconds")
+    stop.add_argument("--target-error", type=float, help="stop when the mean predicted SMAPE is at most this")
+    p.add_argument("--allocator", default=d.allocator, help=" | ".join(ALLOCATORS) + f" (default {d.allocator})")
+    p.add_argument("--no-denoise", action="store_true", help="write the plain Monte Carlo estimate")
+    p.add_argument("--lambda", dest="lam", type=float, default=d.lam,
+                   help=f"λ in [{LAMBDA_RANGE[0]:g}, {LAMBDA_RANGE[1]:g}] (default {d.lam:g})")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="set the scene's $NAME parameter, like Mitsuba's -D (repeatable)")
+    p.add_argument("--png", action="store_true", help="also write a tonemapped PNG beside each EXR")
+    p.add_argument("-o", "--output", type=Path, help="output EXR path")
+    p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
+                   "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
+    p.set_defaults(handler=run_render)
+
+
+def scene_params(pairs: list[str]) -> dict[str, str]:
+    params = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        if not sep or not name:
+            raise CliError(f"--param takes NAME=VALUE, got {pair!r}")
+        params[name] = value
+    return params
+
+
+def render_spec(args) -> LoopSpec:
+    if args.spp is not None:
+        if args.spp < 1:
+            raise CliError(f"--spp must be >= 1 (got {args.spp})")
+        first, iterations = args.spp, 1
+    else:
+        if args.spp_first < 1:
+            raise CliError(f"--spp-first must be >= 1 (got {args.spp_first})")
+        first = args.spp_first
+        no_rule = all(v is None for v in (args.iterations, args.spp_budget, args.time_limit, args.target_error))
+        iterations = DEFAULT_ITERATIONS if no_rule else args.iterations
+    for name in ("width", "height"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise CliError(f"--{name} must be >= 1 (got {value})")
+    return LoopSpec(
+        scene=args.scene, width=args.width, height=args.height, frames=args.frames, spp_first=first,
+        max_iterations=iterations, spp_budget=args.spp_budget, time_limit=args.time_limit,
+        target_error=args.target_error, allocator=args.allocator, denoise=not args.no_denoise,
+        lam=args.lam, seed=args.seed, params=scene_params(args.param),
+    )
+
+
+def run_render(args) -> int:
+    from service.render.scenes import describe_builtin_scenes
+
+    if args.list:
+        for name, description in describe_builtin_scenes():
+            print(f"{name:20s} {description}")
+        return 0
+    if not args.scene:
+        raise CliError("render needs a SCENE (an XML file or a built-in name; see --list)")
+    spec = render_spec(args)
+    if args.explain:
+        from service.render.effects import explain_effects, inspect_scene
+
+        effects = inspect_scene(spec.scene, frames=spec.frames, width=spec.width, height=spec.height,
+                                params=spec.params)
+        print(explain_effects(effects))
+        return 0
+    if args.output is None:
+        raise CliError("render needs -o OUT.exr")
+
+    from tqdm import tqdm
+
+    from service.exr import write_exr
+    from service.images import tonemap, write_png
+    from service.loop.loop import RenderLoop
+
+    loop = RenderLoop(spec, load_cli_networks(args.weights) if spec.denoise else None)
+    bar = tqdm(total=spec.max_iterations, unit="it", desc=Path(spec.scene).stem, file=sys.stderr)
+    record = None
+    for record in loop.run():
+        err = "-" if record.predicted_error is None else f"{record.predicted_error:.4f}"
+        bar.set_postfix(spp=f"{record.spp_mean:.1f}", error=err, refresh=False)
+        bar.update(1)
+    bar.close()
+    for f, frame in enumerate(loop.result_frames()):
+        path = write_exr(frame_path(args.output, f, spec.frames), frame)
+        print(f"wrote {path}")
+        if args.png:
+            print(f"wrote {write_png(path.with_suffix('.png'), tonemap(frame.color))}")
+    if record is not None:
+        print(f"{record.iteration + 1} iterations, {record.spp_mean:.1f} spp mean, stop: {record.stop_reason}")
+    return 0
+
+
+# -- serve ------------------------------------------------------------------------------------
+
+def add_serve_parser(sub) -> None:
+    p = sub.add_parser("serve", help="run the HTTP service")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--data-dir", type=Path, default=Path(os.environ.get("RENDERLOOP_DATA_DIR", "data")))
+    p.add_argument("--concurrency", type=int, default=1, help="jobs rendered at once (default 1)")
+    p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
+                   "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
+    p.add_argument("--token", default=os.environ.get("RENDERLOOP_TOKEN"),
+                   help="bearer token every request but /healthz must carry (default: $RENDERLOOP_TOKEN)")
+    p.add_argument("--allowed-host", action="append", default=[], metavar="NAME",
+                   help="a Host header name to serve besides the loopback names (repeatable; '*' for any)")
+    p.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",
+                   help="a web origin allowed to call the API from a browser (repeatable; default: none)")
+    p.add_argument("--max-bundle-mb", type=int, default=MAX_BUNDLE_BYTES // 2**20,
+                   help=f"largest uploaded scene bundle, uncompressed (default {MAX_BUNDLE_BYTES // 2**20} MiB)")
+    p.add_argument("--max-bundle-files", type=int, default=MAX_BUNDLE_FILES,
+                   help=f"most files in one bundle (default {MAX_BUNDLE_FILES})")
+    p.add_argument("--max-job-memory-gb", type=float, default=SERVICE_LIMITS.max_memory_bytes / 2**30,
+                   help="refuse jobs whose estimated memory is over this (default "
+                        f"{SERVICE_LIMITS.max_memory_bytes / 2**30:g} GiB)")
+    p.add_argument("--keep-days", type=float, default=None,
+                   help="remove finished jobs (record and files) this many days after they end (default: keep)")
+    p.add_argument("--max-disk-gb", type=float, default=None,
+                   help="keep the data folder under this size by removing the oldest finished jobs (default: no cap)")
+    p.add_argument("--insecure-no-auth", action="store_true",
+                   help="allow binding a non-loopback address without a token")
+    p.set_defaults(handler=run_serve)
+
+
+def serve_security(args) -> SecuritySettings:
+    """Refuse to expose an unauthenticated server: a non-loopback bind needs a token."""
+    if not is_loopback(args.host) and not args.token and not args.insecure_no_auth:
+        raise CliError(f"binding {args.host} exposes the service: give --token (or RENDERLOOP_TOKEN), "
+                       "or --insecure-no-auth if something in front of it authenticates")
+    hosts = list(LOOPBACK_HOSTS) + list(args.allowed_host)
+    if not is_loopback(args.host) and args.host not in ("0.0.0.0", "::"):
+        hosts.append(args.host)
+    return SecuritySettings(token=args.token or None, allowed_hosts=tuple(hosts), cors_origins=tuple(args.cors_origin))
+
+
+def run_serve(args) -> int:
+    from service.api.serve import serve  # uvicorn, the app, the loop: only when serving
+
+    if not 0 < args.port < 65536:
+        raise CliError(f"--port must be in 1..65535 (got {args.port})")
+    if args.concurrency < 1:
+        raise CliError("--concurrency must be >= 1")
+    security = serve_security(args)
+    if args.max_bundle_mb < 1 or args.max_bundle_files < 1:
+        raise CliError("--max-bundle-mb and --max-bundle-files must be >= 1")
+    limits = BundleLimits(max_bytes=args.max_bundle_mb * 2**20, max_files=args.max_bundle_files)
+    if not args.max_job_memory_gb > 0:
+        raise CliError("--max-job-memory-gb must be > 0")
+    job_limits = replace(SERVICE_LIMITS, max_memory_bytes=args.max_job_memory_gb * 2**30)
+    for name in ("keep_days", "max_disk_gb"):
+        if getattr(args, name) is not None and not getattr(args, name) > 0:
+            raise CliError(f"--{name.replace('_', '-')} must be > 0")
+    retention = Retention(keep_days=args.keep_days,
+                          max_disk_bytes=args.max_disk_gb * 2**30 if args.max_disk_gb else None)
+    auth = " -H 'authorization: Bearer $RENDERLOOP_TOKEN'" if security.token else ""
+    print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir})")
+    print(f"try: curl -X POST http://{args.host}:{args.port}/jobs{auth} -H 'content-type: application/json' "
+          "-d '{\"scene\": \"cornell-box\", \"width\": 64, \"height\": 64, \"max_iterations\": 3}'")
+    serve(args.host, args.port, args.data_dir, args.concurrency, networks=load_cli_networks(args.weights),
+          security=security, bundle_limits=limits, job_limits=job_limits, retention=retention)
+    return 0
+
+
+# -- main -------------------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="renderloop", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_render_parser(sub)
+    add_serve_parser(sub)
+    for module in (dataset_command, train_command, denoise_command):
+        module.add_parser(sub)
+    # The measurement wing (bench/) is not part of the product: `main` hands `renderloop bench …`
+    # to it before parsing; this entry only lists the command in --help.
+    sub.add_parser("bench", help="measure and write reports to docs/ (renderloop bench --help)")
+    return parser
+
+
+def user_errors() -> tuple[type[BaseException], ...]:
+    """Exception types that describe bad input rather than a bug."""
+    from models.checkpoint import CheckpointError
+    from service.dataset.build import DatasetError
+    from service.exr import ExrError
+    from service.render.runtime import RuntimeSetupError
+    from service.render.scenes import SceneError
+
+    return (CliError, ExrError, RuntimeSetupError, FileNotFoundError, SceneError, LoopSpecError,
+            CheckpointError, DatasetError)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["bench"]:
+        from bench.cli import main as bench_main  # heavy: report code, plots, every network
+
+        return bench_main(argv[1:])
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.handler(args)
+    except KeyboardInterrupt:
+        print("renderloop: interrupted", file=sys.stderr)
+        return 130
+    except user_errors() as exc:
+        print(f"renderloop: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,39 @@
+"""`renderloop denoise IN.exr [--lambda L | --lambda-map MAP.exr] [--frames …] -o OUT.exr`:
+arguments → service.exr_denoise.denoise_exr."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from service.loop.spec import LAMBDA_RANGE, LoopSpec, lambda_problem
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("denoise", help="denoise an EXR in the renderloop layout")
+    p.add_argument("input", type=Path, help="EXR with noisy.*, variance.*, albedo.*, N.*, Z layers")
+    lam = p.add_mutually_exclusive_group()
+    default_lam = LoopSpec(scene="").lam
+    lam.add_argument("--lambda", dest="lam", type=float, default=default_lam,
+                     help=f"global λ in [{LAMBDA_RANGE[0]:g}, {LAMBDA_RANGE[1]:g}] (default {default_lam:g})")
+    lam.add_argument("--lambda-map", type=Path, help="single-channel EXR (layer `lambda` or R) of per-pixel λ")
+    p.add_argument("--frames", type=Path, nargs="+", default=[],
+                   help="neighbour frames in sequence order, the input among them or not (temporal window)")
+    p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
+                   "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
+    p.set_defaults(handler=run_denoise)
+
+
+def run_denoise(args) -> int:
+    # torch, OpenEXR and the networks: imported only when the command runs (`--help` stays fast)
+    from models.pretrained import load_networks
+    from service.exr import ExrError
+    from service.exr_denoise import denoise_exr
+    from service.loop.tensors import configure_torch_threads
+
+    if args.lambda_map is None and lambda_problem(args.lam):  # fail before the weights load
+        raise ExrError(f"--lambda: {lambda_problem(args.lam)} (got {args.lam})")
+    configure_torch_threads()
+    networks = load_networks(args.weights)
+    frame = denoise_exr(args.input, args.output, networks, lam=args.lam, lambda_map=args.lambda_map, frames=args.frames)
+    print(f"wrote {args.output}  (mean predicted SMAPE {frame.error.mean():.4f})")
+    return 0

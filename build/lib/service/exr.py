@@ -1,0 +1,169 @@
+"""The one module that reads and writes the project's multi-layer EXR layout (DESIGN.md).
+
+Layers (float32 unless noted): `R,G,B` final radiance; `noisy.*` sample mean; `variance.*`
+variance of the mean; `albedo.*`; `N.X/Y/Z`; `Z`; `motion.X/Y` when the scene moves; `spp`
+(uint32); `error`; `lambda`. Header attributes: scene, iteration, total_samples, variant.
+"""
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+
+from service.render.framebuffer import FrameBuffer
+
+# Multi-channel layers: dataclass field -> (EXR layer prefix, channel suffixes).
+VECTOR_LAYERS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "color": ("", ("R", "G", "B")),
+    "noisy": ("noisy.", ("R", "G", "B")),
+    "variance": ("variance.", ("R", "G", "B")),
+    "albedo": ("albedo.", ("R", "G", "B")),
+    "normal": ("N.", ("X", "Y", "Z")),
+    "motion": ("motion.", ("X", "Y")),
+}
+# Single-channel layers: dataclass field -> EXR channel name.
+SCALAR_LAYERS: dict[str, str] = {"depth": "Z", "spp": "spp", "error": "error", "lam": "lambda"}
+HEADER_KEYS = ("scene", "iteration", "total_samples", "variant", "frame")
+# Provenance a reference image carries (bench/dev_references.py).
+REFERENCE_HEADER_KEYS = ("content_hash", "spp", "passes", "seeds")
+# Optional extra channels (an integrator's AOVs, named as Mitsuba names them) live under this
+# prefix so they can never clobber the layers above (`albedo.R` vs `aov.albedo.R`).
+EXTRA_PREFIX = "aov."
+
+
+class ExrError(ValueError):
+    """A file is not an EXR in the renderloop layout; the message says what is missing."""
+
+
+@dataclass
+class ExrFrame:
+    """One frame as stored on disk. Arrays are (H, W, C) or (H, W); absent layers are None."""
+
+    color: np.ndarray | None = None
+    noisy: np.ndarray | None = None
+    variance: np.ndarray | None = None
+    albedo: np.ndarray | None = None
+    normal: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    motion: np.ndarray | None = None
+    spp: np.ndarray | None = None
+    error: np.ndarray | None = None
+    lam: np.ndarray | None = None
+    header: dict = field(default_factory=dict)
+    extra: dict[str, np.ndarray] = field(default_factory=dict)  # name (without EXTRA_PREFIX) -> (H, W)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, np.ndarray):
+                return value.shape[:2]
+        raise ExrError("frame holds no layers")
+
+
+def result_frame(buffer: FrameBuffer, color: np.ndarray, *, error: np.ndarray | None, lam: np.ndarray | None,
+                 header: dict) -> ExrFrame:
+    """A rendered frame in the project layout: final colour, the buffer's statistics and AOVs."""
+    return ExrFrame(
+        color=color, noisy=buffer.mean, variance=buffer.variance, albedo=buffer.albedo, normal=buffer.normal,
+        depth=buffer.depth, motion=buffer.motion, spp=buffer.spp.astype(np.uint32), error=error, lam=lam,
+        extra=buffer.aov_layers(),
+        header={**header, "total_samples": int(buffer.spp.sum())},
+    )
+
+
+def _channel(array: np.ndarray, dtype) -> np.ndarray:
+    # OpenEXR 3.x writes a strided view as garbage without an error: always hand it a
+    # contiguous copy of the exact dtype (DESIGN.md, runtime facts).
+    return np.ascontiguousarray(array, dtype=dtype)
+
+
+def write_exr(path: str | Path, frame: ExrFrame) -> Path:
+    path = Path(path)
+    height, width = frame.shape
+    channels: dict[str, np.ndarray] = {}
+    for name, (prefix, suffixes) in VECTOR_LAYERS.items():
+        value = getattr(frame, name)
+        if value is None:
+            continue
+        if value.shape != (height, width, len(suffixes)):
+            raise ExrError(f"layer {name!r} has shape {value.shape}, expected {(height, width, len(suffixes))}")
+        for i, suffix in enumerate(suffixes):
+            channels[prefix + suffix] = _channel(value[..., i], np.float32)
+    for name, channel in SCALAR_LAYERS.items():
+        value = getattr(frame, name)
+        if value is None:
+            continue
+        if value.shape[:2] != (height, width):
+            raise ExrError(f"layer {name!r} has shape {value.shape}, expected {(height, width)}")
+        dtype = np.uint32 if name == "spp" else np.float32
+        channels[channel] = _channel(value.reshape(height, width), dtype)
+    for name, value in frame.extra.items():
+        if value.shape[:2] != (height, width):
+            raise ExrError(f"extra layer {name!r} has shape {value.shape}, expected {(height, width)}")
+        channels[EXTRA_PREFIX + name] = _channel(value.reshape(height, width), np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    for key, value in frame.header.items():
+        header[key] = value if isinstance(value, (int, float)) else str(value)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    OpenEXR.File(header, channels).write(str(path))
+    return path
+
+
+def read_exr(path: str | Path) -> ExrFrame:
+    path = Path(path)
+    if not path.is_file():
+        raise ExrError(f"{path}: no such file")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as exr:
+            channels = {name: np.array(ch.pixels) for name, ch in exr.channels().items()}
+            # The header belongs to the open file: copy it inside the `with` (DESIGN.md).
+            raw_header = dict(exr.header())
+    except Exception as exc:  # OpenEXR raises plain RuntimeError on corrupt input
+        raise ExrError(f"{path}: not a readable EXR file ({exc})") from exc
+    frame = ExrFrame(header={k: raw_header[k] for k in HEADER_KEYS + REFERENCE_HEADER_KEYS if k in raw_header})
+    for name, (prefix, suffixes) in VECTOR_LAYERS.items():
+        names = [prefix + s for s in suffixes]
+        if all(n in channels for n in names):
+            setattr(frame, name, np.stack([channels[n].astype(np.float32) for n in names], axis=-1))
+    for name, channel in SCALAR_LAYERS.items():
+        if channel in channels:
+            dtype = np.uint32 if name == "spp" else np.float32
+            setattr(frame, name, channels[channel].astype(dtype))
+    frame.extra = {n[len(EXTRA_PREFIX):]: c.astype(np.float32) for n, c in channels.items() if n.startswith(EXTRA_PREFIX)}
+    if all(getattr(frame, f) is None for f in list(VECTOR_LAYERS) + list(SCALAR_LAYERS)):
+        raise ExrError(f"{path}: no renderloop layers (expected R,G,B or noisy.R/G/B)")
+    return frame
+
+
+# OpenEXR's Python binding reads and writes named files only: bytes go through one private
+# temporary file, here and nowhere else.
+
+def exr_to_bytes(frame: ExrFrame) -> bytes:
+    with tempfile.TemporaryDirectory(prefix="renderloop-exr-") as folder:
+        path = write_exr(Path(folder) / "frame.exr", frame)
+        return path.read_bytes()
+
+
+def exr_channels_from_bytes(data: bytes, *, max_pixels: int) -> dict[str, np.ndarray]:
+    """Every channel of an EXR held in memory, (H, W) each. The header is read first and an
+    image over `max_pixels` is refused before any pixel is decoded (a small file can declare a
+    huge image)."""
+    with tempfile.TemporaryDirectory(prefix="renderloop-exr-") as folder:
+        path = Path(folder) / "upload.exr"
+        path.write_bytes(data)
+        try:
+            with OpenEXR.File(str(path), header_only=True) as exr:
+                (x0, y0), (x1, y1) = (tuple(int(v) for v in corner) for corner in exr.header()["dataWindow"])
+            width, height = x1 - x0 + 1, y1 - y0 + 1
+            if width < 1 or height < 1 or width * height > max_pixels:
+                raise ExrError(f"the EXR declares a {width}x{height} image; at most {max_pixels} pixels are accepted")
+            with OpenEXR.File(str(path), separate_channels=True) as exr:
+                return {name: np.array(ch.pixels) for name, ch in exr.channels().items()}
+        except ExrError:
+            raise
+        except Exception as exc:  # OpenEXR raises plain RuntimeError on corrupt input
+            raise ExrError(f"not a readable EXR file ({exc})") from exc

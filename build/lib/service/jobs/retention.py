@@ -1,0 +1,71 @@
+"""Housekeeping: finished jobs older than `keep_days` are removed, and while the data folder is
+over `max_disk_bytes` the oldest finished jobs go first. Queued and running jobs are never
+touched (serve --keep-days, --max-disk-gb)."""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from service.jobs.store import TERMINAL_STATES, JobStore
+
+SWEEP_SECONDS = 600.0  # how often a running server sweeps
+
+
+@dataclass(frozen=True)
+class Retention:
+    keep_days: float | None = None  # None: keep finished jobs forever
+    max_disk_bytes: float | None = None  # None: no cap on the data folder
+
+    @property
+    def active(self) -> bool:
+        return self.keep_days is not None or self.max_disk_bytes is not None
+
+
+def folder_bytes(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) if folder.exists() else 0
+
+
+def sweep(store: JobStore, retention: Retention, now: float | None = None) -> list[str]:
+    """Delete what the policy no longer keeps; returns the removed job ids, oldest first."""
+    now = time.time() if now is None else now
+    finished = [r for r in store.list(limit=2**31 - 1) if r.state in TERMINAL_STATES]
+    finished.sort(key=lambda r: r.finished_at or r.created_at)  # oldest first
+    removed = []
+    if retention.keep_days is not None:
+        cutoff = now - retention.keep_days * 86400.0
+        for record in [r for r in finished if (r.finished_at or r.created_at) < cutoff]:
+            store.delete(record.id)
+            removed.append(record.id)
+    if retention.max_disk_bytes is not None:
+        remaining = [r for r in finished if r.id not in removed]
+        used = folder_bytes(store.data_dir)
+        while remaining and used > retention.max_disk_bytes:
+            record = remaining.pop(0)
+            used -= folder_bytes(store.job_dir(record.id))
+            store.delete(record.id)
+            removed.append(record.id)
+    return removed
+
+
+class Housekeeper:
+    """Sweeps once at start-up and then every SWEEP_SECONDS on a daemon thread."""
+
+    def __init__(self, store: JobStore, retention: Retention, interval: float = SWEEP_SECONDS) -> None:
+        self.store, self.retention, self.interval = store, retention, interval
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="housekeeper", daemon=True)
+
+    def start(self) -> None:
+        if self.retention.active:
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def _run(self) -> None:
+        while True:
+            sweep(self.store, self.retention)
+            if self._stop.wait(self.interval):
+                return

@@ -1,0 +1,349 @@
+"""Runs render loops off the event loop and keeps each job's record, checkpoint and previews
+current.
+
+One thread pool (`concurrency` threads, default 1) runs jobs in submission order. After every
+iteration the worker checkpoints the loop state, writes the preview layers and bumps the
+preview version, then updates the record, in that order, so the record never claims an
+iteration a restart could not resume from. λ changes go through a per-job latest-wins
+mailbox and re-denoise from the loop's cached features (`RenderLoop.set_lambda`).
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from models.pretrained import Networks
+from service.jobs.artifacts import JobFiles, Preview
+from service.jobs.errors import JobConflict, JobNotFound
+from service.jobs.latest import LatestWins
+from service.jobs.store import CANCELED, COMPLETED, FAILED, QUEUED, JobRecord, JobStore
+from service.loop.loop import IterationInterrupted, RenderLoop
+from service.loop.spec import IterationRecord, LoopSpec
+from service.loop.state import LoopState
+
+
+log = logging.getLogger(__name__)
+
+IDLE_LOOPS_KEPT = 2  # finished loops kept in memory so λ changes after the run stay cheap
+LAMBDA_WAIT_SECONDS = 300.0
+DELETE_WAIT_SECONDS = 30.0  # a running job stops within one chunk; this bounds a stuck one
+
+
+def job_spec(record: JobRecord, bundle_dir: Path | None = None) -> LoopSpec:
+    """A job record's stored spec as the loop's LoopSpec; a bundle's scene resolves inside
+    `bundle_dir` (left relative without it)."""
+    values = {key: value for key, value in record.spec.items() if key != "bundle_scene"}
+    entry = bundle_scene(record)
+    scene = str(bundle_dir / entry) if (entry and bundle_dir is not None) else None
+    return LoopSpec.from_stored(values, scene=scene)
+
+
+def bundle_scene(record: JobRecord) -> str | None:
+    """The entry XML of an uploaded job, relative to its bundle; None for a built-in scene."""
+    return record.spec["bundle_scene"] if "bundle_scene" in record.spec else None
+
+
+@dataclass(frozen=True)
+class LambdaApplied:
+    """What one λ application did: the preview version showing it, and the denoiser work it
+    took (full forward passes vs. λ-only tail passes from cached features)."""
+
+    version: int
+    full_passes: int = 0
+    tail_passes: int = 0
+
+
+def _failure_message(exc: BaseException) -> str:
+    text = str(exc).strip() or exc.__class__.__name__
+    return f"{exc.__class__.__name__}: {text}" if not isinstance(exc, ValueError) else text
+
+
+def _add_timings(total: dict[str, float], more: dict[str, float]) -> dict[str, float]:
+    merged = dict(total)
+    for stage, seconds in more.items():
+        merged[stage] = merged.get(stage, 0.0) + float(seconds)
+    return merged
+
+
+class JobWorker:
+    def __init__(self, store: JobStore, networks: Networks, concurrency: int = 1) -> None:
+        if concurrency < 1:
+            raise ValueError("concurrency must be >= 1")
+        self.store = store
+        self.networks = networks  # loaded once at start-up, shared by every job's loop
+        self._pool = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="render")
+        self._lock = threading.Lock()
+        self._cancel: dict[str, threading.Event] = {}
+        self._live: dict[str, RenderLoop] = {}  # jobs rendering right now
+        self._idle: OrderedDict[str, RenderLoop] = OrderedDict()  # finished, kept for λ
+        self._publish_locks: dict[str, threading.Lock] = {}
+        self._lambda: dict[str, LatestWins[tuple[np.ndarray, float | None], LambdaApplied]] = {}
+        self._stopping = threading.Event()
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Jobs that were running when the last server died resume; queued ones run."""
+        for job_id in self.store.requeue_running():
+            log.info("job %s was running at shutdown: resuming from its checkpoint", job_id)
+        for job_id in self.store.ids_in_state(QUEUED):
+            self.submit(job_id)
+
+    def delete(self, job_id: str, wait_seconds: float = DELETE_WAIT_SECONDS) -> None:
+        """Forget a job and its files; a queued or running job is canceled first."""
+        record = self._require(job_id)
+        if not record.finished:
+            self.cancel(job_id)  # queued: at once; running: within one wavefront chunk
+            deadline = time.monotonic() + wait_seconds
+            while self._is_live(job_id) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            if self._is_live(job_id):
+                raise JobConflict(f"job {job_id} is still stopping; retry the delete in a moment")
+        with self._lock:
+            self._idle.pop(job_id, None)
+            self._publish_locks.pop(job_id, None)
+        self.store.delete(job_id)
+
+    def _is_live(self, job_id: str) -> bool:
+        with self._lock:
+            return job_id in self._live
+
+    def stop(self) -> None:
+        """Ask running loops to stop within one wavefront chunk; they stay resumable."""
+        self._stopping.set()
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+    def submit(self, job_id: str) -> None:
+        self._pool.submit(self._run_guarded, job_id)
+
+    def files(self, job_id: str) -> JobFiles:
+        return JobFiles(self.store.job_dir(job_id))
+
+    # -- cancel ---------------------------------------------------------------------------------
+
+    def _cancel_event(self, job_id: str) -> threading.Event:
+        with self._lock:
+            return self._cancel.setdefault(job_id, threading.Event())
+
+    def cancel(self, job_id: str) -> JobRecord:
+        record = self._require(job_id)
+        if record.finished:
+            raise JobConflict(f"job {job_id} is already {record.state}")
+        if not self.store.cancel_if_queued(job_id):
+            # Running: the loop checks the flag after every wavefront chunk and stops.
+            self._cancel_event(job_id).set()
+        return self._require(job_id)
+
+    def _require(self, job_id: str) -> JobRecord:
+        record = self.store.get(job_id)
+        if record is None:
+            raise JobNotFound(f"no job with id {job_id!r}")
+        return record
+
+    # -- running a job ------------------------------------------------------------------------
+
+    def _run_guarded(self, job_id: str) -> None:
+        # Whatever goes wrong inside a job ends that job, never the worker thread or server.
+        try:
+            self._run(job_id)
+        except Exception as exc:
+            log.exception("job %s failed", job_id)
+            self.store.finish(job_id, FAILED, error=_failure_message(exc))
+        finally:
+            with self._lock:
+                self._live.pop(job_id, None)
+                self._cancel.pop(job_id, None)
+
+    def _run(self, job_id: str) -> None:
+        if self._stopping.is_set() or not self.store.claim(job_id):
+            return  # canceled while queued, or the server is going down
+        record = self._require(job_id)
+        files = self.files(job_id)
+        cancel = self._cancel_event(job_id)
+        loop = self._open_loop(job_id, record, files)
+        should_stop = lambda: cancel.is_set() or self._stopping.is_set()  # noqa: E731
+        timings = dict(record.timings)
+        last: IterationRecord | None = None
+        try:
+            for last in loop.run(should_stop=should_stop):
+                timings = self._finish_iteration(job_id, loop, files, last, timings)
+        except IterationInterrupted:
+            # Stopped inside an iteration (within one wavefront chunk): the in-memory buffers
+            # are partial, the checkpoint of the last finished iteration is what counts.
+            if not cancel.is_set():
+                self.store.requeue(job_id)  # server shutdown: resume from the checkpoint next start
+                return
+            self._complete(job_id, self._checkpointed_loop(record, files), files, None, canceled=True)
+            return
+        finished = last is not None and last.stop_reason not in (None, "canceled")
+        if not finished and not cancel.is_set() and self._stopping.is_set():
+            self.store.requeue(job_id)  # server shutdown, not a user cancel: resume next start
+            return
+        # A cancel that arrives during the last iteration comes too late: the job is complete.
+        self._complete(job_id, loop, files, last, canceled=cancel.is_set() and not finished)
+
+    def _make_loop(self, record: JobRecord, files: JobFiles, state: LoopState | None) -> RenderLoop:
+        # An uploaded scene may read files from its whole bundle, nothing outside it.
+        root = files.bundle_dir if bundle_scene(record) else None
+        return RenderLoop(job_spec(record, files.bundle_dir), self.networks, state=state, scene_root=root)
+
+    def _checkpointed_loop(self, record: JobRecord, files: JobFiles) -> RenderLoop | None:
+        if not files.has_checkpoint():
+            return None
+        return self._make_loop(record, files, LoopState.load(files.state_dir))
+
+    def _open_loop(self, job_id: str, record: JobRecord, files: JobFiles) -> RenderLoop:
+        state = LoopState.load(files.state_dir) if files.has_checkpoint() else None
+        loop = self._make_loop(record, files, state)
+        self.store.set_effects(job_id, loop.effects.as_record())
+        if state is not None:
+            self.store.set_resumed_from(job_id, state.iteration)
+        with self._lock:
+            self._live[job_id] = loop
+        # Registered first, then read: a λ request that missed the live loop saved its map
+        # before we read it here (see _apply_lambda), so no λ change is lost on the way in.
+        lam = files.load_lambda()
+        if lam is not None and lam.shape == loop.state.lam_map.shape:
+            loop.state.lam_map = lam  # newer than the checkpoint's copy
+        return loop
+
+    def _finish_iteration(
+        self, job_id: str, loop: RenderLoop, files: JobFiles, record: IterationRecord, timings: dict[str, float]
+    ) -> dict[str, float]:
+        started = time.perf_counter()
+        loop.state.save(files.state_dir)
+        self._publish(job_id, files, self._preview_layers(loop, record))
+        io_seconds = {"io": time.perf_counter() - started}
+        timings = _add_timings(_add_timings(timings, record.timings), io_seconds)
+        self.store.record_iteration(
+            job_id, record.iteration + 1, record.spp_mean, record.predicted_error, timings, record.stop_reason
+        )
+        return timings
+
+    @staticmethod
+    def _preview_layers(loop: RenderLoop, record: IterationRecord) -> list[dict[str, np.ndarray | None]]:
+        lam = loop.state.lam_map
+        return [
+            {
+                "denoised": record.denoised[f] if record.denoised else buf.mean,
+                "noisy": buf.mean,
+                "error": record.error[f] if f < len(record.error) else None,
+                "spp": buf.spp.astype(np.float32),
+                "lambda": lam,
+            }
+            for f, buf in enumerate(record.buffers)
+        ]
+
+    def _publish(self, job_id: str, files: JobFiles, frames: list[dict[str, np.ndarray | None]]) -> int:
+        """Write all frames' previews under one new version; returns it."""
+        with self._publish_lock(job_id):
+            version = self.store.bump_preview_version(job_id)
+            for f, layers in enumerate(frames):
+                files.save_preview(f, Preview(version=version, layers=layers))
+            return version
+
+    def _publish_lock(self, job_id: str) -> threading.Lock:
+        with self._lock:
+            return self._publish_locks.setdefault(job_id, threading.Lock())
+
+    def _complete(
+        self, job_id: str, loop: RenderLoop | None, files: JobFiles, last: IterationRecord | None, canceled: bool
+    ) -> None:
+        stop_reason = last.stop_reason if last is not None else ("canceled" if canceled else None)
+        if loop is not None and loop.state.iteration > 0:
+            files.save_results(loop.result_frames())
+        if canceled or stop_reason == "canceled" or loop is None:
+            self.store.finish(job_id, CANCELED, stop_reason="canceled")
+            return
+        self._keep_idle(job_id, loop)
+        self.store.finish(job_id, COMPLETED, stop_reason=stop_reason)
+
+    def _keep_idle(self, job_id: str, loop: RenderLoop) -> None:
+        with self._lock:
+            self._idle[job_id] = loop
+            self._idle.move_to_end(job_id)
+            while len(self._idle) > IDLE_LOOPS_KEPT:
+                self._idle.popitem(last=False)
+
+    # -- λ --------------------------------------------------------------------------------------
+
+    def image_size(self, job_id: str) -> tuple[int, int] | None:
+        """(H, W) of the job's images, once known (spec, or the first preview)."""
+        spec = job_spec(self._require(job_id))
+        if spec.width and spec.height:
+            return spec.height, spec.width
+        preview = self.files(job_id).load_preview(0)
+        if preview is not None and preview.layers.get("noisy") is not None:
+            return preview.layers["noisy"].shape[:2]
+        return None
+
+    def current_lambda(self, job_id: str, shape: tuple[int, int]) -> np.ndarray:
+        record = self._require(job_id)
+        lam = self.files(job_id).load_lambda()
+        if lam is not None and lam.shape == shape:
+            return lam
+        return np.full(shape, job_spec(record).lam, dtype=np.float32)
+
+    def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None) -> LambdaApplied:
+        """Keep `lam` with the job and re-denoise from cached features. Under a burst only the
+        newest request is applied; every caller gets the version that shows it."""
+        record = self._require(job_id)
+        if record.state in (FAILED, CANCELED):
+            raise JobConflict(f"job {job_id} is {record.state}: there is nothing left to re-denoise")
+        mailbox = self._lambda_mailbox(job_id)
+        return mailbox.wait(mailbox.submit((lam, value)), timeout=LAMBDA_WAIT_SECONDS)
+
+    def _lambda_mailbox(self, job_id: str) -> LatestWins[tuple[np.ndarray, float | None], LambdaApplied]:
+        with self._lock:
+            if job_id not in self._lambda:
+                self._lambda[job_id] = LatestWins(
+                    lambda request: self._apply_lambda(job_id, *request), name=f"lambda-{job_id[:8]}"
+                )
+            return self._lambda[job_id]
+
+    def _apply_lambda(self, job_id: str, lam: np.ndarray, value: float | None) -> LambdaApplied:
+        # Persisted here, on the one thread that applies this job's λ, so the saved map is
+        # always the newest request's; later iterations and restarts read it.
+        files = self.files(job_id)
+        files.save_lambda(lam)
+        self.store.set_lambda_value(job_id, value)
+        record = self._require(job_id)
+        loop = self._loop_for_lambda(job_id, record)
+        if loop is None:
+            return LambdaApplied(record.preview_version)  # nothing rendered yet: used from iteration 1
+        session = loop.session
+        full_before, tail_before = (session.full_calls, session.tail_calls) if session else (0, 0)
+        images = loop.set_lambda(lam)
+        passes = ({"full_passes": session.full_calls - full_before, "tail_passes": session.tail_calls - tail_before}
+                  if session else {})
+        if not images:
+            return LambdaApplied(record.preview_version, **passes)
+        frames = []
+        for f, image in enumerate(images):
+            previous = files.load_preview(f)
+            layers = dict(previous.layers) if previous else {"noisy": None, "error": None, "spp": None}
+            frames.append({**layers, "denoised": image, "lambda": lam})
+        version = self._publish(job_id, files, frames)
+        if self._require(job_id).state == COMPLETED:
+            files.save_results(loop.result_frames())  # the result follows λ after the run too
+        return LambdaApplied(version, **passes)
+
+    def _loop_for_lambda(self, job_id: str, record: JobRecord) -> RenderLoop | None:
+        with self._lock:
+            loop = self._live.get(job_id) or self._idle.get(job_id)
+        if loop is not None or record.state != COMPLETED:
+            return loop  # queued or starting: the loop reads the saved map when it opens
+        files = self.files(job_id)
+        if not files.has_checkpoint():
+            return None
+        # After a restart: rebuild from the checkpoint; set_lambda recomputes the cache once.
+        loop = self._make_loop(record, files, LoopState.load(files.state_dir))
+        self._keep_idle(job_id, loop)
+        return loop

@@ -1,0 +1,225 @@
+"""The adaptive render loop: render → denoise → predict error → allocate → render …
+
+Iteration 0 renders `spp_first` samples per pixel uniformly; every later iteration doubles
+the total (Vogels et al. 2018, §7: "each iteration doubles the sample count") and hands the
+new samples out in proportion to the chosen allocator's weights — by default the error
+network's per-pixel SMAPE estimate of the current denoised frame.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from models.pretrained import Networks
+from service.exr import ExrFrame, result_frame
+from service.loop.allocate import allocate_samples, allocation_weights, iteration_budget
+from service.loop.denoise_session import DenoiseSession
+from service.loop.tensors import to_image as to_hwc
+from service.loop.spec import IterationRecord, LoopSpec, LoopSpecError, lambda_problem, validate_spec
+from service.loop.state import LoopState
+from service.render.effects import inspect_frames, load_frames, make_integrator
+from service.render.renderer import render_samples
+from service.render.runtime import active_variant
+
+
+class IterationInterrupted(RuntimeError):
+    """`should_stop` became true inside an iteration: this loop's in-memory state is partial."""
+
+
+class RenderLoop:
+    def __init__(self, spec: LoopSpec, networks: Networks | None = None, *, state: LoopState | None = None,
+                 scene_root: Path | None = None):
+        """`networks`: loaded once by the caller (CLI, server, benchmark); needed when denoising.
+        `scene_root`: the folder the scene may read files from (a job's bundle; default: the
+        scene file's own folder)."""
+        validate_spec(spec)
+        if spec.denoise and networks is None:
+            raise LoopSpecError("denoising needs the networks: pass them (models.pretrained.load_networks)")
+        self.spec = spec
+        # Each frame is loaded once; the effects report reads the loaded frames.
+        loaded = load_frames(spec.scene, frames=spec.frames, width=spec.width, height=spec.height, params=spec.params,
+                             root=scene_root)
+        self.effects = inspect_frames(loaded)
+        self.scenes = [frame.scene for frame in loaded]
+        self.integrator = make_integrator(self.effects)
+        width, height = self.scenes[0].sensors()[0].film().crop_size()
+        self.state = state or LoopState.new(spec.frames, int(height), int(width), spec.lam)
+        if self.state.buffers[0].shape != (height, width) or len(self.state.buffers) != spec.frames:
+            raise LoopSpecError("checkpoint does not match the job's resolution or frame count")
+        # One frame → no temporal work; more → each frame's 2M+1 window (all frames advance together).
+        radius = networks.denoiser.config.temporal_radius if (networks and self.effects.temporal) else 0
+        self.session = DenoiseSession(networks, spec.frames, radius) if spec.denoise else None
+        self.lock = self.session.lock if self.session else threading.RLock()
+        self._denoised: list[np.ndarray | None] = [None] * spec.frames
+        self._converged: list[np.ndarray] = [np.zeros(self.state.buffers[0].shape, bool)] * spec.frames
+
+    # -- the loop ---------------------------------------------------------------------------
+
+    def run(self, should_stop: Callable[[], bool] = lambda: False) -> Iterator[IterationRecord]:
+        """Yield one record per finished iteration; the last one carries the stop reason.
+
+        Returns without a record when `should_stop()` is true before an iteration starts.
+        """
+        while self._stop_before_next() is None and not should_stop():
+            started = time.perf_counter()
+            timings: dict[str, float] = {}
+            counts = self._allocate(timings)
+            self._render(counts, timings, should_stop)
+            self._denoise_and_predict(timings)
+            with self.lock:
+                self.state.iteration += 1
+                self.state.elapsed += time.perf_counter() - started
+            record = self._record(timings)
+            record.stop_reason = self._stop_after(record)
+            if record.stop_reason is None and should_stop():
+                record.stop_reason = "canceled"
+            yield record
+            if record.stop_reason is not None:
+                return
+
+    def _stop_before_next(self) -> str | None:
+        """A resumed job that had already met its stop rule does not render again."""
+        if self.state.iteration == 0:
+            return None
+        return self._stop_after(self._record({}, images=False))
+
+    def _stop_after(self, record: IterationRecord) -> str | None:
+        spec, state = self.spec, self.state
+        if spec.max_iterations is not None and state.iteration >= spec.max_iterations:
+            return "max_iterations"
+        if spec.spp_budget is not None and state.spp_mean >= spec.spp_budget - 1e-9:
+            return "spp_budget"
+        if spec.target_error is not None and record.predicted_error is not None and record.predicted_error <= spec.target_error:
+            return "target_error"
+        if spec.time_limit is not None:
+            # The next iteration renders as many samples as all earlier ones together, so it
+            # takes about as long as they did: stop if it would overrun the limit.
+            if 2 * state.elapsed > spec.time_limit:
+                return "time_limit"
+        return None
+
+    def _allocate(self, timings: dict) -> list[np.ndarray]:
+        t0 = time.perf_counter()
+        spec, state = self.spec, self.state
+        counts = []
+        for f, buf in enumerate(state.buffers):
+            if state.iteration == 0:
+                counts.append(np.full(buf.shape, spec.spp_first, dtype=np.int64))
+                continue
+            budget = iteration_budget(int(buf.spp.sum()))
+            if spec.spp_budget is not None:
+                budget = min(budget, max(0, int(round(spec.spp_budget * buf.spp.size)) - int(buf.spp.sum())))
+            weights = allocation_weights(
+                spec.allocator,
+                predicted_error=state.error_maps[f],
+                relative_variance=buf.relative_variance(),
+                shape=buf.shape,
+            )
+            if spec.allocator != "uniform":
+                # Pixels whose samples all agreed (empty background, flat emitters) gain
+                # nothing from more: they get only the allocator's uniform floor.
+                weights = np.where(buf.converged(), 0.0, weights)
+            counts.append(allocate_samples(weights, budget, seed=spec.seed * 1000 + state.iteration))
+        timings["allocate"] = time.perf_counter() - t0
+        return counts
+
+    def _render(self, counts: list[np.ndarray], timings: dict, should_stop: Callable[[], bool]) -> None:
+        t0 = time.perf_counter()
+
+        def check(_samples: int) -> None:
+            # Called after every wavefront chunk: a cancel or shutdown takes effect within one
+            # chunk. The buffers are then half-updated, so the caller must drop this loop and
+            # resume from the last checkpoint.
+            if should_stop():
+                raise IterationInterrupted("stopped inside an iteration; resume from the last checkpoint")
+
+        for f, (scene, buf) in enumerate(zip(self.scenes, self.state.buffers)):
+            prev = self.scenes[f - 1].sensors()[0] if (f > 0 and self.effects.motion_vectors) else None
+            render_samples(scene, counts[f], buf, integrator=self.integrator, seed=self.spec.seed * 7919 + f,
+                           prev_sensor=prev, progress=check)
+        timings["render"] = time.perf_counter() - t0
+
+    def _denoise_and_predict(self, timings: dict) -> None:
+        timings["denoise"] = timings["error"] = 0.0
+        if self.session is None:
+            with self.lock:
+                self._denoised = [b.mean for b in self.state.buffers]
+            return
+        t0 = time.perf_counter()
+        with self.lock:
+            lam_map = self.state.lam_map.copy()
+        images = self.session.denoise(self.state.buffers, lam_map)
+        t1 = time.perf_counter()
+        errors = self.session.predict_error(self.state.buffers, images)
+        t2 = time.perf_counter()
+        with self.lock:
+            self._converged = [buf.converged() for buf in self.state.buffers]
+            self._denoised = self._keep_converged(
+                self.session.relambda(self.state.lam_map) if not np.array_equal(lam_map, self.state.lam_map)
+                else [to_hwc(image) for image in images])
+            # A converged pixel's mean is exact for what it sees: no error left to predict.
+            self.state.error_maps = [np.where(mask, 0.0, error).astype(np.float32)
+                                     for mask, error in zip(self._converged, errors)]
+        timings["denoise"], timings["error"] = t1 - t0, t2 - t1
+
+    # -- λ without re-rendering -----------------------------------------------------------
+
+    def set_lambda(self, lam_map: np.ndarray) -> list[np.ndarray]:
+        """Re-denoise every frame with a new per-pixel λ from cached pre-λ features."""
+        lam_map = np.asarray(lam_map, dtype=np.float32)
+        if lam_map.shape != self.state.lam_map.shape:
+            raise LoopSpecError(f"λ map is {lam_map.shape[::-1]}, the image is {self.state.lam_map.shape[::-1]}")
+        problem = lambda_problem(lam_map)
+        if problem:
+            raise LoopSpecError(problem)
+        with self.lock:
+            self.state.lam_map = lam_map.copy()
+            if self.state.iteration == 0:
+                return []
+            if self.session is None:
+                return list(self._denoised)
+            if not self.session.has_features:
+                self._denoise_and_predict({})  # after a restart the features are rebuilt once
+            self._denoised = self._keep_converged(self.session.relambda(lam_map))
+            return list(self._denoised)
+
+    def _keep_converged(self, images: list[np.ndarray]) -> list[np.ndarray]:
+        """Pixels whose samples all agreed (FrameBuffer.converged) keep their exact mean:
+        filtering could only bleed neighbours' light into them."""
+        return [np.where(mask[..., None], buf.mean, image).astype(np.float32)
+                for mask, buf, image in zip(self._converged, self.state.buffers, images)]
+
+    # -- outputs ----------------------------------------------------------------------------
+
+    def denoised(self) -> list[np.ndarray]:
+        with self.lock:
+            if self.state.iteration > 0 and any(d is None for d in self._denoised):
+                self._denoise_and_predict({})
+            return list(self._denoised)
+
+    def _record(self, timings: dict, images: bool = True) -> IterationRecord:
+        state = self.state
+        known = [e for e in state.error_maps if e is not None]
+        return IterationRecord(
+            iteration=state.iteration - 1,
+            buffers=state.buffers,
+            denoised=self.denoised() if images else [],
+            error=list(state.error_maps),
+            spp_mean=state.spp_mean,
+            predicted_error=float(np.mean([e.mean() for e in known])) if known else None,
+            timings=dict(timings),
+        )
+
+    def result_frames(self) -> list[ExrFrame]:
+        """One ExrFrame per frame in the project layout (built by service.exr)."""
+        images = self.denoised()
+        header = {"scene": self.spec.scene, "iteration": self.state.iteration, "variant": active_variant()}
+        return [
+            result_frame(buf, images[f] if images else buf.mean, error=self.state.error_maps[f],
+                         lam=self.state.lam_map if self.spec.denoise else None, header={**header, "frame": f})
+            for f, buf in enumerate(self.state.buffers)
+        ]

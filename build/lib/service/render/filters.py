@@ -1,0 +1,107 @@
+"""The film's reconstruction filter by filter importance sampling (Ernst et al. 2006).
+
+Mitsuba's hdrfilm splats every sample into all pixels within the filter radius with weight
+f(x)·f(y) (its filters are separable) and divides by the summed weights. With a different
+sample count in every pixel that splat would mix pixels sampled at different rates, so instead
+each lane draws its offset from the pixel centre from the filter itself and stays in its own
+pixel. The expectation is then the filtered image:
+
+    E[w · L(c + o)] = ∫ f(x) f(y) L(c + (x, y)) dx dy / ∫∫ f        with o ~ p ∝ |f(x)|·|f(y)|
+
+for the per-lane weight w = f(o)/(p(o) · ∫f). For non-negative filters w ≈ 1; for filters with
+negative lobes (mitchell, catmullrom, lanczos) w ≈ sign(f(x) f(y)) · (∫|f| / ∫f)², the factor
+Ernst et al. carry as a sign. We evaluate w exactly from the plugin's own `eval`, so the
+tabulated sampling density only has to be positive where f is non-zero, not equal to |f|.
+
+Without `sample_border`, hdrfilm only generates samples inside the film, so a pixel within the
+filter radius of the border averages over the film part of its footprint only; we truncate each
+axis' distribution to the film for that pixel's row/column, which reproduces exactly that.
+
+The density is piecewise constant on bins whose edges include every half-integer offset, so the
+truncation at a film border (always a half-integer from a pixel centre) is a bin edge and the
+truncated distribution is a contiguous run of the global table.
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import numpy as np
+
+# Bins per half pixel of offset: 2 × 128 bins per pixel keep f nearly constant per bin, so the
+# weights of positive filters stay within a fraction of a percent of 1 (low added variance).
+BINS_PER_HALF_PIXEL = 128
+# A box of radius 1/2 (+ Mitsuba's epsilon) is the uniform in-pixel offset: no table needed.
+BOX_RADIUS = 0.5 + 1e-3
+
+
+class PixelFilter:
+    """Draws (film position, weight) per lane for pixel (column, row) of a W×H film."""
+
+    def __init__(self, mi, rfilter, width: int, height: int, sample_border: bool = False):
+        self.mi = mi
+        self.name = rfilter.class_name()
+        self.rfilter = rfilter
+        self.uniform = bool(rfilter.is_box_filter()) and rfilter.radius() <= BOX_RADIUS
+        if self.uniform:
+            return
+        self.radius = float(rfilter.radius())
+        self.half = math.ceil(2.0 * self.radius) / 2.0  # table extent, a half-integer
+        bins = int(round(2.0 * self.half * 2 * BINS_PER_HALF_PIXEL))
+        self.bin_width = 2.0 * self.half / bins
+        edges = np.linspace(-self.half, self.half, bins + 1)
+        mids = 0.5 * (edges[:-1] + edges[1:])
+        f_edges, f_mids = self._eval(edges), self._eval(mids)
+        # Simpson's rule per bin: |f| mass (the sampling density) and signed mass (the normaliser).
+        abs_mass = self.bin_width * (np.abs(f_edges[:-1]) + 4 * np.abs(f_mids) + np.abs(f_edges[1:])) / 6
+        signed_mass = self.bin_width * (f_edges[:-1] + 4 * f_mids + f_edges[1:]) / 6
+        abs_cdf = np.concatenate([[0.0], np.cumsum(abs_mass)])
+        signed_cdf = np.concatenate([[0.0], np.cumsum(signed_mass)])
+        self.bins = bins
+        self.cdf = mi.Float(abs_cdf.astype(np.float32))
+        self.mass = mi.Float(abs_mass.astype(np.float32))
+        self.columns = self._axis(width, abs_cdf, signed_cdf, sample_border)
+        self.rows = self._axis(height, abs_cdf, signed_cdf, sample_border)
+
+    def _eval(self, x: np.ndarray) -> np.ndarray:
+        values = np.asarray(self.rfilter.eval(self.mi.Float(x.astype(np.float32))), dtype=np.float64)
+        return np.where(np.abs(x) <= self.radius, values, 0.0)
+
+    def _axis(self, size: int, abs_cdf: np.ndarray, signed_cdf: np.ndarray, sample_border: bool):
+        """Per pixel index along one axis: (cdf at the lower end, |f| mass, |f| mass / f mass)
+        of the filter truncated to the film (or not, with sample_border)."""
+        centre = np.arange(size) + 0.5
+        lo = np.full(size, -self.half) if sample_border else np.maximum(-self.half, -centre)
+        hi = np.full(size, self.half) if sample_border else np.minimum(self.half, size - centre)
+        k_lo = np.rint((lo + self.half) / self.bin_width).astype(np.int64)
+        k_hi = np.rint((hi + self.half) / self.bin_width).astype(np.int64)
+        start = abs_cdf[k_lo]
+        span = abs_cdf[k_hi] - start
+        signed = signed_cdf[k_hi] - signed_cdf[k_lo]
+        ratio = np.divide(span, signed, out=np.zeros_like(span), where=signed != 0)
+        mi = self.mi
+        return mi.Float(start.astype(np.float32)), mi.Float(span.astype(np.float32)), mi.Float(ratio.astype(np.float32))
+
+    def _offset(self, u, index, axis):
+        """One axis: offset from the pixel centre and its weight f(o) / (p(o) ∫f)."""
+        mi = self.mi
+        start, span, ratio = (dr.gather(mi.Float, table, index) for table in axis)
+        target = start + u * span
+        k = mi.math.find_interval(self.bins + 1, lambda i: dr.gather(mi.Float, self.cdf, i) <= target)
+        mass = dr.gather(mi.Float, self.mass, k)
+        t = dr.clip((target - dr.gather(mi.Float, self.cdf, k)) / dr.maximum(mass, 1e-20), 0.0, 1.0)
+        offset = -self.half + (mi.Float(k) + t) * self.bin_width
+        # p(o) = mass / (bin_width · span) on the truncated table; ∫f = span / ratio.
+        weight = self.rfilter.eval(offset) * self.bin_width * ratio / dr.maximum(mass, 1e-20)
+        return offset, dr.select(dr.abs(offset) <= self.radius, weight, 0.0)
+
+    def sample(self, sampler, column, row):
+        """(film position in pixels, weight) for lanes at integer pixel (column, row)."""
+        mi = self.mi
+        u = sampler.next_2d()
+        if self.uniform:
+            return mi.Vector2f(mi.Float(column), mi.Float(row)) + u, None
+        ox, wx = self._offset(u.x, column, self.columns)
+        oy, wy = self._offset(u.y, row, self.rows)
+        position = mi.Vector2f(mi.Float(column) + 0.5 + ox, mi.Float(row) + 0.5 + oy)
+        return position, wx * wy

@@ -1,0 +1,143 @@
+"""Per-frame accumulation buffers: what the renderer adds to and every later step reads."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+# A pixel counts as converged once this many samples all agreed (FrameBuffer.converged); the
+# tolerance absorbs float64 rounding of the sums of identical values.
+CONVERGED_MIN_SPP = 16
+CONVERGED_REL_TOLERANCE = 1e-9
+
+def _finite(values: np.ndarray) -> np.ndarray:
+    """NaN/±Inf → 0. A running sum that went non-finite (a corrupted or overflowed accumulator;
+    the renderer already drops non-finite samples) holds no usable estimate: read it like an
+    unsampled pixel, so no layer handed to the networks or written to EXR is non-finite."""
+    return np.where(np.isfinite(values), values, 0.0)
+
+
+@dataclass
+class FrameBuffer:
+    """Running sums for one frame, persistent across render calls.
+
+    Radiance is kept as sum and sum of squares in float64 so that the variance of the mean
+    stays accurate after many passes. First-hit AOVs are sums too (divided by `spp` on read),
+    so they average over the pixel footprint like the radiance does.
+    """
+
+    radiance_sum: np.ndarray  # (H, W, 3) float64
+    radiance_sq_sum: np.ndarray  # (H, W, 3) float64
+    spp: np.ndarray  # (H, W) int64, samples taken so far
+    albedo_sum: np.ndarray  # (H, W, 3) float64
+    normal_sum: np.ndarray  # (H, W, 3) float64, world-space shading normal
+    depth_sum: np.ndarray  # (H, W) float64, first-hit distance (0 on a miss)
+    motion_sum: np.ndarray | None = None  # (H, W, 2) float64, pixels to the previous frame
+    # Extra channels of integrators that declare AOVs (Mitsuba's `aov` integrator, `moment`…),
+    # named as Mitsuba names them (`albedo.R`, `dd.y.T`, …), filtered like the radiance.
+    aov_sum: np.ndarray | None = None  # (H, W, len(aov_names)) float64
+    aov_names: tuple[str, ...] = ()
+    passes: int = 0  # render calls accumulated (seeds are derived from it)
+    meta: dict = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls, height: int, width: int) -> "FrameBuffer":
+        return cls(
+            radiance_sum=np.zeros((height, width, 3)),
+            radiance_sq_sum=np.zeros((height, width, 3)),
+            spp=np.zeros((height, width), dtype=np.int64),
+            albedo_sum=np.zeros((height, width, 3)),
+            normal_sum=np.zeros((height, width, 3)),
+            depth_sum=np.zeros((height, width)),
+        )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.spp.shape
+
+    def _per_sample(self, total: np.ndarray) -> np.ndarray:
+        n = self.spp.reshape(self.spp.shape + (1,) * (total.ndim - 2)).astype(np.float64)
+        return _finite(np.divide(total, n, out=np.zeros_like(total), where=n > 0))
+
+    @property
+    def mean(self) -> np.ndarray:
+        """Monte Carlo estimate of pixel radiance; 0 where no sample was taken."""
+        return self._per_sample(self.radiance_sum).astype(np.float32)
+
+    @property
+    def variance(self) -> np.ndarray:
+        """Variance of the mean: unbiased sample variance / n (0 where n < 2).
+
+        With a filter, a sample is the weighted value w·L (filters.py) and the mean is their
+        plain average, so this is the variance of exactly the estimate `mean` reports — it
+        includes the spread the filter weights add (none for box, a little for negative lobes).
+        """
+        n = self.spp[..., None].astype(np.float64)
+        mean = self._per_sample(self.radiance_sum)
+        sample_var = np.divide(
+            self.radiance_sq_sum - n * mean**2, n - 1, out=np.zeros_like(mean), where=n > 1
+        )
+        var_of_mean = np.divide(np.maximum(sample_var, 0.0), n, out=np.zeros_like(mean), where=n > 1)
+        return _finite(var_of_mean).astype(np.float32)
+
+    def converged(self, min_spp: int = CONVERGED_MIN_SPP) -> np.ndarray:
+        """(H, W) bool: at least `min_spp` samples and every one returned the same value — an
+        empty background (every primary ray missed, radiance 0) or a flat emitter seen directly
+        (the same non-zero value). The mean is then exact for what the pixel sees, so nothing
+        gains from more samples or from filtering it. A surface pixel whose samples were all 0
+        does not count: rare light paths (indirect light in a dark corner) can miss 16 times."""
+        n = self.spp[..., None].astype(np.float64)
+        spread = self.radiance_sq_sum - np.divide(self.radiance_sum**2, n, out=np.zeros_like(self.radiance_sum),
+                                                  where=n > 0)
+        same = (np.abs(spread) <= CONVERGED_REL_TOLERANCE * self.radiance_sq_sum).all(axis=-1)
+        lit = self.radiance_sum.any(axis=-1)
+        missed = self.depth_sum == 0  # first-hit distance is 0 for a miss
+        return (self.spp >= min_spp) & same & (lit | missed)
+
+    def relative_variance(self, eps: float = 1e-2) -> np.ndarray:
+        """Variance of the mean over squared luminance-ish magnitude (Rousselle et al. style)."""
+        mean = self.mean.astype(np.float64)
+        return (self.variance / (mean**2 + eps)).astype(np.float32)
+
+    @property
+    def albedo(self) -> np.ndarray:
+        return self._per_sample(self.albedo_sum).astype(np.float32)
+
+    @property
+    def normal(self) -> np.ndarray:
+        return self._per_sample(self.normal_sum).astype(np.float32)
+
+    @property
+    def depth(self) -> np.ndarray:
+        return self._per_sample(self.depth_sum).astype(np.float32)
+
+    @property
+    def motion(self) -> np.ndarray | None:
+        """Screen-space motion in pixels: pixel (x, y) was at (x + mx, y + my) one frame earlier."""
+        return None if self.motion_sum is None else self._per_sample(self.motion_sum).astype(np.float32)
+
+    @property
+    def aovs(self) -> np.ndarray | None:
+        """Per-pixel means of the integrator's extra channels (None when it declares none)."""
+        return None if self.aov_sum is None else self._per_sample(self.aov_sum).astype(np.float32)
+
+    def aov_layers(self) -> dict[str, np.ndarray]:
+        """The integrator's extra channels by Mitsuba's names, for ExrFrame.extra."""
+        means = self.aovs
+        return {} if means is None else {name: means[..., i] for i, name in enumerate(self.aov_names)}
+
+    def copy(self) -> "FrameBuffer":
+        return FrameBuffer(
+            radiance_sum=self.radiance_sum.copy(),
+            radiance_sq_sum=self.radiance_sq_sum.copy(),
+            spp=self.spp.copy(),
+            albedo_sum=self.albedo_sum.copy(),
+            normal_sum=self.normal_sum.copy(),
+            depth_sum=self.depth_sum.copy(),
+            motion_sum=None if self.motion_sum is None else self.motion_sum.copy(),
+            aov_sum=None if self.aov_sum is None else self.aov_sum.copy(),
+            aov_names=self.aov_names,
+            passes=self.passes,
+            meta=dict(self.meta),
+        )

@@ -1,0 +1,247 @@
+"""Render exactly n[y, x] new samples per pixel and accumulate them into a FrameBuffer.
+
+Reads like Mitsuba 3's own Python render loop (prepare → sample rays → sample → develop);
+the one difference is the per-pixel sample count: pixel indices are expanded by their counts
+into one flat wavefront (DESIGN.md, runtime facts), split into chunks of at most
+`max_wavefront` lanes so memory stays bounded.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from time import perf_counter
+from typing import Callable
+
+import drjit as dr
+import numpy as np
+
+from service.render.filters import PixelFilter
+from service.render.framebuffer import FrameBuffer
+from service.render.integrators import instance_refusal, sample_lane, to_rgb
+from service.render.runtime import mitsuba
+from service.render.scenes import SceneError
+
+# 2^22 lanes ≈ a few hundred MB of Dr.Jit state on the LLVM backend: a 1024² × 64 spp pass
+# (67 M samples) runs in 16 chunks instead of one 10+ GB wavefront.
+DEFAULT_MAX_WAVEFRONT = 1 << 22
+# A miss has no first-hit point; motion of the background is taken at this distance.
+BACKGROUND_DISTANCE = 1e4
+
+
+@dataclass
+class RenderPass:
+    """Statistics of one render call, for progress and benchmarks."""
+
+    samples: int
+    chunks: int
+    seconds: float
+
+
+def expand_counts(counts: np.ndarray) -> np.ndarray:
+    """Flat pixel indices, each repeated by its count: the wavefront's lane → pixel map."""
+    flat = np.asarray(counts, dtype=np.int64).ravel()
+    if flat.size and flat.min() < 0:
+        raise ValueError("sample counts must be >= 0")
+    return np.repeat(np.arange(flat.size, dtype=np.uint32), flat)
+
+
+def pass_seed(user_seed: int, pass_index: int, chunk_index: int) -> int:
+    """Distinct 32-bit sampler seed per (job seed, pass, chunk) so passes are independent."""
+    mask = (1 << 64) - 1
+    mixed = ((user_seed * 0x9E3779B97F4A7C15) & mask) ^ ((pass_index << 20) | chunk_index)
+    mixed = (mixed ^ (mixed >> 29)) * 0xBF58476D1CE4E5B9 & mask
+    return (mixed ^ (mixed >> 32)) & 0xFFFFFFFF
+
+
+@dataclass
+class _Setup:
+    """What every chunk of one render call shares (prepare step)."""
+
+    scene: object
+    integrator: object
+    sensor: object
+    prev_sensor: object
+    pixel_filter: PixelFilter
+    width: int
+    pixel_count: int
+    aov_count: int
+    diff_scale: float
+
+
+def _first_hit_flags(mi):
+    """What the first-hit features need of the primary intersection: position and distance,
+    shading frame (normal), uv (textured albedo). No surface derivatives: the features are
+    averaged over many samples per pixel, so point-sampled textures need no ray-differential
+    filtering — and skipping them made the `direct` integrator's pass ~25 % cheaper."""
+    return mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame
+
+
+def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.ndarray, int, int]:
+    """Trace one chunk of lanes (flat pixel indices, ascending) and return the per-pixel sums of
+    the pixels it covers, the first of them, and the number of non-finite samples. Columns:
+    radiance RGB, radiance² RGB, albedo RGB, normal XYZ, depth (+ motion XY) (+ the integrator's
+    AOVs)."""
+    n = len(pixels)
+    sensor, scene = setup.sensor, setup.scene
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, n)
+    idx = mi.UInt32(pixels)
+    # Film position in pixels of the crop window: the box filter's uniform in-pixel offset, or
+    # an offset drawn from the film's filter with its weight (filters.py). The sensor's sample
+    # space [0, 1]² spans the crop window (Mitsuba builds its projection from film size, crop
+    # size and crop offset), so dividing by the crop size is what mi.render does too.
+    position, weight = setup.pixel_filter.sample(sampler, idx % setup.width, idx // setup.width)
+    crop = mi.ScalarVector2f(sensor.film().crop_size())
+
+    # Sample rays: same arguments as Mitsuba's own sample_rays (time, wavelength, film
+    # position normalised to [0, 1]², aperture sample for thin-lens cameras).
+    time = sensor.shutter_open() + sampler.next_1d() * sensor.shutter_open_time()
+    wavelength_sample = sampler.next_1d()
+    aperture_sample = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+    ray, ray_weight = sensor.sample_ray_differential(time, wavelength_sample, position / crop, aperture_sample)
+    ray.scale_differential(float(setup.diff_scale))
+
+    value, valid, aovs = sample_lane(mi, setup.integrator, scene, sampler, ray)
+    # `valid` only feeds the film's alpha in Mitsuba (a miss of `direct` or `prb` still carries
+    # the environment's radiance), so it must not mask the value here.
+    radiance = to_rgb(mi, value * ray_weight, ray.wavelengths)
+    if weight is not None:
+        radiance = radiance * weight
+        aovs = [a * weight for a in aovs]
+
+    # First-hit AOVs (~27% extra, DESIGN.md) from a separate primary intersection along the
+    # same (filter-offset) ray; they are features, averaged unweighted so they stay in range.
+    si = scene.ray_intersect(mi.Ray3f(ray), _first_hit_flags(mi), True)
+    hit = si.is_valid()
+    bsdf = si.bsdf()
+    # Albedo is what the denoiser divides out and multiplies back, so it must be a smooth,
+    # low-noise texture. For BSDFs without a diffuse lobe (conductors, glass) Mitsuba's default
+    # eval_diffuse_reflectance evaluates the glossy lobe at one fixed direction: view-dependent
+    # values from 0 to ~55 (Cr, roughness 0.05), jittered by the lens under depth of field, which
+    # the remodulation turned into sparkles. Those surfaces get albedo 1 (the convention Intel
+    # Open Image Denoise documents for specular surfaces); diffuse lobes are clipped to [0, 1].
+    diffuse = mi.has_flag(bsdf.flags(), mi.BSDFFlags.DiffuseReflection)
+    reflectance = to_rgb(mi, bsdf.eval_diffuse_reflectance(si, hit), ray.wavelengths, hit)
+    albedo = dr.select(hit, dr.select(diffuse, dr.clip(reflectance, 0.0, 1.0), 1.0), 0.0)
+    normal = dr.select(hit, si.sh_frame.n, 0.0)
+    depth = dr.select(hit, si.t, 0.0)
+
+    motion = None
+    if setup.prev_sensor is not None:
+        world = dr.select(hit, si.p, ray.o + ray.d * BACKGROUND_DISTANCE)
+        it = dr.zeros(mi.Interaction3f)
+        it.p = world
+        ds, _ = setup.prev_sensor.sample_direction(it, mi.Point2f(0.5), True)
+        seen = ds.pdf > 0
+        # ds.uv is the film position (pixels) of `world` in the previous frame.
+        motion = dr.select(seen, ds.uv - position, 0.0)
+
+    # Sanitise per sample: one NaN/Inf lane must not poison a pixel's running sums.
+    finite = dr.all(dr.isfinite(radiance))
+    for a in aovs:
+        finite &= dr.isfinite(a)
+    radiance = dr.select(finite, radiance, 0.0)
+    channels = [radiance[0], radiance[1], radiance[2],
+                dr.square(radiance[0]), dr.square(radiance[1]), dr.square(radiance[2]),
+                albedo[0], albedo[1], albedo[2], normal.x, normal.y, normal.z, depth]
+    if motion is not None:
+        channels += [motion.x, motion.y]
+    channels += [dr.select(finite, a, 0.0) for a in aovs]
+    # Reduce into per-pixel sums inside the same kernel (dr.scatter_reduce): per-lane values
+    # never exist as arrays, so memory stays O(pixels of this chunk). Lanes are sorted by
+    # pixel, so the chunk covers one contiguous pixel range and only that range is summed.
+    first, span, stride = int(pixels[0]), int(pixels[-1]) - int(pixels[0]) + 1, len(channels)
+    sums = dr.zeros(mi.Float, span * stride)
+    for c, value in enumerate(channels):
+        dr.scatter_reduce(dr.ReduceOp.Add, sums, value, (idx - first) * stride + c)
+    nonfinite = dr.count(~finite)
+    dr.eval(sums, nonfinite)
+    return np.asarray(sums, dtype=np.float64).reshape(span, stride), first, int(np.asarray(nonfinite).ravel()[0])
+
+
+def _add_sums(buffer: FrameBuffer, sums: np.ndarray, first: int, motion: bool) -> None:
+    """Add one chunk's per-pixel sums (its pixels `first`…, 13 [+2 motion] [+AOVs] columns)."""
+    rows = slice(first, first + len(sums))
+
+    def flat(array: np.ndarray) -> np.ndarray:
+        return array.reshape(-1, *array.shape[2:])[rows]  # a view: the buffers are contiguous
+
+    flat(buffer.radiance_sum)[...] += sums[:, 0:3]
+    flat(buffer.radiance_sq_sum)[...] += sums[:, 3:6]
+    flat(buffer.albedo_sum)[...] += sums[:, 6:9]
+    flat(buffer.normal_sum)[...] += sums[:, 9:12]
+    flat(buffer.depth_sum)[...] += sums[:, 12]
+    first_aov = 13
+    if motion:
+        flat(buffer.motion_sum)[...] += sums[:, 13:15]
+        first_aov = 15
+    if buffer.aov_sum is not None:
+        flat(buffer.aov_sum)[...] += sums[:, first_aov:]
+
+
+def check_integrator(mi, integrator) -> None:
+    """Refuse an instantiated integrator the wavefront cannot drive (one SceneError line)."""
+    message = instance_refusal(mi, integrator)
+    if message:
+        raise SceneError(message)
+
+
+def render_samples(
+    scene,
+    counts: np.ndarray,
+    buffer: FrameBuffer,
+    *,
+    integrator=None,
+    seed: int = 0,
+    prev_sensor=None,
+    max_wavefront: int = DEFAULT_MAX_WAVEFRONT,
+    progress: Callable[[int], None] | None = None,
+) -> RenderPass:
+    """Trace exactly `counts[y, x]` new samples per pixel and add them to `buffer`.
+
+    `integrator`: the one the effects report chose (None: the scene's own, as declared). `prev_sensor`:
+    the previous frame's sensor when the scene moves — then motion vectors are accumulated
+    too. `progress(n)` is called with the samples finished after each chunk.
+    """
+    mi = mitsuba()
+    start = perf_counter()
+    counts = np.asarray(counts)
+    height, width = buffer.shape
+    if counts.shape != (height, width):
+        raise ValueError(f"count map {counts.shape} does not match the frame {(height, width)}")
+    sensor = scene.sensors()[0]
+    film_w, film_h = sensor.film().crop_size()
+    if (film_h, film_w) != (height, width):
+        raise ValueError(f"scene film is {film_w}x{film_h}, frame buffer is {width}x{height}")
+    integrator = integrator if integrator is not None else scene.integrator()
+    check_integrator(mi, integrator)
+    aov_names = tuple(integrator.aov_names())
+    if aov_names and buffer.aov_sum is None:
+        buffer.aov_sum = np.zeros((height, width, len(aov_names)))
+        buffer.aov_names = aov_names
+    elif aov_names != buffer.aov_names:
+        raise ValueError(f"integrator AOVs {aov_names} do not match the buffer's {buffer.aov_names}")
+    lanes = expand_counts(counts)
+    total = len(lanes)
+    if prev_sensor is not None and buffer.motion_sum is None:
+        buffer.motion_sum = np.zeros((height, width, 2))
+    film = sensor.film()
+    setup = _Setup(
+        scene=scene, integrator=integrator, sensor=sensor, prev_sensor=prev_sensor,
+        pixel_filter=PixelFilter(mi, film.rfilter(), width, height, film.sample_border()),
+        width=width, pixel_count=height * width, aov_count=len(aov_names),
+        # Ray differentials describe the footprint of one sample: shrink them with the mean
+        # per-pixel rate as mi.render does with 1/sqrt(spp).
+        diff_scale=1.0 / np.sqrt(max(buffer.spp.mean() + counts.mean(), 1.0)),
+    )
+    chunks = max(1, -(-total // max_wavefront))
+    for chunk in range(chunks if total else 0):
+        pixels = lanes[chunk * max_wavefront:(chunk + 1) * max_wavefront]
+        sums, first, nonfinite = _trace_chunk(mi, setup, pixels, pass_seed(seed, buffer.passes, chunk))
+        if nonfinite:
+            buffer.meta["nonfinite_samples"] = int(buffer.meta.get("nonfinite_samples", 0) + nonfinite)
+        _add_sums(buffer, sums, first, prev_sensor is not None)
+        if progress is not None:
+            progress(len(pixels))
+    buffer.spp += counts.astype(np.int64)
+    buffer.passes += 1
+    return RenderPass(samples=total, chunks=chunks if total else 0, seconds=perf_counter() - start)

@@ -1,0 +1,97 @@
+"""Mitsuba/Dr.Jit start-up: find a usable libLLVM, pick the variant, import Mitsuba once.
+
+Every module that needs Mitsuba calls `mitsuba()` instead of `import mitsuba`, so the LLVM
+library is located *before* Dr.Jit initialises its LLVM backend (it reads
+`DRJIT_LIBLLVM_PATH` at import time).
+"""
+from __future__ import annotations
+
+import glob
+import os
+import re
+from functools import lru_cache
+from pathlib import Path
+
+# Dr.Jit 1.5 aborts inside LLVM 15/16 on `fminimum` (measured, shared/DESIGN.md).
+MIN_LLVM_MAJOR = 17
+LLVM_SEARCH_GLOBS = (
+    "/usr/lib/x86_64-linux-gnu/libLLVM*.so*",
+    "/usr/lib/aarch64-linux-gnu/libLLVM*.so*",
+    "/usr/lib/llvm-*/lib/libLLVM*.so*",
+    "/usr/local/lib/libLLVM*.so*",
+)
+VARIANT_ENV = "RENDERLOOP_VARIANT"
+
+
+class RuntimeSetupError(RuntimeError):
+    """Mitsuba cannot run here; the message says what to install or set."""
+
+
+def llvm_major(path: str) -> int | None:
+    match = re.match(r"libLLVM[-.]?(\d+)", Path(path).name)
+    return int(match.group(1)) if match else None
+
+
+def find_libllvm() -> str | None:
+    """The newest libLLVM >= 17 on the system, or DRJIT_LIBLLVM_PATH when set."""
+    configured = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if configured:
+        return configured if Path(configured).exists() else None
+    candidates = []
+    for pattern in LLVM_SEARCH_GLOBS:
+        for path in glob.glob(pattern):
+            major = llvm_major(path)
+            if major is not None and major >= MIN_LLVM_MAJOR:
+                candidates.append((major, path))
+    return max(candidates)[1] if candidates else None
+
+
+def cuda_available() -> bool:
+    try:
+        import torch
+
+        return torch.cuda.is_available()
+    except Exception:  # torch missing or a broken driver: no CUDA either way
+        return False
+
+
+def choose_variant() -> str:
+    """`RENDERLOOP_VARIANT` if set, else `cuda_ad_rgb` with a working GPU, else `llvm_ad_rgb`."""
+    configured = os.environ.get(VARIANT_ENV)
+    if configured:
+        return configured
+    return "cuda_ad_rgb" if cuda_available() else "llvm_ad_rgb"
+
+
+@lru_cache(maxsize=1)
+def mitsuba():
+    """Import Mitsuba with the chosen variant set; raises RuntimeSetupError with a fix."""
+    variant = choose_variant()
+    if variant.startswith("llvm"):
+        lib = find_libllvm()
+        if lib is None:
+            raise RuntimeSetupError(
+                f"Dr.Jit needs libLLVM >= {MIN_LLVM_MAJOR}: install it "
+                "('apt-get install libllvm19') or set DRJIT_LIBLLVM_PATH"
+            )
+        os.environ["DRJIT_LIBLLVM_PATH"] = lib
+    import mitsuba as mi
+
+    available = tuple(mi.variants())
+    # One line, never a traceback: the per-pixel wavefront needs a vectorised (JIT) variant.
+    wavefront = [v for v in available if v.startswith(("llvm_", "cuda_"))]
+    if variant not in available or not variant.startswith(("llvm_", "cuda_")):
+        raise RuntimeSetupError(
+            f"Mitsuba variant {variant!r} cannot be used ({VARIANT_ENV}); "
+            f"choose one of: {', '.join(wavefront) or 'none installed'}"
+        )
+    try:
+        mi.set_variant(variant)
+    except Exception as exc:  # e.g. cuda_* without a working GPU/driver
+        detail = " ".join(str(exc).split())
+        raise RuntimeSetupError(f"Mitsuba variant {variant!r} is not available here: {detail}") from exc
+    return mi
+
+
+def active_variant() -> str:
+    return mitsuba().variant()

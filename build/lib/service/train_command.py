@@ -1,0 +1,61 @@
+"""`renderloop train --data DIR --stage ... -o models/weights/`: arguments → TrainConfig → the
+trainer. Defaults are TrainConfig's own."""
+from __future__ import annotations
+
+import shlex
+import sys
+from pathlib import Path
+
+from service.training.config import STAGES, TrainConfig, TrainConfigError
+
+DEFAULTS = TrainConfig(data=Path("."))
+
+
+def add_parser(sub) -> None:
+    d = DEFAULTS
+    p = sub.add_parser("train", help="train the denoiser and/or the error predictor on a built data set")
+    p.add_argument("--data", type=Path, required=True, help="data set folder (renderloop dataset -o ...)")
+    p.add_argument("--stage", choices=STAGES, default=d.stage,
+                   help="single|multiscale|temporal|lambda: one paper stage (from --init or the previous "
+                        "stage's file); staged: all four then the error network; denoiser: end to end; "
+                        f"error: the error network; all: denoiser then error (default {d.stage})")
+    p.add_argument("-o", "--out", type=Path, default=d.out)
+    p.add_argument("--steps", type=int, default=d.steps, help=f"optimiser steps per stage (default {d.steps})")
+    p.add_argument("--batch", type=int, default=d.batch)
+    p.add_argument("--crop", type=int, default=d.crop)
+    p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--val-every", type=int, default=d.val_every)
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--width", type=int, default=d.width, help="denoiser feature width (default: model default)")
+    p.add_argument("--spatial-blocks", type=int, default=d.spatial_blocks,
+                   help="residual blocks of the denoiser's spatial extractor (default: model default)")
+    p.add_argument("--symmetric-fraction", type=float, default=d.symmetric_fraction,
+                   help=f"first fraction of denoiser steps trained at λ = 1 before λ is randomised "
+                        f"(default {d.symmetric_fraction:g})")
+    p.add_argument("--init", type=Path, default=d.init, help="start the denoiser from this checkpoint's weights")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/.train_<stage>.pt")
+    p.add_argument("--device", default=d.device, help="cpu | cuda (default: cuda when available)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(handler=run_train)
+
+
+def train_config(args) -> TrainConfig:
+    return TrainConfig(
+        data=args.data, out=args.out, stage=args.stage, steps=args.steps, batch=args.batch, crop=args.crop,
+        lr=args.lr, val_every=args.val_every, seed=args.seed, width=args.width, spatial_blocks=args.spatial_blocks,
+        symmetric_fraction=args.symmetric_fraction, init=args.init, resume=args.resume, device=args.device,
+        quiet=args.quiet, command_line="renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+    )
+
+
+def run_train(args) -> int:
+    config = train_config(args)
+    try:
+        config.validate()
+    except TrainConfigError as exc:
+        print(f"renderloop train: error: {exc}", file=sys.stderr)
+        return 2
+    from service.training.trainer import run_training  # torch and the data loader: only when training
+
+    run_training(config, report=print)
+    return 0

@@ -1,0 +1,1 @@
+"""Training the networks from a rendered data set (`renderloop train`)."""

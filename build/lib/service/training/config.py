@@ -1,0 +1,54 @@
+"""What one `renderloop train` run does, as a typed config (no torch here, so the CLI can
+build and check it before the trainer is imported)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+# Vogels et al. train in stages, each starting from the previous one's weights: a single-frame
+# single-scale KPCN, then the scale compositor, then the temporal extractor, then the λ
+# specialisation; the error network last, on the frozen denoiser. `denoiser` trains the full
+# network end to end instead (λ = 1 for `symmetric_fraction` of the steps, then random λ).
+DENOISER_STAGES: dict[str, tuple[dict, str]] = {   # stage → (DenoiserConfig switches, λ schedule)
+    "single": ({"multiscale": False, "temporal": False}, "symmetric"),
+    "multiscale": ({"temporal": False}, "symmetric"),
+    "temporal": ({}, "symmetric"),
+    "lambda": ({}, "random"),
+}
+STAGES = (*DENOISER_STAGES, "staged", "denoiser", "error", "all")
+
+
+class TrainConfigError(ValueError):
+    """A training setting is out of range; the message names it."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    data: Path
+    out: Path = Path("models/weights")
+    stage: str = "all"
+    steps: int = 1500  # optimiser steps per stage
+    batch: int = 8
+    crop: int = 48
+    lr: float = 1e-3
+    val_every: int = 150
+    seed: int = 0
+    width: int | None = None  # denoiser feature width (None: the model's default)
+    spatial_blocks: int | None = None  # residual blocks of the spatial extractor (None: default)
+    symmetric_fraction: float = 0.5  # end to end: first fraction of steps at λ = 1
+    init: Path | None = None  # start the denoiser from this checkpoint's weights
+    resume: bool = False  # continue from OUT/.train_<stage>.pt
+    device: str | None = None  # cpu | cuda (None: cuda when available)
+    quiet: bool = False
+    command_line: str = ""  # recorded in every checkpoint
+
+    def validate(self) -> None:
+        if self.stage not in STAGES:
+            raise TrainConfigError(f"unknown stage {self.stage!r}; choose one of {', '.join(STAGES)}")
+        for name, least in (("steps", 1), ("batch", 1), ("crop", 1), ("val_every", 1), ("width", 1),
+                            ("spatial_blocks", 0)):
+            value = getattr(self, name)
+            if value is not None and value < least:
+                raise TrainConfigError(f"--{name.replace('_', '-')} must be >= {least}")
+        if not 0.0 <= self.symmetric_fraction <= 1.0:
+            raise TrainConfigError("--symmetric-fraction must lie in [0, 1]")

@@ -1,0 +1,237 @@
+"""Training the denoiser (the paper's staged recipe, or end to end) and the error network.
+
+Random crops, Adam with a cosine schedule, validation every K steps on held-back training
+scenes (the held-out split stays unseen for the quality report) with the best checkpoint kept,
+resumable, seeded. CPU by default, CUDA automatically when present. `renderloop train` only
+maps its arguments onto `TrainConfig`.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import torch
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from models.checkpoint import load_checkpoint, save_checkpoint
+from models.denoiser import Denoiser, DenoiserConfig
+from models.error_predictor import ErrorPredictor
+from models.losses import smape_map
+from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, denoiser_smape, error_predictor_loss,
+                             sample_lambda)
+from service.dataset.loader import DenoiserDataset, collate_samples
+from service.training.config import DENOISER_STAGES, TrainConfig
+
+VALIDATION_EVERY_NTH_SCENE = 8  # scenes with index % 8 == 7 are held back for validation
+
+
+def _split_items(dataset):
+    """Hold back every 8th scene of the train split for validation."""
+    scenes = sorted({item.scene for item in dataset.items})
+    held = {s for i, s in enumerate(scenes) if i % VALIDATION_EVERY_NTH_SCENE == VALIDATION_EVERY_NTH_SCENE - 1}
+    if not held and len(scenes) > 1:
+        held = {scenes[-1]}
+    return [i for i in dataset.items if i.scene not in held], [i for i in dataset.items if i.scene in held]
+
+
+def _datasets(config, radius: int):
+
+    train = DenoiserDataset(config.data, split="train", radius=radius, crop=config.crop, seed=config.seed)
+    train_items, val_items = _split_items(train)
+    val = copy.copy(train)
+    val.crop = None
+    train.items, val.items = train_items, val_items or train_items[:4]
+    return train, val
+
+
+def _batches(dataset, batch: int, seed: int):
+    """Endless shuffled batches; a new epoch draws new crops."""
+    epoch = 0
+    while True:
+        dataset.set_epoch(epoch)
+        generator = torch.Generator().manual_seed(seed * 1000 + epoch)
+        yield from DataLoader(dataset, batch_size=batch, shuffle=True, drop_last=len(dataset) >= batch,
+                              collate_fn=collate_samples, generator=generator)
+        epoch += 1
+
+
+def _fit(stage: str, model, loss_fn, val_fn, config: TrainConfig, device, extra: dict, keep_from: int = 0,
+         out_name: str | None = None) -> dict:
+    """Generic loop: Adam, periodic validation, best checkpoint from step `keep_from` on,
+    resumable state."""
+    out_file = config.out / (out_name or "error_predictor.pt")
+    state_file = config.out / f".train_{stage}.pt"
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.steps, eta_min=config.lr * 0.05)
+    start, best, history = 0, float("inf"), []
+    if config.resume and state_file.is_file():
+        saved = torch.load(state_file, map_location=device, weights_only=False)
+        model.load_state_dict(saved["model"])
+        opt.load_state_dict(saved["opt"])
+        sched.load_state_dict(saved["sched"])
+        start, best, history = saved["step"], saved["best"], saved["history"]
+    bar = tqdm(range(start, config.steps), desc=f"train {stage}", disable=config.quiet, file=sys.stderr,
+               initial=start, total=config.steps)
+    running = None
+    for step in bar:
+        model.train()
+        loss = loss_fn(step)
+        if not torch.isfinite(loss):
+            raise RuntimeError(f"{stage}: loss became non-finite at step {step}")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        value = loss.item()
+        running = value if running is None else 0.95 * running + 0.05 * value
+        bar.set_postfix(loss=f"{running:.4f}", best=f"{best:.4f}", refresh=False)
+        if (step + 1) % config.val_every == 0 or step + 1 == config.steps:
+            model.eval()
+            val = val_fn()
+            history.append({"step": step + 1, "train_loss": running, "val": val})
+            if val < best and step + 1 > keep_from:
+                best = val
+                save_checkpoint(out_file, model, {**extra, "step": step + 1, "val": val})
+            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                        "step": step + 1, "best": best, "history": history}, state_file)
+    return {"best_val": best, "history": history, "checkpoint": str(out_file)}
+
+
+def _denoiser_to_train(config, device, switches: dict):
+    """A fresh network, or --init's weights in a network with the stage's switches (modules the
+    earlier stage lacked — compositor, temporal extractor — start fresh)."""
+    if config.init is None:
+        sizes = {"width": config.width, "spatial_blocks": config.spatial_blocks}
+        base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None})
+        return Denoiser(dataclasses.replace(base, **switches)).to(device)
+    trained = load_checkpoint(config.init, expected_kind="denoiser", device=device)
+    full = dataclasses.replace(trained.config, temporal=True, multiscale=True)
+    model = Denoiser(dataclasses.replace(full, **switches)).to(device)
+    model.load_state_dict(trained.state_dict(), strict=False)
+    return model
+
+
+def train_denoiser(config, device, stage: str = "denoiser", switches: dict | None = None,
+                   schedule: str = "mixed") -> dict:
+    """schedule: "symmetric" (λ = 1), "random" (log λ ~ U(0, log 10)) or "mixed" (λ = 1 for
+    --symmetric-fraction of the steps, then random)."""
+    torch.manual_seed(config.seed)
+    model = _denoiser_to_train(config, device, switches or {})
+    if stage == "lambda" and config.init is not None:
+        # Only the λ directions learn (the MLP s(λ) and ΔW); the trunk and the symmetric kernel
+        # head W₀ stay as the symmetric stages left them, so λ = 1 is exactly that network
+        # (the λ module is anchored at s(1)) and the service's cached features stay valid.
+        for name, parameter in model.named_parameters():
+            parameter.requires_grad_(name.startswith(("specialise.mix.", "specialise.delta")))
+    train, val = _datasets(config, model.config.temporal_radius)
+    batches = _batches(train, config.batch, config.seed)
+    gen = torch.Generator().manual_seed(config.seed)
+    symmetric_steps = {"symmetric": config.steps, "random": 0}.get(schedule, int(config.symmetric_fraction * config.steps))
+
+    def loss_fn(step: int):
+        b = next(batches)
+        single = bool(torch.rand(1, generator=gen) < 0.5)
+        frames, centre = cut_window([f.to(device) for f in b.frames], b.centre, single)
+        ref = b.references[b.centre].to(device)
+        n, _, h, w = ref.shape
+        # Vogels et al. train the λ specialisation on top of a network that already denoises:
+        # a random λ from step 0 rewards doing nothing (λ > 1 punishes every blur), so the
+        # symmetric loss (λ = 1) comes first.
+        lam = torch.ones(n, 1, h, w) if step < symmetric_steps else sample_lambda(n, h, w, gen)
+        return denoiser_loss(model, frames, centre, ref, lam.to(device))
+
+    def val_fn() -> float:
+        scores = []
+        for i in range(len(val)):
+            s = val[i]
+            frames = [s.noisy.map(lambda _, t, k=k: t[k:k + 1].to(device)) for k in range(s.noisy.color.shape[0])]
+            reference = s.reference[s.centre:s.centre + 1].to(device)
+            if schedule == "random":
+                scores.append(denoiser_lambda_loss(model, frames, s.centre, reference))
+            else:
+                scores.append(denoiser_smape(model, frames, s.centre, reference))
+        return sum(scores) / len(scores)
+
+    # Checkpoints from a symmetric phase have an untrained λ module (λ would do nothing): when
+    # a λ phase follows, the kept one must come from it.
+    keep_from = symmetric_steps if symmetric_steps < config.steps else 0
+    out_name = "denoiser.pt" if stage in ("denoiser", "lambda") else f"stage_{stage}.pt"
+    return _fit(stage, model, loss_fn, val_fn, config, device, {"command": config.command_line, "stage": stage},
+                keep_from, out_name)
+
+
+def start_at_typical_error(model, denoiser, batch, device) -> None:
+    """Start the error network at the median true SMAPE of a batch, with a quiet output layer.
+
+    Softplus has a vanishing gradient below zero: from the default init the first steps of L1
+    overshoot into that region and the network dies at ~0 for every pixel (predictions of
+    1e-17). Starting at the L1 optimum of a constant avoids the overshoot.
+    """
+    with torch.no_grad():
+        frame = batch.frames[0].to(device)
+        target = smape_map(denoiser([frame], 0, 1.0), batch.references[0].to(device))
+        median = float(target.median().clamp_min(1e-4))
+        model.out.weight.mul_(0.1)
+        model.out.bias.fill_(median + torch.log(-torch.expm1(torch.tensor(-median))).item())
+
+
+def train_error_predictor(config, device) -> dict:
+    torch.manual_seed(config.seed)
+    denoiser = load_checkpoint(config.out / "denoiser.pt", expected_kind="denoiser", device=device).eval()
+    for p in denoiser.parameters():
+        p.requires_grad_(False)
+    model = ErrorPredictor().to(device)
+    train, val = _datasets(config, 0)
+    batches = _batches(train, config.batch, config.seed + 1)
+    start_at_typical_error(model, denoiser, next(_batches(train, config.batch, config.seed + 2)), device)
+
+    def loss_fn(step: int):
+        b = next(batches)
+        return error_predictor_loss(model, denoiser, b.frames[0].to(device), b.references[0].to(device))
+
+    @torch.no_grad()
+    def val_fn() -> float:
+        losses = []
+        for i in range(len(val)):
+            s = val[i]
+            frame = s.noisy.map(lambda _, t: t[:1].to(device))
+            losses.append(float(error_predictor_loss(model, denoiser, frame, s.reference[:1].to(device))))
+        return sum(losses) / len(losses)
+
+    return _fit("error", model, loss_fn, val_fn, config, device, {"command": config.command_line, "stage": "error"})
+
+
+def run_training(config: TrainConfig, report: Callable[[str], None] = lambda line: None) -> list[str]:
+    """Train what `config.stage` names; returns one summary line per trained network, each also
+    handed to `report` as soon as that network is done (a staged run takes hours)."""
+    config.validate()
+    device = torch.device(config.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    config.out.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    lines = []
+
+    def report_line(line: str) -> str:
+        report(line)
+        return line
+
+    if config.stage in ("denoiser", "all"):
+        result = train_denoiser(config, device)
+        lines.append(report_line(f"denoiser: best validation SMAPE {result['best_val']:.4f} → {result['checkpoint']}"))
+    stages = list(DENOISER_STAGES) if config.stage == "staged" else [config.stage] if config.stage in DENOISER_STAGES else []
+    for stage in stages:
+        switches, schedule = DENOISER_STAGES[stage]
+        result = train_denoiser(config, device, stage, switches, schedule)
+        metric = "eq. 6 loss at λ = 2, 4, 10" if schedule == "random" else "SMAPE"
+        lines.append(report_line(f"stage {stage}: best validation {metric} {result['best_val']:.4f} → {result['checkpoint']}"))
+        config = dataclasses.replace(config, init=Path(result["checkpoint"]), resume=False)  # the next stage starts here
+    if config.stage in ("error", "all", "staged"):
+        result = train_error_predictor(config, device)
+        lines.append(report_line(f"error predictor: best validation L1 {result['best_val']:.4f} → {result['checkpoint']}"))
+    lines.append(report_line(f"trained in {time.perf_counter() - started:.0f} s on {device}"))
+    return lines

@@ -1,0 +1,208 @@
+"""The artist's page at `/`, driven in a real headless Chromium against a real server: submit,
+watch the preview follow the events, steer λ with the slider and the brush, cancel, delete,
+download, and the token field. Small jobs (32², the shipped networks) keep it to seconds each."""
+from __future__ import annotations
+
+import time
+import zipfile
+
+import httpx
+import numpy as np
+import pytest
+
+from browser_harness import Page, missing_browser, start_browser, wait_until
+from service.exr import exr_channels_from_bytes
+from service_harness import REPO, Server, wait_for
+
+pytestmark = pytest.mark.skipif(missing_browser() is not None, reason=f"no browser: {missing_browser()}")
+
+SMALL = {"scene": "cornell-box", "width": 32, "height": 32}
+TOKEN = "page-token"
+
+
+@pytest.fixture(scope="module")
+def server(module_server):
+    return module_server
+
+
+@pytest.fixture(scope="module")
+def driver(tmp_path_factory):
+    browser = start_browser(tmp_path_factory.mktemp("downloads"))
+    yield browser
+    browser.quit()
+
+
+@pytest.fixture
+def page(driver, server) -> Page:
+    return Page(driver, server.url).open()
+
+
+@pytest.fixture
+def api(server):
+    with httpx.Client(base_url=server.url, timeout=60) as client:
+        yield client
+
+
+def finished_job(api: httpx.Client, **spec) -> dict:
+    created = api.post("/jobs", json={**SMALL, "max_iterations": 2, **spec}).json()
+    return wait_for(api, created["id"], lambda job: job["state"] == "completed")
+
+
+def lambda_layer(api: httpx.Client, job_id: str) -> np.ndarray:
+    response = api.get(f"/jobs/{job_id}/preview", params={"layer": "lambda", "format": "exr"})
+    assert response.status_code == 200, response.text
+    channels = exr_channels_from_bytes(response.content, max_pixels=32 * 32)
+    return next(iter(channels.values()))
+
+
+def test_submitting_a_32px_job_shows_each_new_preview_version_pushed_by_the_events(page, api):
+    page.js("""window.versionsSeen = [];
+        new MutationObserver(() => window.versionsSeen.push(document.getElementById('preview-version').dataset.version))
+          .observe(document.getElementById('preview-version'), {attributes: true});""")
+    job_id = page.submit(width=32, height=32, max_iterations=8, spp_first=32)
+    wait_until(lambda: page.state(job_id) == "completed", "the row to say completed")
+    final = api.get(f"/jobs/{job_id}").json()
+    wait_until(lambda: page.shown_version() == final["preview_version"], "the last preview version on screen")
+    seen = [int(v) for v in page.js("return window.versionsSeen") if v]
+    assert len(set(seen)) >= 2 and seen == sorted(seen), f"the preview did not move on while rendering: {seen}"
+    assert (final["spec"]["width"], final["spec"]["max_iterations"], final["spec"]["spp_first"]) == (32, 8, 32)
+    row = page.row_text(job_id)
+    assert "completed" in row and f"{final['spp']:.1f}" in row and f"{final['predicted_error']:.4f}" in row
+    urls = page.resource_urls()
+    assert any(url.endswith(f"/jobs/{job_id}/events") for url in urls), "no event stream was opened"
+    assert not any(url.endswith(f"/jobs/{job_id}") for url in urls), "the page polled the job instead of its events"
+    assert page.script_errors() == []
+
+
+def test_dragging_the_lambda_slider_ends_on_the_last_value_and_shows_a_new_preview(page, api):
+    job = finished_job(api)
+    page.select(job["id"])
+    wait_until(lambda: page.shown_version() == job["preview_version"], "the finished job's preview")
+    slider = page.find("#lambda-slider")
+    wait_until(lambda: slider.is_enabled(), "the λ slider to be enabled")
+    page.drag("#lambda-slider", 40, 0)
+    wanted = float(slider.get_attribute("value"))
+    assert wanted > 1.0
+    wait_until(lambda: page.shown_version() > job["preview_version"], "a preview after the λ change")
+    status = wait_until(lambda: (s := api.get(f"/jobs/{job['id']}").json())["lambda_value"] == wanted and s,
+                        f"the server to hold λ {wanted}")
+    assert page.shown_version() == status["preview_version"]
+    assert np.allclose(lambda_layer(api, job["id"]), wanted)
+    puts = [url for url in page.resource_urls() if url.endswith("/lambda")]
+    assert 1 <= len(puts) <= 3, f"the slider was not debounced: {len(puts)} requests for one drag"
+
+
+def test_a_brush_stroke_paints_its_value_into_the_lambda_layer_and_undo_takes_it_back(page, api):
+    job = finished_job(api)
+    page.select(job["id"])
+    wait_until(lambda: page.shown_version() == job["preview_version"], "the finished job's preview")
+    page.find('#tool-buttons [data-tool="brush"]').click()
+    for field, value in (("#brush-size", 4), ("#brush-value", 10)):
+        page.find(field).clear()
+        page.find(field).send_keys(str(value))
+    page.drag_on_image([(4, 16), (12, 16), (20, 16), (28, 16)])
+    wait_until(lambda: page.shown_version("#image-lambda") > job["preview_version"], "the λ overlay after the stroke")
+    lam = lambda_layer(api, job["id"])
+    assert np.allclose(lam[15:17, 4:28], 10.0) and np.allclose(lam[:8], 1.0), "the stroke is not where it was drawn"
+    page.click('#layer-buttons label:has(input[value="lambda"])')
+    wait_until(lambda: page.find("#image-a").get_attribute("src").find("layer=lambda") > 0, "the λ layer")
+    wait_until(lambda: page.shown_version() > job["preview_version"], "the λ layer to load")
+    assert page.image_pixel("#image-a", 16, 16) != page.image_pixel("#image-a", 16, 2), "the λ layer shows no stroke"
+    before = page.shown_version()
+    page.find("#brush-undo").click()
+    wait_until(lambda: page.shown_version() > before, "the λ layer after undo")
+    assert np.allclose(lambda_layer(api, job["id"]), 1.0)
+    assert page.image_pixel("#image-a", 16, 16) == page.image_pixel("#image-a", 16, 2)
+
+
+def test_cancel_stops_a_running_job_and_delete_removes_it(page, api):
+    job_id = page.submit(width=256, height=256, max_iterations=8, spp_first=64)
+    wait_until(lambda: page.state(job_id) == "running", "the job to run")
+    page.row_action(job_id, "cancel")
+    wait_until(lambda: page.state(job_id) == "canceled", "the row to say canceled")
+    assert api.get(f"/jobs/{job_id}").json()["state"] == "canceled"
+    page.row_action(job_id, "delete")
+    wait_until(lambda: page.state(job_id) is None, "the row to go")
+    assert api.get(f"/jobs/{job_id}").status_code == 404
+
+
+def test_the_exr_button_downloads_the_result(page, api, driver, tmp_path):
+    driver.execute_cdp_cmd("Page.setDownloadBehavior", {"behavior": "allow", "downloadPath": str(tmp_path)})
+    job = finished_job(api)
+    page.click("#jobs-refresh")
+    wait_until(lambda: page.finds(f'tr[data-job-id="{job["id"]}"] [data-action="download"]'), "the EXR button")
+    page.row_action(job["id"], "download")
+    path = wait_until(lambda: next(iter(tmp_path.glob("*.exr")), None), "the downloaded EXR")
+    time.sleep(0.2)  # the browser renames the file once complete; the bytes are all there then
+    assert path.read_bytes() == api.get(f"/jobs/{job['id']}/result.exr").content
+
+
+def test_a_zipped_scene_folder_chosen_in_the_drop_zone_is_uploaded_and_rendered(page, api, tmp_path):
+    folder = REPO / "scenes" / "dev" / "fine_texture"  # scene.xml + the texture it names
+    archive = tmp_path / "fine_texture.zip"
+    with zipfile.ZipFile(archive, "w") as zf:
+        for path in folder.iterdir():
+            zf.write(path, f"fine_texture/{path.name}")
+    page.wait_for_scenes()
+    page.find("#bundle-input").send_keys(str(archive))
+    wait_until(lambda: "fine_texture.zip" in page.find("#drop-label").text, "the zip to be chosen")
+    assert not page.find("#scene-select").is_enabled()
+    job_id = page.submit(width=32, height=32, max_iterations=1)
+    wait_until(lambda: page.state(job_id) == "completed", "the uploaded scene to render")
+    assert api.get(f"/jobs/{job_id}").json()["spec"]["bundle_scene"] == "scene.xml"
+
+
+def test_zoom_pan_split_and_exposure_change_what_the_viewer_shows(page, api):
+    job = finished_job(api)
+    page.select(job["id"])
+    wait_until(lambda: page.shown_version() == job["preview_version"], "the preview")
+    stage = page.find("#stage")
+    assert float(stage.get_attribute("data-scale")) > 4  # 32² fitted to the viewport
+    page.click('#zoom-buttons [data-zoom="1"]')
+    wait_until(lambda: stage.get_attribute("data-scale") == "1", "1:1 zoom")
+    start = stage.rect
+    page.drag("#viewport", 40, 25)
+    moved = stage.rect
+    assert (round(moved["x"] - start["x"]), round(moved["y"] - start["y"])) == (40, 25)
+    page.click("#split")
+    wait_until(lambda: page.find("#image-b").is_displayed(), "the A/B split")
+    assert "layer=noisy" in page.find("#image-a").get_attribute("src")
+    assert "layer=denoised" in page.find("#image-b").get_attribute("src")
+    page.drag("#exposure", 60, 0)
+    exposure = page.find("#exposure").get_attribute("value")
+    assert float(exposure) > 0
+    wait_until(lambda: f"exposure={exposure}&" in page.find("#image-b").get_attribute("src") + "&",
+               "a preview at the new exposure")
+
+
+def test_a_refused_submit_shows_the_servers_message(page):
+    page.wait_for_scenes()
+    page.type("width", 99999)
+    page.find("#submit-button").click()
+    message = wait_until(lambda: page.finds("#messages .error"), "an error message")[0]
+    assert message.get_attribute("data-status") == "422"
+    assert "width" in message.text and "4096" in message.text
+
+
+@pytest.fixture
+def token_server(tmp_path):
+    server = Server(tmp_path / "data", tmp_path / "server.log", env={"RENDERLOOP_TOKEN": TOKEN}).start()
+    yield server
+    server.stop()
+
+
+def test_with_a_token_the_page_asks_for_it_and_then_renders(driver, token_server):
+    page = Page(driver, token_server.url).open()
+    wait_until(lambda: page.find("#token-form").is_displayed(), "the token field")
+    assert "needs a token" in page.find("#token-form").text
+    page.find("#token-input").send_keys("wrong")
+    page.find("#token-form button").click()
+    wait_until(lambda: "refused" in page.find("#token-form label").text, "the wrong token to be refused")
+    page.find("#token-input").send_keys(TOKEN)
+    page.find("#token-form button").click()
+    wait_until(lambda: not page.find("#token-form").is_displayed(), "the token field to close")
+    job_id = page.submit(width=32, height=32, max_iterations=2)
+    wait_until(lambda: page.state(job_id) == "completed", "the job to complete")
+    wait_until(lambda: page.shown_version() == 2, "the preview, fetched with ?token=")
+    assert not page.finds("#messages .error"), page.messages()
+    assert page.script_errors() == []
