@@ -206,3 +206,12 @@ def test_with_a_token_the_page_asks_for_it_and_then_renders(driver, token_server
     wait_until(lambda: page.shown_version() == 2, "the preview, fetched with ?token=")
     assert not page.finds("#messages .error"), page.messages()
     assert page.script_errors() == []
+
+
+def test_the_automatic_allocator_lets_a_job_without_the_denoiser_run(page, api):
+    options = page.js("return [...document.querySelectorAll('select[name=allocator] option')].map(o => o.value)")
+    assert options == ["", "error", "variance", "uniform"]  # "" = the server's default for the job
+    page.js("document.querySelector('input[name=denoise]').checked = false")
+    job_id = page.submit(width=32, height=32, max_iterations=2)
+    job = wait_for(api, job_id, lambda job: job["state"] in ("completed", "failed"))
+    assert job["state"] == "completed" and job["spec"]["allocator"] == "variance", job

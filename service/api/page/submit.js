@@ -58,10 +58,14 @@ export class SubmitForm {
       if (property.default !== undefined && property.default !== null) input.value = property.default;
       if (property.description) input.title = property.description;
     }
+    // allocator is "one of the kinds, or null" (null: error with the denoiser, variance without).
     const allocator = this.form.elements.allocator;
-    const choices = (properties.allocator && properties.allocator.enum) || ["error"];
-    allocator.replaceChildren(...choices.map((name) => new Option(name, name)));
-    allocator.value = (properties.allocator && properties.allocator.default) || choices[0];
+    const property = properties.allocator || {};
+    const kinds = property.enum || ((property.anyOf || []).find((option) => option.enum) || {}).enum || [];
+    const automatic = new Option("auto (error; variance without denoise)", "");
+    automatic.title = property.description || "";
+    allocator.replaceChildren(automatic, ...kinds.map((name) => new Option(name, name)));
+    allocator.value = property.default || "";
     if (!this.form.elements.width.value) this.form.elements.width.value = DEFAULT_SIZE;
     if (!this.form.elements.height.value) this.form.elements.height.value = DEFAULT_SIZE;
   }
@@ -103,7 +107,7 @@ export class SubmitForm {
     }
     const bad = NUMBER_FIELDS.find((name) => elements[name].validity.badInput);
     if (bad) throw new Error(`${bad}: not a number`);
-    spec.allocator = elements.allocator.value;
+    if (elements.allocator.value) spec.allocator = elements.allocator.value;  // blank: the server's default
     spec.denoise = elements.denoise.checked;
     return spec;
   }
