@@ -18,7 +18,8 @@ from pathlib import Path
 from bench.common import (METRIC_NAMES, BenchNetworks, command_line, fill, load_average,
                           load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance, scene_reference)
 from bench.loop_plots import write_plots
-from bench.loop_run import (DEGENERATE_PREDICTION_RATIO, FULL, LOOP_SEED, METHODS, PRODUCT, QUICK, STAGES,
+from bench.dev_references import DEFAULT_REFERENCE_DIR, load_reference
+from bench.loop_run import (DEGENERATE_PREDICTION_RATIO, DEV, FULL, LOOP_SEED, METHODS, PRODUCT, QUICK, STAGES,
                             BenchSettings, ErrorAgreement, Headline, SceneResult, error_agreement, headline,
                             prepare_scenes, run_method, warm_up)
 from bench.models_report import CASES as MODEL_CASES, ThreadTiming, benchmark_models, denoise_ms_by_threads
@@ -68,31 +69,43 @@ class LoopResults:
 
 
 def run_loop_benchmark(out_dir: Path = Path("docs"), *, quick: bool = False, weights_dir: Path | None = None,
-                       cache_dir: Path = DEFAULT_CACHE_DIR, command: str | None = None) -> Path:
+                       cache_dir: Path = DEFAULT_CACHE_DIR, command: str | None = None, suite: str = "procedural",
+                       only: list[str] | None = None) -> Path:
     """Run the loop benchmark and write `out_dir/benchmarks.md` (+ CSV and PNGs in
-    `out_dir/benchmarks/`); returns the markdown path."""
+    `out_dir/benchmarks/`), or `benchmarks-dev.md` for the development suite; returns the
+    markdown path."""
     started = time.perf_counter()
     out_dir, cache_dir = Path(out_dir), Path(cache_dir)
+    settings = DEV if suite == "dev" else QUICK if quick else FULL
+    name = "benchmarks-dev" if suite == "dev" else "benchmarks"
     with pinned_torch_threads(TORCH_THREADS):
-        results = measure_loops(QUICK if quick else FULL, quick, weights_dir, cache_dir, command)
-        results.micro = micro_benchmarks(results.settings, results.nets)
-    folder = out_dir / "benchmarks"
+        results = measure_loops(settings, quick, weights_dir, cache_dir, command, only)
+        if settings.micro:
+            results.micro = micro_benchmarks(results.settings, results.nets)
+    folder = out_dir / name
     results.csv_path = write_csv(results.scenes, folder / ("loop-quick.csv" if quick else "loop.csv"))
     results.plots = write_plots(results.scenes, results.head, folder)
     results.seconds = time.perf_counter() - started
-    return write_loop_report(out_dir / "benchmarks.md", results)
+    return write_loop_report(out_dir / f"{name}.md", results)
+
+
+def scene_reference_image(scene, settings: BenchSettings, cache_dir: Path):
+    """A development scene's committed reference (frame 0), else one rendered once and cached."""
+    if scene.dev is not None:
+        return load_reference(DEFAULT_REFERENCE_DIR, scene.dev, None if scene.dev.frames == 1 else 0)[0]
+    print(f"bench --loop: {scene.label}: reference at {settings.reference_spp} spp …", flush=True)
+    return scene_reference(scene.source, scene.label, settings.size, settings.reference_spp,
+                           cache_dir / "references").mean
 
 
 def measure_loops(settings: BenchSettings, quick: bool, weights_dir: Path | None, cache_dir: Path,
-                  command: str | None) -> LoopResults:
+                  command: str | None, only: list[str] | None = None) -> LoopResults:
     nets = load_bench_networks(weights_dir)
     oidn, oidn_status = oidn_denoiser()
     results = LoopResults(command or command_line(), settings, quick, nets, oidn_status, load_average())
     methods = [m for m in METHODS if m.denoiser != "oidn" or oidn is not None]
-    for scene in prepare_scenes(settings, cache_dir):
-        print(f"bench --loop: {scene.label}: reference at {settings.reference_spp} spp …", flush=True)
-        reference = scene_reference(scene.source, scene.label, settings.size, settings.reference_spp,
-                                    cache_dir / "references").mean
+    for scene in prepare_scenes(settings, cache_dir, only):
+        reference = scene_reference_image(scene, settings, cache_dir)
         warm_up(scene, settings, nets)
         runs = {}
         for method in methods:
@@ -158,7 +171,8 @@ def write_loop_report(path: Path, results: LoopResults) -> Path:
         load_before=results.load_before, load_after=load_average(), minutes=f"{results.seconds / 60:.1f}",
         weights=results.nets.description,
         quick=" (**--quick**: small images, few scenes and iterations; not the real report)" if results.quick else "",
-        size=s.size, iterations=s.iterations, spps=", ".join(spps), last_spp=spps[-1], reference_spp=s.reference_spp,
+        size_label=f"{s.size}×{s.size}" if s.size else "each scene's own film size (about 256²)",
+        suite=suite_note(s), iterations=s.iterations, spps=", ".join(spps), last_spp=spps[-1], reference_spp=s.reference_spp,
         repeats=s.timing_repeats, threads=TORCH_THREADS,
         methods="; ".join(f"({m.key}) {m.label}" for m in METHODS), oidn_status=results.oidn_status,
         headline_table=headline_table(scenes, head), goals="; ".join(goal_lines(head)),
@@ -168,9 +182,19 @@ def write_loop_report(path: Path, results: LoopResults) -> Path:
         per_iteration=per_iteration_tables(scenes), agreement="\n".join(agreement_line(a) for a in agreements),
         degenerate=degenerate_note(median_ratio),
         other_plots="\n\n".join(f"![{p.stem.replace('_', ' ')}]({rel(p)})" for p in plots[1:]),
-        micro=micro_sections(results.micro, s), threads_note=threads_note(results.micro.threads),
+        micro=micro_sections(results.micro, s) if s.micro else "Not part of this run (see docs/benchmarks.md).",
+        threads_note=threads_note(results.micro.threads),
     ))
     return path
+
+
+def suite_note(settings: BenchSettings) -> str:
+    if settings.suite == "dev":
+        return ("Scenes: the twelve hand-written development scenes (scenes/dev, never trained on), rendered as "
+                "written, against their committed references (scenes/dev/references: mi.render as written, "
+                "16 384 spp, 65 536 for the three noisiest; not rendered by this run).")
+    return ("Scenes: built-ins and held-out procedural scenes, each reference rendered once by the same "
+            "renderer and integrator with its own seed and cached on disk (`--cache`, default `bench-cache/`).")
 
 
 def fmt_time(seconds: float, how: str) -> str:
@@ -212,6 +236,11 @@ def goal_lines(head: Headline) -> list[str]:
     ratio = head.median_smape_ratio
     out.append(f"median SMAPE (d)/(b) {ratio:.2f} (goal ≤ {GOAL_SMAPE_RATIO_D_B}: "
                f"{'met' if ratio <= GOAL_SMAPE_RATIO_D_B else 'not met'})")
+    versus_oidn = [speedups["e"] for speedups in head.speedup.values() if "e" in speedups]
+    if versus_oidn:
+        # (e) needing longer than (d) to reach (d)'s final SMAPE = (d) is ahead at equal wall time.
+        out.append(f"(d) ahead of (e) uniform + OIDN at equal wall time on {sum(v > 1 for v in versus_oidn)} of "
+                   f"{len(versus_oidn)} scenes")
     return out
 
 
@@ -316,9 +345,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", type=Path, default=None,
                         help="with --loop or --denoiser: weights folder (default models/weights)")
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE_DIR, help="with --loop: reference cache folder")
+    parser.add_argument("--suite", choices=("procedural", "dev"), default="procedural",
+                        help="with --loop: 'dev' runs the development suite at its own sizes → benchmarks-dev.md")
 
 
 def run_loop_command(args: argparse.Namespace) -> int:
-    path = run_loop_benchmark(args.out, quick=args.quick, weights_dir=args.weights, cache_dir=args.cache)
+    path = run_loop_benchmark(args.out, quick=args.quick, weights_dir=args.weights, cache_dir=args.cache,
+                              suite=args.suite, only=args.only)
     print(f"wrote {path}")
     return 0

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from bench.common import BenchNetworks, OidnDenoise, image_metrics, true_error_map
+from bench.dev_references import DevScene, dev_scenes
 from models.frames import FrameTensors
 from models.pretrained import Networks
 from service.dataset.procedural import generate_scene
@@ -42,7 +43,7 @@ DEGENERATE_PREDICTION_RATIO = 0.05
 
 @dataclass(frozen=True)
 class BenchSettings:
-    size: int  # square images: every method sees the same pixels
+    size: int | None  # square images (every method sees the same pixels); None: each scene's own film
     reference_spp: int
     iterations: int  # 16, 32, 64, … spp mean
     builtin_scenes: tuple[str, ...]
@@ -54,12 +55,19 @@ class BenchSettings:
     model_repeats: int
     http_size: int
     http_requests: int
+    suite: str = "procedural"  # "procedural": built-ins + held-out procedural; "dev": scenes/dev as written
+    micro: bool = True  # the renderer / model / HTTP micro-benchmarks
 
 
 FULL = BenchSettings(size=64, reference_spp=4096, iterations=5,
                      builtin_scenes=("cornell-box", "glossy-spheres", "fireflies"), heldout_scenes=2,
                      timing_repeats=3, sampler=(256, 64, 3), sampler_cases=3, model_sizes=(256, 512), model_repeats=3,
                      http_size=256, http_requests=40)
+# The development suite (scenes/dev, never trained on) at its own film sizes (about 256²) against
+# its committed references; one timing repeat keeps 12 scenes × 5 methods within minutes.
+DEV = BenchSettings(size=None, reference_spp=16384, iterations=4, builtin_scenes=(), heldout_scenes=0,
+                    timing_repeats=1, sampler=(256, 64, 1), sampler_cases=0, model_sizes=(), model_repeats=0,
+                    http_size=0, http_requests=0, suite="dev", micro=False)
 QUICK = BenchSettings(size=32, reference_spp=512, iterations=3, builtin_scenes=("cornell-box",),
                       heldout_scenes=1, timing_repeats=1, sampler=(32, 16, 1), sampler_cases=1, model_sizes=(32,),
                       model_repeats=1, http_size=32, http_requests=6)
@@ -89,6 +97,7 @@ class BenchScene:
     label: str
     source: str  # a built-in name or an XML path: what LoopSpec.scene takes
     origin: str  # for the report
+    dev: DevScene | None = None  # a development-suite scene: its reference is committed
 
 
 # --- scenes and references ----------------------------------------------------------------------
@@ -133,7 +142,9 @@ def procedural_scene_xml(seed: int, folder: Path, size: int) -> Path:
     return path
 
 
-def prepare_scenes(settings: BenchSettings, cache_dir: Path) -> list[BenchScene]:
+def prepare_scenes(settings: BenchSettings, cache_dir: Path, only: list[str] | None = None) -> list[BenchScene]:
+    if settings.suite == "dev":
+        return [BenchScene(scene.name, str(scene.path), "development suite", scene) for scene in dev_scenes(only)]
     scenes = [BenchScene(name, name, "built-in") for name in settings.builtin_scenes]
     for seed in scene_seeds("heldout", settings.heldout_scenes, HELDOUT_DATASET_SEED):
         path = procedural_scene_xml(seed, cache_dir / "scenes" / f"heldout-{seed}", settings.size)

@@ -3,6 +3,7 @@ log-log reading of time-to-target that the headline rests on."""
 from __future__ import annotations
 
 import csv
+import importlib.util
 import math
 from pathlib import Path
 
@@ -36,6 +37,22 @@ def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, tiny_weight
         assert (tmp_path / "docs" / "benchmarks" / png).stat().st_size > 0
     # References are cached on disk (one per scene), so later runs do not render them again.
     assert len(list((tmp_path / "cache" / "references").glob("*.npz"))) == 2
+
+
+def test_development_suite_loop_benchmark_scores_against_the_committed_reference(tmp_path: Path,
+                                                                                tiny_weights_dir: Path) -> None:
+    report = run_loop_benchmark(tmp_path / "docs", weights_dir=tiny_weights_dir, cache_dir=tmp_path / "cache",
+                                suite="dev", only=["point_object"], command="renderloop bench --loop --suite dev")
+    text = report.read_text()
+    assert report.name == "benchmarks-dev.md" and "$" not in text
+    assert "each scene's own film size" in text and "| point_object |" in text
+    if importlib.util.find_spec("pyoidn") is not None:
+        assert "uniform + OIDN at equal wall time on" in text
+    rows = list(csv.DictReader(open(tmp_path / "docs" / "benchmarks-dev" / "loop.csv")))
+    assert {r["scene"] for r in rows} == {"point_object"}
+    assert sorted({float(r["spp_mean"]) for r in rows}) == [16, 32, 64, 128]
+    assert all(math.isfinite(float(r["smape"])) for r in rows)
+    assert not (tmp_path / "cache" / "references").exists()  # the committed reference, nothing rendered
 
 
 def test_time_to_reach_interpolates_in_log_log() -> None:
