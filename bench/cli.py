@@ -6,13 +6,14 @@ import argparse
 import sys
 from pathlib import Path
 
-from bench.dev_suite_report import run_dev_suite_report
 from bench.calibration_report import run_calibration_report
 from bench.dev_references import DEFAULT_REFERENCE_DIR, write_references
+from bench.dev_suite_report import run_dev_suite_report
 from bench.loop_report import add_arguments as add_loop_arguments, run_loop_command
 from bench.models_report import main as models_main
 from bench.quality_report import run_quality_report
 from bench.sampler_report import bench_memory, bench_sampler, write_memory_report, write_sampler_report
+from bench.suite_quality_report import run_suite_quality_report
 
 HELP = "measure and write reports (to ./bench-reports; -o docs regenerates the committed ones)"
 
@@ -22,7 +23,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--models", action="store_true", help="denoiser / λ tail forward time and memory → docs/models-speed.md")
     p.add_argument("--memory", action="store_true",
                    help="peak RSS of one 1024² x 64 spp render pass (chunked wavefront) in a fresh process")
-    p.add_argument("--denoiser", action="store_true", help="denoiser quality on held-out scenes (needs --data)")
+    p.add_argument("--denoiser", action="store_true",
+                   help="denoiser quality on held-out scenes (needs --data), or with --suite dev on scenes/dev vs OIDN")
     p.add_argument("--data", type=Path, help="data set with a held-out split (for --denoiser)")
     p.add_argument("--size", type=int, default=256, help="image side for --sampler (default 256)")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel for --sampler (default 64)")
@@ -74,6 +76,9 @@ def run_bench(args: argparse.Namespace) -> int:
         return 0
     if args.loop:
         return run_loop_command(args)
+    if args.denoiser and args.suite == "dev":
+        print(f"wrote {run_suite_quality_report(args.out, weights_dir=args.weights, only=args.only)}")
+        return 0
     if args.memory:
         memory = bench_memory()
         print(f"memory: peak RSS {memory.peak_rss_gb:.2f} GB; wrote {write_memory_report(memory, args.out)}")

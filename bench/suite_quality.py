@@ -1,0 +1,133 @@
+"""The measurements of `renderloop bench --denoiser --suite dev` (the report is
+bench/suite_quality_report.py): the denoiser against OIDN on the hand-written
+development scenes (never trained on), at 16, 64 and 256 spp, against their committed references.
+
+Per scene and sample count: one uniform render (its own pass, seeded), denoised by our KPCN
+(single frame, λ = 1) and by OIDN on the same noisy colour, albedo and normal; SMAPE, relMSE,
+PSNR and the energy ratio (mean radiance ÷ the reference's) for noisy / KPCN / OIDN, and a
+figure of crops and error maps where our error is largest. Temporal flicker on the animated
+scene: the frame-to-frame change of the residual (denoised − reference), our temporal KPCN on
+the whole sequence against OIDN frame by frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import OidnDenoise, image_metrics, true_error_map
+from bench.dev_references import DevScene
+from models.pretrained import Networks
+from service.images import linear_to_srgb
+from service.loop.loop import RenderLoop
+from service.loop.spec import LoopSpec
+
+try:  # optional: a dev dependency; the report notes when the figures are missing
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+except ImportError:
+    plt = None
+
+REPORT_NAME = "suite-quality.md"
+SPP_LEVELS = (16, 64, 256)
+METHODS = ("noisy", "kpcn", "oidn")
+CROP = 64
+ENERGY_TOLERANCE = 0.02  # issue 13: mean radiance within 2 % of the reference on every scene
+SEED = 1
+
+
+@dataclass(frozen=True)
+class Scores:
+    smape: float
+    relmse: float
+    psnr: float
+    energy: float  # mean radiance / the reference's
+
+
+@dataclass
+class SceneQuality:
+    name: str
+    scores: dict[int, dict[str, Scores]]  # spp → method → scores
+    figure: Path | None = None
+
+
+def score(image: np.ndarray, reference: np.ndarray) -> Scores:
+    metrics = image_metrics(image, reference)
+    energy = float(np.nan_to_num(image).mean() / max(float(reference.mean()), 1e-12))
+    return Scores(metrics["smape"], metrics["relmse"], metrics["psnr"], energy)
+
+
+def uniform_render(scene: DevScene, spp: int, networks: Networks, frames: int = 1):
+    spec = LoopSpec(scene=str(scene.path), frames=frames, spp_first=spp, max_iterations=1, allocator="uniform",
+                    seed=SEED)
+    return next(iter(RenderLoop(spec, networks).run()))
+
+
+def three_images(record, frame: int, oidn: OidnDenoise) -> dict[str, np.ndarray]:
+    buffer = record.buffers[frame]
+    return {"noisy": buffer.mean, "kpcn": record.denoised[frame], "oidn": oidn(buffer.mean, buffer.albedo, buffer.normal)}
+
+
+def score_scene(scene: DevScene, reference: np.ndarray, networks: Networks, oidn: OidnDenoise,
+                figures: Path | None) -> SceneQuality:
+    scores, shown = {}, {}
+    for spp in SPP_LEVELS:
+        images = three_images(uniform_render(scene, spp, networks), 0, oidn)
+        scores[spp] = {method: score(image, reference) for method, image in images.items()}
+        shown[spp] = images
+    quality = SceneQuality(scene.name, scores)
+    if figures is not None and plt is not None:
+        quality.figure = write_crops(scene.name, shown, reference, figures)
+    return quality
+
+
+def temporal_flicker(scene: DevScene, references: list[np.ndarray], networks: Networks, oidn: OidnDenoise,
+                     spp: int = SPP_LEVELS[0]) -> dict[str, float]:
+    """Mean |Δ residual| between consecutive frames, linear radiance: 0 = the error does not
+    change from frame to frame, whatever the scene's own motion."""
+    record = uniform_render(scene, spp, networks, frames=scene.frames)
+    per_frame = [three_images(record, f, oidn) for f in range(scene.frames)]
+    out = {}
+    for method in METHODS:
+        residuals = [np.nan_to_num(images[method]) - ref for images, ref in zip(per_frame, references)]
+        out[method] = float(np.mean([np.abs(b - a).mean() for a, b in zip(residuals, residuals[1:])]))
+    return out
+
+
+def _hardest_crop(error: np.ndarray) -> tuple[slice, slice]:
+    """The CROP² window with the largest summed error (integral image)."""
+    h, w = error.shape
+    size_y, size_x = min(CROP, h), min(CROP, w)
+    integral = np.pad(error, ((1, 0), (1, 0))).cumsum(0).cumsum(1)
+    sums = (integral[size_y:, size_x:] - integral[:-size_y, size_x:] - integral[size_y:, :-size_x]
+            + integral[:-size_y, :-size_x])
+    y, x = np.unravel_index(int(np.argmax(sums)), sums.shape)
+    return slice(y, y + size_y), slice(x, x + size_x)
+
+
+def write_crops(name: str, shown: dict[int, dict[str, np.ndarray]], reference: np.ndarray, folder: Path) -> Path:
+    """Rows: each spp level; columns: noisy, KPCN, OIDN, reference, KPCN error, OIDN error —
+    all on the crop where KPCN's 16-spp error is largest."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rows, cols = _hardest_crop(true_error_map(shown[SPP_LEVELS[0]]["kpcn"], reference))
+    fig, axes = plt.subplots(len(SPP_LEVELS), 6, figsize=(9.0, 1.6 * len(SPP_LEVELS)), squeeze=False)
+    for row, spp in zip(axes, SPP_LEVELS):
+        images = shown[spp]
+        errors = {m: true_error_map(images[m], reference)[rows, cols] for m in ("kpcn", "oidn")}
+        top = max(float(e.max()) for e in errors.values()) or 1.0
+        panels = [(linear_to_srgb(images[m][rows, cols]), f"{spp} spp {m}", None) for m in METHODS]
+        panels += [(linear_to_srgb(reference[rows, cols]), "reference", None)]
+        panels += [(errors[m], f"{m} SMAPE map", top) for m in ("kpcn", "oidn")]
+        for ax, (image, title, vmax) in zip(row, panels):
+            ax.imshow(image, vmin=0 if vmax else None, vmax=vmax, cmap="magma" if vmax else None,
+                      interpolation="nearest")
+            ax.set_title(title, fontsize=6)
+            ax.axis("off")
+    fig.suptitle(f"{name}: the {CROP}² crop where KPCN's 16-spp error is largest", fontsize=7)
+    path = folder / f"{name}.png"
+    fig.savefig(path, dpi=80, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -1,0 +1,85 @@
+"""`renderloop bench --denoiser --suite dev` → docs/suite-quality.md: runs the measurements of
+bench/suite_quality.py on every development scene and writes the tables."""
+from __future__ import annotations
+
+import statistics
+from pathlib import Path
+
+from bench.common import fill, fmt, load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance
+from bench.dev_references import DEFAULT_REFERENCE_DIR, dev_scenes, load_reference
+from bench.suite_quality import (ENERGY_TOLERANCE, METHODS, REPORT_NAME, SPP_LEVELS, SceneQuality, score_scene,
+                                 temporal_flicker)
+from service.render.runtime import active_variant
+
+TORCH_THREADS = 1  # see bench/loop_report.py: more threads measure the neighbours on a shared host
+LABELS = {"noisy": "noisy", "kpcn": "KPCN (ours)", "oidn": "OIDN"}
+
+
+def summary_table(results: list[SceneQuality]) -> str:
+    lines = ["| spp | median SMAPE noisy / KPCN / OIDN | KPCN ≤ OIDN: SMAPE | KPCN ≤ OIDN: relMSE | "
+             "energy within 2 %: KPCN / OIDN |", "|---:|---|---:|---:|---:|"]
+    n = len(results)
+    for spp in SPP_LEVELS:
+        medians = " / ".join(fmt(statistics.median(r.scores[spp][m].smape for r in results)) for m in METHODS)
+        smape_wins = sum(r.scores[spp]["kpcn"].smape <= r.scores[spp]["oidn"].smape for r in results)
+        relmse_wins = sum(r.scores[spp]["kpcn"].relmse <= r.scores[spp]["oidn"].relmse for r in results)
+        energy = " / ".join(str(sum(abs(r.scores[spp][m].energy - 1) <= ENERGY_TOLERANCE for r in results))
+                            for m in ("kpcn", "oidn"))
+        lines.append(f"| {spp} | {medians} | {smape_wins} of {n} | {relmse_wins} of {n} | {energy} of {n} |")
+    return "\n".join(lines)
+
+
+def scene_tables(results: list[SceneQuality], out_dir: Path) -> str:
+    blocks = []
+    for r in results:
+        lines = [f"### {r.name}", "", "| spp | method | SMAPE | relMSE | PSNR dB | energy |", "|---:|---|---:|---:|---:|---:|"]
+        for spp in SPP_LEVELS:
+            for method in METHODS:
+                s = r.scores[spp][method]
+                lines.append(f"| {spp} | {LABELS[method]} | {s.smape:.4f} | {s.relmse:.4g} | {s.psnr:.2f} | {s.energy:.3f} |")
+        if r.figure is not None:
+            lines += ["", f"![{r.name}: crops and error maps]({r.figure.relative_to(out_dir).as_posix()})"]
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
+
+
+def flicker_table(flicker: dict[str, dict[str, float]]) -> str:
+    if not flicker:
+        return "(no animated scene in this run)"
+    lines = ["| scene | noisy | KPCN (temporal) | OIDN (per frame) |", "|---|---:|---:|---:|"]
+    for name, values in flicker.items():
+        lines.append(f"| {name} | {values['noisy']:.5f} | {values['kpcn']:.5f} | {values['oidn']:.5f} |")
+    return "\n".join(lines)
+
+
+def write_suite_quality_report(results: list[SceneQuality], flicker: dict[str, dict[str, float]], out_dir: Path,
+                               oidn_note: str, weights: str) -> Path:
+    path = out_dir / REPORT_NAME
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path.write_text(fill(
+        "suite_quality.md", provenance=provenance(variant=active_variant()), oidn=oidn_note, weights=weights,
+        count=len(results), spp_levels=", ".join(str(s) for s in SPP_LEVELS), summary=summary_table(results),
+        flicker=flicker_table(flicker), scenes=scene_tables(results, out_dir)))
+    return path
+
+
+def run_suite_quality_report(out_dir: Path, *, weights_dir: Path | None = None, only: list[str] | None = None,
+                             reference_dir: Path = DEFAULT_REFERENCE_DIR) -> Path:
+    oidn, oidn_note = oidn_denoiser()
+    if oidn is None:
+        raise RuntimeError(f"the suite quality report compares with OIDN: {oidn_note}")
+    nets = load_bench_networks(weights_dir)
+    figures = out_dir / "suite-quality"
+    results, flicker = [], {}
+    with pinned_torch_threads(TORCH_THREADS):
+        for scene in dev_scenes(only):
+            reference, _ = load_reference(reference_dir, scene, None if scene.frames == 1 else 0)
+            quality = score_scene(scene, reference, nets.networks, oidn, figures)
+            results.append(quality)
+            low = quality.scores[SPP_LEVELS[0]]
+            print(f"bench --denoiser --suite dev: {scene.name}: 16 spp SMAPE noisy {low['noisy'].smape:.4f} "
+                  f"KPCN {low['kpcn'].smape:.4f} OIDN {low['oidn'].smape:.4f}", flush=True)
+            if scene.frames > 1:
+                references = [load_reference(reference_dir, scene, f)[0] for f in range(scene.frames)]
+                flicker[scene.name] = temporal_flicker(scene, references, nets.networks, oidn)
+    return write_suite_quality_report(results, flicker, out_dir, oidn_note, nets.description)

@@ -1,0 +1,33 @@
+"""`renderloop bench --denoiser --suite dev`: a real run on the cheapest development scene
+against its committed reference, and the crop finder."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.suite_quality import CROP, _hardest_crop
+from bench.suite_quality_report import run_suite_quality_report
+
+
+def test_hardest_crop_is_the_window_with_the_most_error():
+    error = np.zeros((100, 120))
+    error[70:80, 90:100] = 1.0
+    rows, cols = _hardest_crop(error)
+    assert rows.stop - rows.start == CROP and cols.stop - cols.start == CROP
+    assert error[rows, cols].sum() == error.sum()
+
+
+def test_suite_quality_report_scores_noisy_ours_and_oidn_at_every_sample_count(tmp_path: Path):
+    pytest.importorskip("pyoidn")
+    text = run_suite_quality_report(tmp_path, only=["point_object"]).read_text()
+    assert "$" not in text and "Command:" in text
+    rows = [line for line in text.splitlines() if line.startswith("| 16 |") or line.startswith("| 256 |")]
+    per_method = [r for r in rows if r.count("|") == 7]  # the per-scene table: spp, method, 4 scores
+    assert len(per_method) == 6
+    for row in per_method:
+        smape, relmse, psnr, energy = (float(c) for c in row.strip("|").split("|")[2:])
+        assert all(math.isfinite(v) for v in (smape, relmse, psnr, energy)) and 0.5 < energy < 1.5
+    assert (tmp_path / "suite-quality" / "point_object.png").stat().st_size > 0
