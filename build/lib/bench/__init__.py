@@ -1,1 +1,0 @@
-"""The measurement wing: benchmarks and reports (never imported by the product)."""

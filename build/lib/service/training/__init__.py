@@ -1,1 +1,0 @@
-"""Training the networks from a rendered data set (`renderloop train`)."""
