@@ -304,10 +304,11 @@ class RenderloopClient:
         return self._request("PUT", path, json={**body, "sequence": sequence}).json()
 
     def _next_sequence(self) -> int:
-        # Microseconds since the epoch, strictly increasing within this client: another client
-        # (or this one after a restart) that edits the same job later still counts as newer.
+        # Milliseconds since the epoch (what the API documents), strictly increasing within this
+        # client: another client (or this one after a restart) that edits the same job later
+        # still counts as newer.
         with self._sequence_lock:
-            self._last_sequence = max(self._last_sequence + 1, time.time_ns() // 1000)
+            self._last_sequence = max(self._last_sequence + 1, time.time_ns() // 1_000_000)
             return self._last_sequence
 
 

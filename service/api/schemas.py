@@ -14,9 +14,9 @@ from service.loop.spec import (ALLOCATORS, LAMBDA_RANGE, MAX_SEED, SERVICE_LIMIT
 
 MAX_RECTS = 1024
 MAX_SEQUENCE = 2**63 - 1
-SEQUENCE_DESCRIPTION = ("optional: a number that grows with every λ edit this client makes (a millisecond clock "
-                        "will do); an edit that arrives after one with a higher number is dropped, so edits that "
-                        "overtake each other on the way still end on the newest")
+SEQUENCE_DESCRIPTION = ("optional: when the edit was issued, in milliseconds since the Unix epoch (one job's "
+                        "editors must share this clock); an edit that arrives after one with a higher number is "
+                        "dropped, so edits that overtake each other on the way still end on the newest")
 # A JSON body may only name a built-in scene: no dots or slashes, so never a server path.
 BUILTIN_SCENE_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_\-]*$"
 BUNDLE_SCENE_PATTERN = r"^[^\x00]+\.[xX][mM][lL]$"  # checked for escapes by service.jobs.bundle
