@@ -222,6 +222,7 @@ def run_serve(args) -> int:
     auth = " -H 'authorization: Bearer $RENDERLOOP_TOKEN'" if security.token else ""
     jobs = f", jobs: {without_password(args.db)}" if args.db else ""
     print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir}{jobs})")
+    print(f"the page: http://{args.host}:{args.port}/")
     print(f"try: curl -X POST http://{args.host}:{args.port}/jobs{auth} -H 'content-type: application/json' "
           "-d '{\"scene\": \"cornell-box\", \"width\": 64, \"height\": 64, \"max_iterations\": 3}'")
     try:

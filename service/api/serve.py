@@ -8,6 +8,7 @@ RENDERLOOP_TORCH_THREADS / RENDERLOOP_TOKEN / RENDERLOOP_ALLOWED_HOSTS / RENDERL
 """
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -76,4 +77,15 @@ def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | N
     data_dir.mkdir(parents=True, exist_ok=True)
     app = create_app(data_dir, networks=networks, concurrency=concurrency, security=security,
                      bundle_limits=bundle_limits, job_limits=job_limits, retention=retention, db_url=db_url)
+    log_service_messages()
     uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS)
+
+
+def log_service_messages() -> None:
+    """uvicorn configures only its own loggers; the service's (jobs resumed at start-up, whether
+    scene loads are walled) go to stderr beside them, in the same shape."""
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s:     %(message)s"))
+    logger = logging.getLogger("service")
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
