@@ -27,6 +27,9 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Callable, Iterable, TypeVar
 
+import models
+import service
+
 T = TypeVar("T")
 
 # Syscall numbers are the same on every architecture Linux added Landlock to (5.13+).
@@ -115,8 +118,6 @@ def software_roots() -> list[Path]:
 
 
 def _project_packages() -> list:
-    import models  # noqa: PLC0415 - the packages themselves, to find where they are installed
-    import service  # noqa: PLC0415
     return [service, models]
 
 
