@@ -97,10 +97,11 @@ def _check(result: int, what: str) -> int:
     return result
 
 
-def software_roots() -> list[Path]:
-    """What any load may read: the interpreter's prefixes and library paths (the installed
-    packages, this project's included), and the system's shared libraries. Not the working
-    directory nor a folder holding it (`python -m` puts it on sys.path): relative names must
+@lru_cache(maxsize=1)
+def software_roots() -> tuple[Path, ...]:
+    """What any load may read, found once per process: the interpreter's prefixes and library
+    paths (the installed packages, this project's included), and the system's shared libraries.
+    Not the working directory nor a folder holding it (`python -m` puts it on sys.path): relative names must
     never resolve against the server's folder, where a data folder may live."""
     cwd = Path.cwd().resolve()
     paths = {sys.prefix, sys.base_prefix, sys.exec_prefix, *sysconfig.get_paths().values(), *sys.path}
@@ -114,7 +115,7 @@ def software_roots() -> list[Path]:
     drjit_cache = Path.home() / ".drjit"  # Dr.Jit's compiled-kernel cache, read when a load launches kernels
     if drjit_cache.is_dir():
         roots.append(drjit_cache)
-    return sorted(set(roots))
+    return tuple(sorted(set(roots)))
 
 
 def _project_packages() -> list:

@@ -42,21 +42,16 @@ def run_job(store: JobStore, worker: JobWorker, iterations: int, timeout: float 
     raise AssertionError(f"job did not finish within {timeout} s: {store.get(record.id)}")
 
 
-def test_cancel_after_the_last_iteration_leaves_the_job_completed(store, tiny_networks):
+@pytest.mark.parametrize("iterations, state, stop_reason", [
+    (1, COMPLETED, "max_iterations"),  # the cancel came after the last iteration: too late to matter
+    (3, CANCELED, "canceled"),  # after the first of three: the job stops there
+])
+def test_a_cancel_after_an_iteration_cancels_only_a_job_with_iterations_left(store, tiny_networks, iterations,
+                                                                               state, stop_reason):
     worker = CancelAfterEachIteration(store, tiny_networks)
     try:
-        done = run_job(store, worker, iterations=1)
+        done = run_job(store, worker, iterations=iterations)
     finally:
         worker.stop()
-    assert (done.state, done.stop_reason, done.iteration) == (COMPLETED, "max_iterations", 1)
-    assert worker.files(done.id).result_path(0).is_file()
-
-
-def test_cancel_after_an_earlier_iteration_cancels_the_job(store, tiny_networks):
-    worker = CancelAfterEachIteration(store, tiny_networks)
-    try:
-        done = run_job(store, worker, iterations=3)
-    finally:
-        worker.stop()
-    assert (done.state, done.stop_reason, done.iteration) == (CANCELED, "canceled", 1)
-    assert worker.files(done.id).result_path(0).is_file()  # what was rendered is kept
+    assert (done.state, done.stop_reason, done.iteration) == (state, stop_reason, 1)
+    assert worker.files(done.id).result_path(0).is_file()  # what was rendered is kept either way
