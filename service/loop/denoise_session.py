@@ -12,6 +12,7 @@ import threading
 import numpy as np
 import torch
 
+from models.frames import FrameTensors
 from models.pretrained import Networks
 from service.loop.tensors import frame_tensors, lam_tensor, temporal_window, to_image
 from service.render.framebuffer import FrameBuffer
@@ -28,6 +29,11 @@ class DenoiseSession:
         self._caches: dict[int, object] = {}  # models.Denoiser.prepare output per owned frame
         self.full_calls = 0  # full denoiser forward passes (prepare + apply)
         self.tail_calls = 0  # λ-only re-runs from cached features
+        # Frames go where the networks are: CPU, or CUDA on a GPU worker (service.jobs.ray_actor).
+        self.device = next(networks.denoiser.parameters()).device
+
+    def _tensors(self, buffer: FrameBuffer) -> FrameTensors:
+        return frame_tensors(buffer).to(self.device)
 
     @property
     def has_features(self) -> bool:
@@ -38,7 +44,7 @@ class DenoiseSession:
         """Full passes over every owned frame's temporal window; keeps the pre-λ features.
         Returns the denoised images as (1, 3, H, W) tensors (the error network's input)."""
         needed = sorted({i for f in self.owned for i in temporal_window(f, len(buffers), self.temporal_radius)[0]})
-        tensors = {i: frame_tensors(buffers[i]) for i in needed}
+        tensors = {i: self._tensors(buffers[i]) for i in needed}
         lam = lam_tensor(lam_map)
         caches, images = {}, {}
         for f in self.owned:
@@ -53,7 +59,7 @@ class DenoiseSession:
     @torch.no_grad()
     def predict_error(self, buffers: list[FrameBuffer], images: dict[int, torch.Tensor]) -> dict[int, np.ndarray]:
         """Per-pixel predicted SMAPE of each denoised (owned) frame, (H, W) each."""
-        return {f: to_image(self.networks.error_predictor(frame_tensors(buffers[f]), image))
+        return {f: to_image(self.networks.error_predictor(self._tensors(buffers[f]), image))
                 for f, image in images.items()}
 
     @torch.no_grad()
