@@ -166,7 +166,9 @@ def add_serve_parser(sub) -> None:
     backend = p.add_mutually_exclusive_group()
     backend.add_argument("--workers", type=int, default=None,
                          help="Ray workers on a local Ray runtime this server starts: jobs (or shares of a sequence's "
-                              "frames) rendered at once, one CPU each (default: one per core). The default backend")
+                              "frames) rendered at once, one CPU each (default: one per core). The default backend; "
+                              "with none of --workers/--ray-address/--concurrency: $RENDERLOOP_CONCURRENCY, "
+                              "$RENDERLOOP_WORKERS, $RENDERLOOP_RAY_ADDRESS decide")
     backend.add_argument("--ray-address", metavar="ADDRESS", default=None,
                          help="join the Ray cluster at ADDRESS (e.g. 10.0.0.5:6379, from `ray start --head`) instead "
                               "of starting one; all nodes must share the data dir")
@@ -209,14 +211,17 @@ def serve_security(args) -> SecuritySettings:
 
 
 def run_serve(args) -> int:
-    from service.api.serve import serve  # uvicorn, the app, the loop: only when serving
+    from service.api.serve import serve, worker_settings_from_env  # uvicorn, the app, the loop: only when serving
 
     if not 0 < args.port < 65536:
         raise CliError(f"--port must be in 1..65535 (got {args.port})")
     for name in ("concurrency", "workers"):
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise CliError(f"--{name} must be >= 1")
-    workers = WorkerSettings(concurrency=args.concurrency, workers=args.workers, ray_address=args.ray_address)
+    explicit = args.concurrency is not None or args.workers is not None or args.ray_address
+    # No flag: $RENDERLOOP_CONCURRENCY / $RENDERLOOP_WORKERS / $RENDERLOOP_RAY_ADDRESS, else local Ray.
+    workers = (WorkerSettings(concurrency=args.concurrency, workers=args.workers, ray_address=args.ray_address)
+               if explicit else worker_settings_from_env())
     security = serve_security(args)
     if args.max_bundle_mb < 1 or args.max_bundle_files < 1:
         raise CliError("--max-bundle-mb and --max-bundle-files must be >= 1")
