@@ -163,7 +163,15 @@ class RayJobWorker(JobWorker):
     def _run(self, job_id: str) -> None:
         if self._stopping.is_set() or not self.store.claim(job_id):
             return
-        cancel = self._cancel_event(job_id)
+        with self._lock:
+            self._groups[job_id] = []  # live from the claim on: a delete waits until it ends
+        try:
+            self._run_attempts(job_id, self._cancel_event(job_id))
+        finally:
+            with self._lock:
+                self._groups.pop(job_id, None)
+
+    def _run_attempts(self, job_id: str, cancel: threading.Event) -> None:
         restarts = 0
         while True:
             try:
@@ -212,7 +220,7 @@ class RayJobWorker(JobWorker):
             self._end(job_id, group, last, cancel)
         finally:
             with self._lock:
-                self._groups.pop(job_id, None)
+                self._groups[job_id] = []
             self._kill(group)
 
     def _iterate(self, job_id: str, record: JobRecord, files: JobFiles, group: list, cancel: threading.Event,
