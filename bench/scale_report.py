@@ -20,7 +20,7 @@ import ray
 
 from bench.common import fill, fmt, pinned_torch_threads, provenance
 from models.pretrained import Networks, load_networks
-from service.jobs.ray_worker import RayJobWorker, RaySettings
+from service.jobs.ray_worker import RayJobWorker, RaySettings, start_local_ray
 from service.jobs.store import COMPLETED, JobStore
 from service.jobs.worker import JobWorker
 from service.loop.spec import LoopSpec
@@ -29,9 +29,9 @@ from service.render.runtime import active_variant
 RAY_CPUS = 2
 COMPUTE_STAGES = ("allocate", "render", "denoise", "error")
 THROUGHPUT_JOBS = 8
-THROUGHPUT_JOB = LoopSpec(scene="cornell-box", width=64, height=64, spp_first=16, max_iterations=3)
+THROUGHPUT_JOB = LoopSpec(scene="cornell-box", width=128, height=128, spp_first=16, max_iterations=4)
 OVERHEAD_JOB = LoopSpec(scene="cornell-box", width=32, height=32, spp_first=4, max_iterations=7)
-SEQUENCE_JOB = LoopSpec(scene="cornell-box-orbit", width=64, height=64, frames=5, spp_first=16, max_iterations=3)
+SEQUENCE_JOB = LoopSpec(scene="cornell-box-orbit", width=96, height=96, frames=5, spp_first=16, max_iterations=4)
 JOB_TIMEOUT_SECONDS = 1800.0
 
 
@@ -112,7 +112,7 @@ class ScaleResults:
 
 
 def measure(networks: Networks) -> ScaleResults:
-    ray.init(num_cpus=RAY_CPUS, include_dashboard=False, log_to_driver=False)
+    start_local_ray(RAY_CPUS)
     try:
         throughput = {w: run_jobs(f"{THROUGHPUT_JOBS} jobs, {w} worker(s)", ray_worker(networks, w),
                                   [THROUGHPUT_JOB] * THROUGHPUT_JOBS) for w in (1, 2)}
@@ -123,6 +123,14 @@ def measure(networks: Networks) -> ScaleResults:
     finally:
         ray.shutdown()
     return ScaleResults(throughput, overhead_threads, overhead_ray, sequence)
+
+
+def job_seconds(run: Run) -> tuple[float, float]:
+    """Mean per job: wall from its start to its end, and its compute stages."""
+    records = [run.store.get(i) for i in run.ids]
+    walls = [r.finished_at - r.started_at for r in records]
+    compute = [sum(r.timings.get(k, 0.0) for k in COMPUTE_STAGES) for r in records]
+    return statistics.mean(walls), statistics.mean(compute)
 
 
 def _median_ms(values: list[float]) -> str:
@@ -151,6 +159,8 @@ def write_scale_report(results: ScaleResults, out: Path) -> Path:
         one_s=fmt(one.seconds, ".1f"), two_s=fmt(two.seconds, ".1f"),
         one_rate=fmt(per_minute[1], ".1f"), two_rate=fmt(per_minute[2], ".1f"),
         ratio=fmt(per_minute[2] / per_minute[1], ".2f"),
+        one_job=fmt(job_seconds(one)[0], ".1f"), two_job=fmt(job_seconds(two)[0], ".1f"),
+        one_compute=fmt(job_seconds(one)[1], ".1f"), two_compute=fmt(job_seconds(two)[1], ".1f"),
         threads_ms=_median_ms(over_threads), ray_ms=_median_ms(over_ray),
         delta_ms=fmt(1000 * (statistics.median(over_ray) - statistics.median(over_threads)), ".1f"),
         threads_wall=fmt(threads.seconds, ".1f"), ray_wall=fmt(on_ray.seconds, ".1f"),

@@ -18,7 +18,7 @@ from PIL import Image
 ray = pytest.importorskip("ray", reason="Ray cannot be imported here: the Ray backend's tests need it (pip install ray)")
 
 from service.exr import read_exr  # noqa: E402  (after the skip: these import Ray's backend)
-from service.jobs.ray_worker import RayJobWorker, RaySettings, shares  # noqa: E402
+from service.jobs.ray_worker import RayJobWorker, RaySettings, shares, start_local_ray  # noqa: E402
 from service.jobs.store import CANCELED, COMPLETED, FAILED, RUNNING, JobRecord, JobStore  # noqa: E402
 from service.loop.loop import RenderLoop  # noqa: E402
 from service.loop.spec import LoopSpec  # noqa: E402
@@ -30,7 +30,7 @@ WORKERS = 2
 @pytest.fixture(scope="module")
 def ray_runtime():
     """One local Ray runtime (two CPUs: two workers) for the module; starting one costs ~8 s."""
-    ray.init(num_cpus=WORKERS, include_dashboard=False, log_to_driver=False)
+    start_local_ray(WORKERS)
     yield
     ray.shutdown()
 
