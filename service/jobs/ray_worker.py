@@ -144,7 +144,10 @@ class RayJobWorker(JobWorker):
         """The process ids of a running job's actors (leader first); empty when none runs."""
         with self._lock:
             group = list(self._groups.get(job_id, []))
-        return ray.get([actor.pid.remote() for actor in group]) if group else []
+        try:
+            return ray.get([actor.pid.remote() for actor in group]) if group else []
+        except RayActorError:
+            return []  # one just died: the job is between workers
 
     # -- cancel ---------------------------------------------------------------------------------
 

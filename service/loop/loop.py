@@ -48,7 +48,7 @@ class RenderLoop:
         `scene_root`: the folder the scene may read files from (a job's bundle; default: the
         scene file's own folder). `owned`: the frames this loop renders and denoises (default
         all); a sequence fanned out over several workers gives each a share, and the others'
-        buffers arrive through `adopt_rendered` / `adopt_denoised` (service.jobs.ray_sequence)."""
+        buffers arrive through `adopt_rendered` / `adopt_denoised` (service.jobs.ray_actor)."""
         validate_spec(spec)
         if spec.denoise and networks is None:
             raise LoopSpecError("denoising needs the networks: pass them (models.pretrained.load_networks)")
