@@ -79,7 +79,7 @@ def running_pids(worker: RayJobWorker, job_id: str, timeout: float = 60.0) -> li
         if pids:
             return pids
         time.sleep(0.02)
-    raise AssertionError(f"job {job_id} got no workers within {timeout} s")
+    raise AssertionError(f"job {job_id} got no workers within {timeout} s: {worker.store.get(job_id)}")
 
 
 def process_gone(pid: int) -> bool:
@@ -97,13 +97,17 @@ def test_frames_split_into_contiguous_shares_no_bigger_than_one_apart():
 
 
 def test_two_jobs_run_at_the_same_time_on_two_workers(worker, store):
-    spec = LoopSpec(scene="cornell-box", width=32, height=32, spp_first=16, max_iterations=3)
-    ids = [submit(store, worker, spec) for _ in range(2)]
-    pids = [running_pids(worker, job_id) for job_id in ids]
+    ids = [submit(store, worker, slow_job(iterations=4)) for _ in range(2)]
+    pids: dict[str, list[int]] = {}
+    deadline = time.monotonic() + 60
+    while len(pids) < 2 and time.monotonic() < deadline:  # both asked in turn: neither may end first
+        pids.update({job_id: found for job_id in ids if job_id not in pids
+                     for found in [worker.worker_pids(job_id)] if found})
+        time.sleep(0.02)
     a, b = (wait_until(store, job_id, lambda r: r.finished) for job_id in ids)
     assert (a.state, b.state) == (COMPLETED, COMPLETED)
     assert a.started_at < b.finished_at and b.started_at < a.finished_at  # their run times overlap
-    assert all(pids) and pids[0] != pids[1]  # each in its own worker process
+    assert len(pids) == 2 and pids[ids[0]] != pids[ids[1]]  # each in its own worker process
 
 
 def test_cancel_during_an_iteration_ends_the_job_and_its_worker_within_5_s(worker, store):
@@ -175,7 +179,7 @@ def test_lambda_edits_on_a_running_job_rerun_only_the_cached_tail_in_its_worker(
 
 
 def test_a_sequence_fanned_out_over_two_workers_equals_the_single_process_result(worker, store, tiny_networks):
-    spec = LoopSpec(scene="cornell-box-orbit", width=24, height=24, frames=3, spp_first=4, max_iterations=3)
+    spec = LoopSpec(scene="cornell-box-orbit", width=24, height=24, frames=3, spp_first=4, max_iterations=4)
     job_id = submit(store, worker, spec)
     pids = []
     while not store.get(job_id).finished:
