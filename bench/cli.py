@@ -12,6 +12,7 @@ from bench.dev_suite_report import run_dev_suite_report
 from bench.loop_report import add_arguments as add_loop_arguments, run_loop_command
 from bench.models_report import main as models_main
 from bench.quality_report import run_quality_report
+from bench.scale_report import run_scale_report
 from bench.sampler_report import bench_memory, bench_sampler, write_memory_report, write_sampler_report
 from bench.suite_quality_report import run_suite_quality_report
 
@@ -43,6 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="KPCN vs OIDN at 16 spp and the loop vs uniform + OIDN at 128 spp on scenes/dev → docs/dev-suite.md")
     p.add_argument("--calibration", action="store_true",
                    help="predicted vs true error per iteration and where --target-error stops, on scenes/dev → calibration.md")
+    p.add_argument("--scale", action="store_true",
+                   help="Ray workers: 8 jobs on 1 vs 2 workers, Ray vs in-process overhead per iteration, a 5-frame "
+                        "sequence on 1 vs 2 workers → scale.md")
     add_loop_arguments(p)  # --loop [--quick] --weights --cache
 
 
@@ -76,6 +80,9 @@ def run_bench(args: argparse.Namespace) -> int:
         return 0
     if args.loop:
         return run_loop_command(args)
+    if args.scale:
+        print(f"wrote {run_scale_report(args.out, weights_dir=args.weights)}")
+        return 0
     if args.denoiser and args.suite == "dev":
         print(f"wrote {run_suite_quality_report(args.out, weights_dir=args.weights, only=args.only)}")
         return 0

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from service import client_command, denoise_command, train_command
 from service.api.security import LOOPBACK_HOSTS, SecuritySettings, is_loopback
+from service.jobs.worker_settings import WorkerSettings
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.jobs.db.url import is_postgres_url, without_password
 from service.jobs.errors import StoreUnavailable
@@ -162,7 +163,18 @@ def add_serve_parser(sub) -> None:
     p.add_argument("--db", metavar="URL", default=os.environ.get("RENDERLOOP_DB") or None,
                    help="job records in PostgreSQL, e.g. postgresql://user@host:5432/renderloop, shared by several "
                         "servers (default: $RENDERLOOP_DB, else DATA_DIR/jobs.sqlite); job files stay in the data dir")
-    p.add_argument("--concurrency", type=int, default=1, help="jobs rendered at once (default 1)")
+    backend = p.add_mutually_exclusive_group()
+    backend.add_argument("--workers", type=int, default=None,
+                         help="Ray workers on a local Ray runtime this server starts: jobs (or shares of a sequence's "
+                              "frames) rendered at once, one CPU each (default: one per core). The default backend; "
+                              "with none of --workers/--ray-address/--concurrency: $RENDERLOOP_CONCURRENCY, "
+                              "$RENDERLOOP_WORKERS, $RENDERLOOP_RAY_ADDRESS decide")
+    backend.add_argument("--ray-address", metavar="ADDRESS", default=None,
+                         help="join the Ray cluster at ADDRESS (e.g. 10.0.0.5:6379, from `ray start --head`) instead "
+                              "of starting one; all nodes must share the data dir")
+    backend.add_argument("--concurrency", type=int, default=None,
+                         help="no Ray: render N jobs at once in threads of the server process (the in-process "
+                              "backend; a job cannot be killed mid-iteration nor limited in memory)")
     p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
                    "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
     p.add_argument("--token", default=os.environ.get("RENDERLOOP_TOKEN"),
@@ -199,12 +211,17 @@ def serve_security(args) -> SecuritySettings:
 
 
 def run_serve(args) -> int:
-    from service.api.serve import serve  # uvicorn, the app, the loop: only when serving
+    from service.api.serve import serve, worker_settings_from_env  # uvicorn, the app, the loop: only when serving
 
     if not 0 < args.port < 65536:
         raise CliError(f"--port must be in 1..65535 (got {args.port})")
-    if args.concurrency < 1:
-        raise CliError("--concurrency must be >= 1")
+    for name in ("concurrency", "workers"):
+        if getattr(args, name) is not None and getattr(args, name) < 1:
+            raise CliError(f"--{name} must be >= 1")
+    explicit = args.concurrency is not None or args.workers is not None or args.ray_address
+    # No flag: $RENDERLOOP_CONCURRENCY / $RENDERLOOP_WORKERS / $RENDERLOOP_RAY_ADDRESS, else local Ray.
+    workers = (WorkerSettings(concurrency=args.concurrency, workers=args.workers, ray_address=args.ray_address)
+               if explicit else worker_settings_from_env())
     security = serve_security(args)
     if args.max_bundle_mb < 1 or args.max_bundle_files < 1:
         raise CliError("--max-bundle-mb and --max-bundle-files must be >= 1")
@@ -222,11 +239,11 @@ def run_serve(args) -> int:
     auth = " -H 'authorization: Bearer $RENDERLOOP_TOKEN'" if security.token else ""
     jobs = f", jobs: {without_password(args.db)}" if args.db else ""
     print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir}{jobs})")
-    print(f"the page: http://{args.host}:{args.port}/")
+    print(f"the page: http://{args.host}:{args.port}/  (jobs run on: {workers.describe()})")
     print(f"try: curl -X POST http://{args.host}:{args.port}/jobs{auth} -H 'content-type: application/json' "
           "-d '{\"scene\": \"cornell-box\", \"width\": 64, \"height\": 64, \"max_iterations\": 3}'")
     try:
-        serve(args.host, args.port, args.data_dir, args.concurrency, networks=load_cli_networks(args.weights),
+        serve(args.host, args.port, args.data_dir, workers, networks=load_cli_networks(args.weights),
               security=security, bundle_limits=limits, job_limits=job_limits, retention=retention, db_url=args.db)
     except StoreUnavailable as exc:
         raise CliError(str(exc)) from exc

@@ -15,6 +15,10 @@ from models.pretrained import Networks
 # The suite runs on shared 2-core machines, where torch's one-thread-per-core default makes
 # small denoises 30× slower (docs/benchmarks.md); servers started by tests inherit this.
 os.environ.setdefault("RENDERLOOP_TORCH_THREADS", "1")
+# Servers started by tests keep the in-process thread backend unless a test asks for Ray
+# (RENDERLOOP_CONCURRENCY="" plus RENDERLOOP_WORKERS): a local Ray runtime costs ~8 s to start
+# and the suite starts dozens of servers on 2 cores. tests/service/test_ray_workers.py covers Ray.
+os.environ.setdefault("RENDERLOOP_CONCURRENCY", "1")
 
 # A camera that sees the unit sphere at the origin; tiny film so loads and renders stay cheap.
 TINY_SENSOR_XML = """

@@ -174,3 +174,10 @@ def test_serve_with_an_unreachable_postgresql_says_so_in_one_line_without_the_pa
     assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
     assert f"renderloop: error: cannot connect to PostgreSQL at postgresql://render:***@127.0.0.1:{port}/jobs" in result.stderr
     assert "s3cret" not in result.stderr + result.stdout
+
+
+def test_serve_refuses_zero_workers_and_a_thread_count_beside_ray_workers(tmp_path):
+    zero = renderloop("serve", "--data-dir", tmp_path / "data", "--workers", "0")
+    assert zero.returncode == 2 and zero.stderr.strip() == "renderloop: error: --workers must be >= 1"
+    both = renderloop("serve", "--data-dir", tmp_path / "data", "--workers", "2", "--concurrency", "1")
+    assert both.returncode == 2 and "not allowed with argument --workers" in both.stderr

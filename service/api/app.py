@@ -21,7 +21,8 @@ from service.api.security import RequestGuard, SecuritySettings
 from service.jobs import bundle
 from service.jobs.retention import Housekeeper, Retention
 from service.jobs.store import JobStore
-from service.jobs.worker import JobWorker
+from service.jobs.backends import make_worker
+from service.jobs.worker_settings import THREADS, WorkerSettings
 from service.loop.spec import SERVICE_LIMITS, JobLimits
 from service.render.sandbox import wall_support
 
@@ -31,16 +32,16 @@ FORM_OVERHEAD_BYTES = 1024 * 1024  # multipart headers and the spec field around
 MAX_UPLOAD_BYTES = bundle.MAX_BUNDLE_BYTES + FORM_OVERHEAD_BYTES  # with the default bundle limits
 
 
-def create_app(data_dir: Path, *, networks: Networks, concurrency: int = 1,
+def create_app(data_dir: Path, *, networks: Networks, workers: WorkerSettings = THREADS,
                security: SecuritySettings = SecuritySettings(),
                bundle_limits: bundle.BundleLimits = bundle.BundleLimits(),
                job_limits: JobLimits = SERVICE_LIMITS, retention: Retention = Retention(),
                db_url: str | None = None) -> FastAPI:
     """`db_url`: None for the SQLite file in `data_dir`, or a postgresql:// URL; job files stay
-    under `data_dir` either way."""
+    under `data_dir` either way. `workers`: the thread backend (default) or Ray."""
     store = JobStore(Path(data_dir), db_url)
     metrics = ServiceMetrics(store)
-    worker = JobWorker(store, networks, concurrency=concurrency, observer=metrics)
+    worker = make_worker(store, networks, workers, observer=metrics)
     housekeeper = Housekeeper(store, retention)
 
     @asynccontextmanager

@@ -2,7 +2,8 @@
 or PostgreSQL with `--db postgresql://…`; job files stay in the data dir).
 
 `app_from_env` is a uvicorn factory (`uvicorn --factory service.api.serve:app_from_env`)
-reading RENDERLOOP_DATA_DIR / RENDERLOOP_DB / RENDERLOOP_CONCURRENCY / RENDERLOOP_WEIGHTS_DIR /
+reading RENDERLOOP_DATA_DIR / RENDERLOOP_DB / RENDERLOOP_CONCURRENCY (the thread backend) or
+RENDERLOOP_WORKERS / RENDERLOOP_RAY_ADDRESS (Ray, the default) / RENDERLOOP_WEIGHTS_DIR /
 RENDERLOOP_TORCH_THREADS / RENDERLOOP_TOKEN / RENDERLOOP_ALLOWED_HOSTS / RENDERLOOP_CORS_ORIGINS.
 `renderloop serve` (service/cli.py) is the one command line.
 """
@@ -19,6 +20,7 @@ from fastapi import FastAPI
 from models.pretrained import Networks, load_networks
 from service.api.app import create_app
 from service.api.security import SecuritySettings
+from service.jobs.worker_settings import WorkerSettings
 from service.jobs.retention import Retention
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.loop.spec import SERVICE_LIMITS, JobLimits
@@ -26,7 +28,9 @@ from service.loop.tensors import configure_torch_threads
 
 DATA_DIR_ENV = "RENDERLOOP_DATA_DIR"
 DB_ENV = "RENDERLOOP_DB"  # a postgresql:// URL; unset or empty: the SQLite file in the data dir
-CONCURRENCY_ENV = "RENDERLOOP_CONCURRENCY"
+CONCURRENCY_ENV = "RENDERLOOP_CONCURRENCY"  # set: the thread backend with that many threads
+WORKERS_ENV = "RENDERLOOP_WORKERS"  # Ray workers on a local runtime (default: one per core)
+RAY_ADDRESS_ENV = "RENDERLOOP_RAY_ADDRESS"  # join this Ray cluster
 MAX_BUNDLE_MB_ENV = "RENDERLOOP_MAX_BUNDLE_MB"
 MAX_BUNDLE_FILES_ENV = "RENDERLOOP_MAX_BUNDLE_FILES"
 MAX_JOB_MEMORY_GB_ENV = "RENDERLOOP_MAX_JOB_MEMORY_GB"
@@ -53,9 +57,17 @@ def bundle_limits_from_env() -> BundleLimits:
 def app_from_env() -> FastAPI:
     configure_torch_threads()
     return create_app(default_data_dir(), networks=load_networks(),
-                      concurrency=int(os.environ.get(CONCURRENCY_ENV, "1")), security=SecuritySettings.from_env(),
+                      workers=worker_settings_from_env(), security=SecuritySettings.from_env(),
                       bundle_limits=bundle_limits_from_env(), job_limits=job_limits_from_env(),
                       retention=retention_from_env(), db_url=os.environ.get(DB_ENV) or None)
+
+
+def worker_settings_from_env() -> WorkerSettings:
+    """RENDERLOOP_CONCURRENCY picks the thread backend; otherwise Ray, as `renderloop serve` does."""
+    concurrency, workers = os.environ.get(CONCURRENCY_ENV), os.environ.get(WORKERS_ENV)
+    if concurrency:
+        return WorkerSettings(concurrency=int(concurrency))
+    return WorkerSettings(workers=int(workers) if workers else None, ray_address=os.environ.get(RAY_ADDRESS_ENV) or None)
 
 
 def retention_from_env() -> Retention:
@@ -69,13 +81,13 @@ def job_limits_from_env() -> JobLimits:
     return replace(SERVICE_LIMITS, max_memory_bytes=float(gigabytes) * 2**30) if gigabytes else SERVICE_LIMITS
 
 
-def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | None = None, concurrency: int = 1,
-          *, networks: Networks, security: SecuritySettings = SecuritySettings(),
+def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | None = None,
+          workers: WorkerSettings = WorkerSettings(), *, networks: Networks, security: SecuritySettings = SecuritySettings(),
           bundle_limits: BundleLimits = BundleLimits(), job_limits: JobLimits = SERVICE_LIMITS,
           retention: Retention = Retention(), db_url: str | None = None) -> None:
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
-    app = create_app(data_dir, networks=networks, concurrency=concurrency, security=security,
+    app = create_app(data_dir, networks=networks, workers=workers, security=security,
                      bundle_limits=bundle_limits, job_limits=job_limits, retention=retention, db_url=db_url)
     log_service_messages()
     uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS)

@@ -16,11 +16,12 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
 from models.pretrained import Networks
+from service.exr import ExrFrame
 from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
@@ -61,6 +62,17 @@ class LambdaApplied:
     tail_passes: int = 0
 
 
+@dataclass(frozen=True)
+class Relambda:
+    """A λ re-denoise: the new image per frame, the denoiser work it took, and how to build the
+    result frames from it (None where the loop lives elsewhere and keeps them itself)."""
+
+    images: list[np.ndarray]
+    full_passes: int = 0
+    tail_passes: int = 0
+    results: Callable[[], list[ExrFrame]] | None = None
+
+
 def _failure_message(exc: BaseException) -> str:
     text = str(exc).strip() or exc.__class__.__name__
     return f"{exc.__class__.__name__}: {text}" if not isinstance(exc, ValueError) else text
@@ -94,6 +106,21 @@ class NoObserver:
 def total_samples(buffers: list) -> int:
     """Samples accumulated in a job's frame buffers, all frames together."""
     return sum(int(buf.spp.sum()) for buf in buffers)
+
+
+def preview_layers(loop: RenderLoop, record: IterationRecord) -> list[dict[str, np.ndarray | None]]:
+    """Each frame's preview layers after an iteration (JobFiles.save_preview takes them)."""
+    lam = loop.state.lam_map
+    return [
+        {
+            "denoised": record.denoised[f] if record.denoised else buf.mean,
+            "noisy": buf.mean,
+            "error": record.error[f] if f < len(record.error) else None,
+            "spp": buf.spp.astype(np.float32),
+            "lambda": lam,
+        }
+        for f, buf in enumerate(record.buffers)
+    ]
 
 
 class JobWorker:
@@ -248,27 +275,13 @@ class JobWorker:
     ) -> dict[str, float]:
         started = time.perf_counter()
         loop.state.save(files.state_dir)
-        self._publish(job_id, files, self._preview_layers(loop, record))
+        self._publish(job_id, files, preview_layers(loop, record))
         io_seconds = {"io": time.perf_counter() - started}
         timings = _add_timings(_add_timings(timings, record.timings), io_seconds)
         self.store.record_iteration(
             job_id, record.iteration + 1, record.spp_mean, record.predicted_error, timings, record.stop_reason
         )
         return timings
-
-    @staticmethod
-    def _preview_layers(loop: RenderLoop, record: IterationRecord) -> list[dict[str, np.ndarray | None]]:
-        lam = loop.state.lam_map
-        return [
-            {
-                "denoised": record.denoised[f] if record.denoised else buf.mean,
-                "noisy": buf.mean,
-                "error": record.error[f] if f < len(record.error) else None,
-                "spp": buf.spp.astype(np.float32),
-                "lambda": lam,
-            }
-            for f, buf in enumerate(record.buffers)
-        ]
 
     def _publish(self, job_id: str, files: JobFiles, frames: list[dict[str, np.ndarray | None]]) -> int:
         """Write all frames' previews under one new version; returns it."""
@@ -349,25 +362,32 @@ class JobWorker:
         files.save_lambda(lam)
         self.store.set_lambda_value(job_id, value)
         record = self._require(job_id)
-        loop = self._loop_for_lambda(job_id, record)
-        if loop is None:
+        done = self._relambda(job_id, record, lam)
+        if done is None:
             return LambdaApplied(record.preview_version)  # nothing rendered yet: used from iteration 1
-        session = loop.session
-        full_before, tail_before = (session.full_calls, session.tail_calls) if session else (0, 0)
-        images = loop.set_lambda(lam)
-        passes = ({"full_passes": session.full_calls - full_before, "tail_passes": session.tail_calls - tail_before}
-                  if session else {})
-        if not images:
-            return LambdaApplied(record.preview_version, **passes)
+        if not done.images:
+            return LambdaApplied(record.preview_version, done.full_passes, done.tail_passes)
         frames = []
-        for f, image in enumerate(images):
+        for f, image in enumerate(done.images):
             previous = files.load_preview(f)
             layers = dict(previous.layers) if previous else {"noisy": None, "error": None, "spp": None}
             frames.append({**layers, "denoised": image, "lambda": lam})
         version = self._publish(job_id, files, frames)
-        if self._require(job_id).state == COMPLETED:
-            files.save_results(loop.result_frames())  # the result follows λ after the run too
-        return LambdaApplied(version, **passes)
+        if done.results is not None and self._require(job_id).state == COMPLETED:
+            files.save_results(done.results())  # the result follows λ after the run too
+        return LambdaApplied(version, done.full_passes, done.tail_passes)
+
+    def _relambda(self, job_id: str, record: JobRecord, lam: np.ndarray) -> Relambda | None:
+        """Re-denoise the job's frames with `lam` wherever its loop lives (here: this process);
+        None when nothing was rendered yet."""
+        loop = self._loop_for_lambda(job_id, record)
+        if loop is None:
+            return None
+        session = loop.session
+        full_before, tail_before = (session.full_calls, session.tail_calls) if session else (0, 0)
+        images = loop.set_lambda(lam)
+        full, tail = (session.full_calls - full_before, session.tail_calls - tail_before) if session else (0, 0)
+        return Relambda(images, full, tail, results=loop.result_frames)
 
     def _loop_for_lambda(self, job_id: str, record: JobRecord) -> RenderLoop | None:
         with self._lock:

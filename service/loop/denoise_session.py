@@ -12,51 +12,61 @@ import threading
 import numpy as np
 import torch
 
+from models.frames import FrameTensors
 from models.pretrained import Networks
 from service.loop.tensors import frame_tensors, lam_tensor, temporal_window, to_image
 from service.render.framebuffer import FrameBuffer
 
 
 class DenoiseSession:
-    def __init__(self, networks: Networks, frames: int, temporal_radius: int) -> None:
+    def __init__(self, networks: Networks, frames: int, temporal_radius: int, owned: range | None = None) -> None:
+        """`owned`: the frames this session denoises (default all); their temporal windows may
+        reach frames owned elsewhere, whose buffers the caller keeps current."""
         self.networks = networks
         self.temporal_radius = temporal_radius  # 0: every frame alone (no temporal work)
+        self.owned = owned if owned is not None else range(frames)
         self.lock = threading.RLock()
-        self._caches: list = [None] * frames  # models.Denoiser.prepare output per frame
+        self._caches: dict[int, object] = {}  # models.Denoiser.prepare output per owned frame
         self.full_calls = 0  # full denoiser forward passes (prepare + apply)
         self.tail_calls = 0  # λ-only re-runs from cached features
+        # Frames go where the networks are: CPU, or CUDA on a GPU worker (service.jobs.ray_actor).
+        self.device = next(networks.denoiser.parameters()).device
+
+    def _tensors(self, buffer: FrameBuffer) -> FrameTensors:
+        return frame_tensors(buffer).to(self.device)
 
     @property
     def has_features(self) -> bool:
-        return all(cache is not None for cache in self._caches)
+        return all(f in self._caches for f in self.owned)
 
     @torch.no_grad()
-    def denoise(self, buffers: list[FrameBuffer], lam_map: np.ndarray) -> list[torch.Tensor]:
-        """Full passes over every frame's temporal window; keeps the pre-λ features.
+    def denoise(self, buffers: list[FrameBuffer], lam_map: np.ndarray) -> dict[int, torch.Tensor]:
+        """Full passes over every owned frame's temporal window; keeps the pre-λ features.
         Returns the denoised images as (1, 3, H, W) tensors (the error network's input)."""
-        tensors = [frame_tensors(b) for b in buffers]
+        needed = sorted({i for f in self.owned for i in temporal_window(f, len(buffers), self.temporal_radius)[0]})
+        tensors = {i: self._tensors(buffers[i]) for i in needed}
         lam = lam_tensor(lam_map)
-        caches, images = [], []
-        for f in range(len(tensors)):
-            indices, centre = temporal_window(f, len(tensors), self.temporal_radius)
-            cache = self.networks.denoiser.prepare([tensors[i] for i in indices], centre)
-            caches.append(cache)
-            images.append(self.networks.denoiser.apply(cache, lam))
+        caches, images = {}, {}
+        for f in self.owned:
+            indices, centre = temporal_window(f, len(buffers), self.temporal_radius)
+            caches[f] = self.networks.denoiser.prepare([tensors[i] for i in indices], centre)
+            images[f] = self.networks.denoiser.apply(caches[f], lam)
         with self.lock:
             self._caches = caches
             self.full_calls += len(caches)
         return images
 
     @torch.no_grad()
-    def predict_error(self, buffers: list[FrameBuffer], images: list[torch.Tensor]) -> list[np.ndarray]:
-        """Per-pixel predicted SMAPE of each denoised frame, (H, W) each."""
-        return [to_image(self.networks.error_predictor(frame_tensors(b), image)) for b, image in zip(buffers, images)]
+    def predict_error(self, buffers: list[FrameBuffer], images: dict[int, torch.Tensor]) -> dict[int, np.ndarray]:
+        """Per-pixel predicted SMAPE of each denoised (owned) frame, (H, W) each."""
+        return {f: to_image(self.networks.error_predictor(self._tensors(buffers[f]), image))
+                for f, image in images.items()}
 
     @torch.no_grad()
-    def relambda(self, lam_map: np.ndarray) -> list[np.ndarray]:
-        """Every frame re-denoised with a new λ map from the cached features."""
+    def relambda(self, lam_map: np.ndarray) -> dict[int, np.ndarray]:
+        """Every owned frame re-denoised with a new λ map from the cached features."""
         lam = lam_tensor(lam_map)
         with self.lock:
-            images = [to_image(self.networks.denoiser.apply(cache, lam)) for cache in self._caches]
+            images = {f: to_image(self.networks.denoiser.apply(cache, lam)) for f, cache in self._caches.items()}
             self.tail_calls += len(images)
         return images

@@ -61,10 +61,12 @@ def _scene_label(scene: str, scene_root: Path | None) -> str:
 
 class RenderLoop:
     def __init__(self, spec: LoopSpec, networks: Networks | None = None, *, state: LoopState | None = None,
-                 scene_root: Path | None = None):
+                 scene_root: Path | None = None, owned: range | None = None):
         """`networks`: loaded once by the caller (CLI, server, benchmark); needed when denoising.
         `scene_root`: the folder the scene may read files from (a job's bundle; default: the
-        scene file's own folder)."""
+        scene file's own folder). `owned`: the frames this loop renders and denoises (default
+        all); a sequence fanned out over several workers gives each a share, and the others'
+        buffers arrive through `adopt_rendered` / `adopt_denoised` (service.jobs.ray_actor)."""
         validate_spec(spec)
         if spec.denoise and networks is None:
             raise LoopSpecError("denoising needs the networks: pass them (models.pretrained.load_networks)")
@@ -82,10 +84,11 @@ class RenderLoop:
             raise LoopSpecError("checkpoint does not match the job's resolution or frame count")
         # One frame → no temporal work; more → each frame's 2M+1 window (all frames advance together).
         radius = networks.denoiser.config.temporal_radius if (networks and self.effects.temporal) else 0
-        self.session = DenoiseSession(networks, spec.frames, radius) if spec.denoise else None
+        self.owned = owned if owned is not None else range(spec.frames)
+        self.session = DenoiseSession(networks, spec.frames, radius, self.owned) if spec.denoise else None
         self.lock = self.session.lock if self.session else threading.RLock()
         self._denoised: list[np.ndarray | None] = [None] * spec.frames
-        self._converged: list[np.ndarray] = [np.zeros(self.state.buffers[0].shape, bool)] * spec.frames
+        self._converged: list[np.ndarray] = [np.zeros(self.state.buffers[0].shape, bool) for _ in range(spec.frames)]
 
     # -- the loop ---------------------------------------------------------------------------
 
@@ -94,22 +97,60 @@ class RenderLoop:
 
         Returns without a record when `should_stop()` is true before an iteration starts.
         """
-        while self._stop_before_next() is None and not should_stop():
+        while not self.done() and not should_stop():
             started = time.perf_counter()
             timings: dict[str, float] = {}
-            counts = self._allocate(timings)
-            self._render(counts, timings, should_stop)
-            self._denoise_and_predict(timings)
-            with self.lock:
-                self.state.iteration += 1
-                self.state.elapsed += time.perf_counter() - started
-            record = self._record(timings)
-            record.stop_reason = self._stop_after(record)
-            if record.stop_reason is None and should_stop():
-                record.stop_reason = "canceled"
+            self.render_step(timings, should_stop)
+            self.denoise_step(timings)
+            record = self.finish_step(timings, time.perf_counter() - started, should_stop)
             yield record
             if record.stop_reason is not None:
                 return
+
+    # -- the steps of one iteration (a fanned-out sequence runs them one by one, exchanging
+    #    frames between them) -------------------------------------------------------------
+
+    def done(self) -> bool:
+        """Whether a stop rule was already met (a resumed job that finished does not render again)."""
+        return self._stop_before_next() is not None
+
+    def render_step(self, timings: dict, should_stop: Callable[[], bool] = lambda: False) -> None:
+        """Allocate and render the new samples of the owned frames."""
+        self._render(self._allocate(timings), timings, should_stop)
+
+    def denoise_step(self, timings: dict) -> None:
+        """Denoise the owned frames and predict their error (their temporal windows read the
+        neighbours' buffers of this iteration, adopted beforehand when not owned)."""
+        self._denoise_and_predict(timings)
+
+    def finish_step(self, timings: dict, seconds: float, should_stop: Callable[[], bool] = lambda: False
+                    ) -> IterationRecord:
+        """Count the iteration and apply the stop rules; the record of what it produced."""
+        with self.lock:
+            self.state.iteration += 1
+            self.state.elapsed += seconds
+        record = self._record(timings)
+        record.stop_reason = self._stop_after(record)
+        if record.stop_reason is None and should_stop():
+            record.stop_reason = "canceled"
+        return record
+
+    def adopt_rendered(self, buffers: dict[int, FrameBuffer]) -> None:
+        """Frames rendered elsewhere this iteration (the denoiser's temporal window reads them)."""
+        with self.lock:
+            for f, buffer in buffers.items():
+                self.state.buffers[f] = buffer
+
+    def adopt_denoised(self, frames: dict[int, tuple[np.ndarray, np.ndarray | None, np.ndarray]]) -> None:
+        """Frames denoised elsewhere this iteration: (denoised image, predicted error, converged mask)."""
+        with self.lock:
+            for f, (image, error, converged) in frames.items():
+                self._denoised[f], self.state.error_maps[f], self._converged[f] = image, error, converged
+
+    def owned_outputs(self) -> dict[int, tuple[np.ndarray, np.ndarray | None, np.ndarray]]:
+        """This loop's frames as `adopt_denoised` takes them."""
+        with self.lock:
+            return {f: (self._denoised[f], self.state.error_maps[f], self._converged[f]) for f in self.owned}
 
     def _stop_before_next(self) -> str | None:
         """A resumed job that had already met its stop rule does not render again."""
@@ -132,23 +173,24 @@ class RenderLoop:
                 return "time_limit"
         return None
 
-    def _allocate(self, timings: dict) -> list[np.ndarray]:
+    def _allocate(self, timings: dict) -> dict[int, np.ndarray]:
         t0 = time.perf_counter()
         spec, state = self.spec, self.state
-        counts = []
-        for f, buf in enumerate(state.buffers):
+        counts: dict[int, np.ndarray] = {}
+        for f in self.owned:
+            buf = state.buffers[f]
             if state.iteration == 0:
-                counts.append(np.full(buf.shape, spec.spp_first, dtype=np.int64))
+                counts[f] = np.full(buf.shape, spec.spp_first, dtype=np.int64)
                 continue
             budget = iteration_budget(int(buf.spp.sum()))
             if spec.spp_budget is not None:
                 budget = min(budget, max(0, int(round(spec.spp_budget * buf.spp.size)) - int(buf.spp.sum())))
-            counts.append(next_counts(spec.allocator, buf, state.error_maps[f], budget,
-                                      seed=spec.seed * 1000 + state.iteration))
+            counts[f] = next_counts(spec.allocator, buf, state.error_maps[f], budget,
+                                    seed=spec.seed * 1000 + state.iteration)
         timings["allocate"] = time.perf_counter() - t0
         return counts
 
-    def _render(self, counts: list[np.ndarray], timings: dict, should_stop: Callable[[], bool]) -> None:
+    def _render(self, counts: dict[int, np.ndarray], timings: dict, should_stop: Callable[[], bool]) -> None:
         t0 = time.perf_counter()
 
         def check(_samples: int) -> None:
@@ -158,17 +200,20 @@ class RenderLoop:
             if should_stop():
                 raise IterationInterrupted("stopped inside an iteration; resume from the last checkpoint")
 
-        for f, (scene, buf) in enumerate(zip(self.scenes, self.state.buffers)):
+        for f, frame_counts in counts.items():
+            if f >= len(self.scenes):
+                break  # a scene without `$frame` is one frame (load_frames)
             prev = self.scenes[f - 1].sensors()[0] if (f > 0 and self.effects.motion_vectors) else None
-            render_samples(scene, counts[f], buf, integrator=self.integrator, seed=self.spec.seed * 7919 + f,
-                           prev_sensor=prev, progress=check)
+            render_samples(self.scenes[f], frame_counts, self.state.buffers[f], integrator=self.integrator,
+                           seed=self.spec.seed * 7919 + f, prev_sensor=prev, progress=check)
         timings["render"] = time.perf_counter() - t0
 
     def _denoise_and_predict(self, timings: dict) -> None:
         timings["denoise"] = timings["error"] = 0.0
         if self.session is None:
             with self.lock:
-                self._denoised = [b.mean for b in self.state.buffers]
+                for f in self.owned:
+                    self._denoised[f] = self.state.buffers[f].mean
             return
         t0 = time.perf_counter()
         with self.lock:
@@ -178,17 +223,18 @@ class RenderLoop:
         errors = self.session.predict_error(self.state.buffers, images)
         t2 = time.perf_counter()
         with self.lock:
-            self._converged = [buf.converged() for buf in self.state.buffers]
-            self._denoised = self._keep_converged(
-                self.session.relambda(self.state.lam_map) if not np.array_equal(lam_map, self.state.lam_map)
-                else [to_hwc(image) for image in images])
-            self.state.error_maps = [converged_error(mask, error) for mask, error in zip(self._converged, errors)]
+            for f in self.owned:
+                self._converged[f] = self.state.buffers[f].converged()
+                self.state.error_maps[f] = converged_error(self._converged[f], errors[f])
+            # A λ edit that arrived meanwhile wins over the map this pass started with.
+            self._keep_converged(self.session.relambda(self.state.lam_map) if not np.array_equal(lam_map, self.state.lam_map)
+                                 else {f: to_hwc(image) for f, image in images.items()})
         timings["denoise"], timings["error"] = t1 - t0, t2 - t1
 
     # -- λ without re-rendering -----------------------------------------------------------
 
     def set_lambda(self, lam_map: np.ndarray) -> list[np.ndarray]:
-        """Re-denoise every frame with a new per-pixel λ from cached pre-λ features."""
+        """Re-denoise every (owned) frame with a new per-pixel λ from cached pre-λ features."""
         lam_map = np.asarray(lam_map, dtype=np.float32)
         if lam_map.shape != self.state.lam_map.shape:
             raise LoopSpecError(f"λ map is {lam_map.shape[::-1]}, the image is {self.state.lam_map.shape[::-1]}")
@@ -203,14 +249,16 @@ class RenderLoop:
                 return list(self._denoised)
             if not self.session.has_features:
                 self._denoise_and_predict({})  # after a restart the features are rebuilt once
-            self._denoised = self._keep_converged(self.session.relambda(lam_map))
+            self._keep_converged(self.session.relambda(lam_map))
             return list(self._denoised)
 
-    def _keep_converged(self, images: list[np.ndarray]) -> list[np.ndarray]:
-        """Pixels whose samples all agreed (FrameBuffer.converged) keep their exact mean:
-        filtering could only bleed neighbours' light into them."""
-        return [np.where(mask[..., None], buf.mean, image).astype(np.float32)
-                for mask, buf, image in zip(self._converged, self.state.buffers, images)]
+    def _keep_converged(self, images: dict[int, np.ndarray]) -> None:
+        """Store the owned frames' denoised images. Pixels whose samples all agreed
+        (FrameBuffer.converged) keep their exact mean: filtering could only bleed neighbours'
+        light into them."""
+        for f, image in images.items():
+            mask, buf = self._converged[f], self.state.buffers[f]
+            self._denoised[f] = np.where(mask[..., None], buf.mean, image).astype(np.float32)
 
     # -- outputs ----------------------------------------------------------------------------
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import glob
 import os
 import re
+import threading
 from functools import lru_cache
 from pathlib import Path
 
@@ -63,9 +64,19 @@ def choose_variant() -> str:
     return "cuda_ad_rgb" if cuda_available() else "llvm_ad_rgb"
 
 
-@lru_cache(maxsize=1)
+# lru_cache alone lets two threads (two jobs' drivers) import Mitsuba at once, and the second
+# then sees a half-initialised module: the first call is serialised.
+_IMPORT_LOCK = threading.Lock()
+
+
 def mitsuba():
     """Import Mitsuba with the chosen variant set; raises RuntimeSetupError with a fix."""
+    with _IMPORT_LOCK:
+        return _import_mitsuba()
+
+
+@lru_cache(maxsize=1)
+def _import_mitsuba():
     variant = choose_variant()
     if variant.startswith("llvm"):
         lib = find_libllvm()

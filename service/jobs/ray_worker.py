@@ -1,0 +1,326 @@
+"""The Ray backend of the job worker: every running job is a group of Ray actors
+(service.jobs.ray_actor) — one for a single frame, one per share of the frames for a sequence —
+scheduled with the resources the job needs (CPU, GPU, memory from its estimate).
+
+This process stays the one that talks to the job store: it claims jobs, drives each iteration's
+phases, publishes the previews the leader hands back and records the iteration, in the thread
+backend's order (checkpoint, previews, record). What the engine adds:
+
+- cancel: the actor's cooperative flag first (it stops within one wavefront chunk), `ray.kill`
+  after CANCEL_GRACE_SECONDS whatever it is doing;
+- a job over its memory share: its worker's watchdog ends the process and leaves the reason in
+  the job folder; the job fails with that message, the server and the other jobs go on;
+- a worker process that dies otherwise (`kill -9`, a lost node): the job resumes on new actors
+  from its last checkpoint, at most MAX_WORKER_RESTARTS times.
+
+λ edits of a running job go to its actors (they hold the cached features); after the run the
+thread backend's path re-denoises in this process from the checkpoint.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import ray
+from ray.exceptions import RayActorError, RayTaskError
+
+from models.pretrained import Networks
+from service.jobs.artifacts import JobFiles
+from service.jobs.ray_actor import ACTOR_THREADS, FAILURE_FILE, ActorPlan, IterationReport, JobActor
+from service.jobs.store import CANCELED, COMPLETED, FAILED, JobRecord, JobStore
+from service.jobs.worker import (JobWorker, NoObserver, Relambda, WorkerObserver, _add_timings, bundle_scene,
+                                 job_spec)
+from service.loop.loop import IterationInterrupted
+from service.loop.spec import estimated_memory
+from service.render.scenes import film_size
+
+log = logging.getLogger(__name__)
+
+CANCEL_GRACE_SECONDS = 1.5  # a cooperative stop takes one wavefront chunk; then the actor is killed
+MAX_WORKER_RESTARTS = 3  # a job whose workers keep dying fails instead of looping forever
+CPUS_PER_ACTOR = 1
+# Ray starts its worker processes at nice 15 to keep its own daemons responsive; here the workers
+# are the service's whole work (the thread backend renders at the server's priority), and on a
+# shared host nice 15 starves them: measured beside two nice-5/10 jobs on 2 cores, two workers
+# took twice the compute time of one. A cluster joined with --ray-address keeps its own setting
+# (RAY_worker_niceness, see docker/compose.yaml).
+WORKER_NICENESS = 0
+
+
+def start_local_ray(cpus: int) -> None:
+    """The local runtime `serve --workers N` starts (the tests and `bench --scale` start the same)."""
+    ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False,
+             _system_config={"worker_niceness": WORKER_NICENESS})
+
+
+@dataclass(frozen=True)
+class RaySettings:
+    """`workers`: jobs (or sequence shares) rendered at once; a local Ray runtime gets that many
+    CPUs. `address`: join that cluster instead (`ray start --head` somewhere); then the
+    cluster's resources decide. `fanout`: most workers one sequence spreads over."""
+
+    workers: int = 1
+    address: str | None = None
+    fanout: int | None = None  # default: workers
+
+    def __post_init__(self) -> None:
+        if self.workers < 1:
+            raise ValueError("workers must be >= 1")
+
+
+def default_workers() -> int:
+    """One worker per core (each actor takes one CPU), at least one."""
+    return max(1, os.cpu_count() or 1)
+
+
+def root_cause(exc: BaseException) -> BaseException:
+    """The exception raised inside an actor, through any chain of Ray's wrappers."""
+    while isinstance(exc, RayTaskError) and exc.cause is not None and exc.cause is not exc:
+        exc = exc.cause
+    return exc
+
+
+def shares(frames: int, workers: int) -> list[tuple[int, int]]:
+    """Split frames [0, frames) into at most `workers` contiguous shares, sizes within one."""
+    count = max(1, min(frames, workers))
+    bounds = [round(i * frames / count) for i in range(count + 1)]
+    return [(bounds[i], bounds[i + 1]) for i in range(count)]
+
+
+class WorkerDied(RuntimeError):
+    """A job's worker process ended without finishing its call."""
+
+
+class RayJobWorker(JobWorker):
+    def __init__(self, store: JobStore, networks: Networks, settings: RaySettings = RaySettings(),
+                 observer: WorkerObserver = NoObserver()) -> None:
+        # The thread pool now only drives jobs (one thread each); the work runs in the actors.
+        super().__init__(store, networks, concurrency=settings.workers, observer=observer)
+        self.settings = settings
+        self._groups: dict[str, list] = {}  # job id → its actors, leader first
+        self._started_ray = False
+        self._networks_ref = None
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        if not ray.is_initialized():
+            if self.settings.address:
+                ray.init(address=self.settings.address, log_to_driver=False)
+            else:
+                start_local_ray(self.settings.workers * CPUS_PER_ACTOR)
+            self._started_ray = True
+        self._networks_ref = ray.put(self.networks)  # shipped once; every actor gets it from the store
+        super().start()
+
+    def stop(self) -> None:
+        """Running jobs stop (cooperatively, then killed) and are requeued to resume next start."""
+        super().stop()
+        with self._lock:
+            groups = list(self._groups.values())
+        for group in groups:
+            self._signal_cancel(group)
+        deadline = time.monotonic() + CANCEL_GRACE_SECONDS * 2
+        while self._live_jobs() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        for group in groups:
+            self._kill(group)
+        if self._started_ray:
+            ray.shutdown()
+
+    def _live_jobs(self) -> bool:
+        with self._lock:
+            return bool(self._groups)
+
+    def _is_live(self, job_id: str) -> bool:
+        with self._lock:
+            return job_id in self._groups or job_id in self._live
+
+    def worker_pids(self, job_id: str) -> list[int]:
+        """The process ids of a running job's actors (leader first); empty when none runs."""
+        with self._lock:
+            group = list(self._groups.get(job_id, []))
+        try:
+            return ray.get([actor.pid.remote() for actor in group]) if group else []
+        except RayActorError:
+            return []  # one just died: the job is between workers
+
+    # -- cancel ---------------------------------------------------------------------------------
+
+    def cancel(self, job_id: str) -> JobRecord:
+        record = super().cancel(job_id)  # queued: done; running: the flag the driver checks
+        with self._lock:
+            group = list(self._groups.get(job_id, []))
+        if group:
+            self._signal_cancel(group)
+            timer = threading.Timer(CANCEL_GRACE_SECONDS, self._kill, args=(group,))
+            timer.daemon = True
+            timer.start()
+        return record
+
+    @staticmethod
+    def _signal_cancel(group: list) -> None:
+        for actor in group:
+            actor.cancel.remote()
+
+    @staticmethod
+    def _kill(group: list) -> None:
+        for actor in group:
+            ray.kill(actor, no_restart=True)
+
+    # -- running a job --------------------------------------------------------------------------
+
+    def _run(self, job_id: str) -> None:
+        if self._stopping.is_set() or not self.store.claim(job_id):
+            return
+        with self._lock:
+            self._groups[job_id] = []  # live from the claim on: a delete waits until it ends
+        try:
+            self._run_attempts(job_id, self._cancel_event(job_id))
+        finally:
+            with self._lock:
+                self._groups.pop(job_id, None)
+
+    def _run_attempts(self, job_id: str, cancel: threading.Event) -> None:
+        restarts = 0
+        while True:
+            try:
+                self._attempt(job_id, cancel)
+                return
+            except IterationInterrupted:
+                self._interrupted(job_id, cancel)
+                return
+            except WorkerDied as died:
+                failure = self._worker_failure(job_id)
+                if failure is not None:
+                    self.store.finish(job_id, FAILED, error=failure)
+                    return
+                if cancel.is_set() or self._stopping.is_set():
+                    self._interrupted(job_id, cancel)
+                    return
+                restarts += 1
+                if restarts > MAX_WORKER_RESTARTS:
+                    raise RuntimeError(f"the job's worker died {restarts} times; last: {died}") from died
+                log.warning("job %s: its worker died (%s); resuming from the last checkpoint", job_id, died)
+
+    def _interrupted(self, job_id: str, cancel: threading.Event) -> None:
+        """Stopped inside an iteration: a user cancel keeps what the checkpoint holds; a
+        shutdown requeues the job to resume next start."""
+        if not cancel.is_set():
+            self.store.requeue(job_id)
+            return
+        record, files = self._require(job_id), self.files(job_id)
+        self._complete(job_id, self._checkpointed_loop(record, files), files, None, canceled=True)
+
+    def _worker_failure(self, job_id: str) -> str | None:
+        """Why a worker ended the job itself (its memory watchdog), if it did."""
+        path = self.files(job_id).root / FAILURE_FILE
+        return path.read_text() if path.is_file() else None
+
+    def _attempt(self, job_id: str, cancel: threading.Event) -> None:
+        record, files = self._require(job_id), self.files(job_id)
+        (files.root / FAILURE_FILE).unlink(missing_ok=True)
+        group = self._start_group(job_id, record, files)
+        try:
+            effects, resumed_from, done, samples = _call(*[actor.open.remote() for actor in group])[0]
+            self.store.set_effects(job_id, effects)
+            if resumed_from is not None:
+                self.store.set_resumed_from(job_id, resumed_from)
+            last = None if done else self._iterate(job_id, record, files, group, cancel, samples)
+            self._end(job_id, group, last, cancel)
+        finally:
+            with self._lock:
+                self._groups[job_id] = []
+            self._kill(group)
+
+    def _iterate(self, job_id: str, record: JobRecord, files: JobFiles, group: list, cancel: threading.Event,
+                 samples: int) -> IterationReport | None:
+        timings, last = dict(record.timings), None
+        while not cancel.is_set() and not self._stopping.is_set():
+            report = run_iteration(group)
+            published = time.perf_counter()
+            self._publish(job_id, files, report.layers)
+            timings = _add_timings(_add_timings(timings, report.timings), {"io": time.perf_counter() - published})
+            self.store.record_iteration(job_id, report.iteration + 1, report.spp_mean, report.predicted_error,
+                                        timings, report.stop_reason)
+            self.observer.iteration_finished(report.timings, report.samples - samples)
+            samples, last = report.samples, report
+            if report.stop_reason is not None:
+                break
+        return last
+
+    def _end(self, job_id: str, group: list, last: IterationReport | None, cancel: threading.Event) -> None:
+        finished = last is not None and last.stop_reason not in (None, "canceled")
+        if not finished and not cancel.is_set() and self._stopping.is_set():
+            self.store.requeue(job_id)
+            return
+        _call(group[0].save_results.remote())  # the leader holds every frame
+        canceled = (cancel.is_set() and not finished) or (last is not None and last.stop_reason == "canceled")
+        if canceled:
+            self.store.finish(job_id, CANCELED, stop_reason="canceled")
+        else:
+            self.store.finish(job_id, COMPLETED, stop_reason=last.stop_reason if last else None)
+
+    def _start_group(self, job_id: str, record: JobRecord, files: JobFiles) -> list:
+        spec = job_spec(record, files.bundle_dir)
+        root = files.bundle_dir if bundle_scene(record) else None
+        width, height = film_size(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root,
+                                  frames=spec.frames)
+        gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0
+        group = []
+        for share in shares(spec.frames, self.settings.fanout or self.settings.workers):
+            memory = estimated_memory(width, height, share[1] - share[0])
+            plan = ActorPlan(str(files.root), record, share, memory, CPUS_PER_ACTOR)
+            actor_class = ray.remote(JobActor).options(
+                num_cpus=CPUS_PER_ACTOR, num_gpus=gpus, memory=int(memory), max_concurrency=ACTOR_THREADS,
+                max_restarts=0, name=None)
+            group.append(actor_class.remote(self._networks_ref, plan))
+        with self._lock:
+            self._groups[job_id] = group
+        return group
+
+    # -- λ --------------------------------------------------------------------------------------
+
+    def _relambda(self, job_id: str, record: JobRecord, lam: np.ndarray) -> Relambda | None:
+        with self._lock:
+            group = list(self._groups.get(job_id, []))
+        if not group:
+            return super()._relambda(job_id, record, lam)  # finished (or not started): this process
+        try:
+            answers = _call(*[actor.set_lambda.remote(lam) for actor in group])
+        except WorkerDied:
+            return super()._relambda(job_id, self._require(job_id), lam)  # it just ended
+        images: dict[int, np.ndarray] = {}
+        for owned, _, _ in answers:
+            images.update(owned)
+        full, tail = sum(a[1] for a in answers), sum(a[2] for a in answers)
+        return Relambda([images[f] for f in sorted(images)], full, tail)
+
+
+def _call(*refs) -> list:
+    """ray.get that raises what the actor raised, or WorkerDied when its process is gone."""
+    try:
+        return ray.get(list(refs))
+    except RayActorError as exc:
+        raise WorkerDied(str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__) from exc
+    except RayTaskError as exc:
+        cause = root_cause(exc)
+        if isinstance(cause, RayActorError):
+            raise WorkerDied(str(cause).splitlines()[0]) from exc
+        raise cause from None
+
+
+def run_iteration(group: list) -> IterationReport:
+    """One iteration over a job's actors: render, exchange the buffers, denoise, exchange the
+    outputs, finish. Frames pass between the actors as object references, never through here;
+    each phase starts once the last one ended everywhere (and raised nothing)."""
+    started = time.perf_counter()
+    exchange = len(group) > 1
+    rendered = [ref for ref in _call(*[actor.render_phase.remote(exchange) for actor in group]) if ref is not None]
+    denoised = [ref for ref in _call(*[actor.denoise_phase.remote(rendered) for actor in group]) if ref is not None]
+    seconds = time.perf_counter() - started  # one clock for all actors: the same time-limit decision
+    return _call(*[actor.finish_phase.remote(denoised, seconds) for actor in group])[0]

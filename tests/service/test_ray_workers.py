@@ -1,0 +1,216 @@
+"""The Ray backend on a real local Ray runtime with two workers: real actors in their own
+processes, real Mitsuba renders at tiny sizes, the real job store. Most tests drive the worker
+(service.jobs.ray_worker.RayJobWorker) directly, so they can find and kill its processes; one
+runs `renderloop serve`'s app on uvicorn with RENDERLOOP_WORKERS=2."""
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+ray = pytest.importorskip("ray", reason="Ray cannot be imported here: the Ray backend's tests need it (pip install ray)")
+
+from service.exr import read_exr  # noqa: E402  (after the skip: these import Ray's backend)
+from service.jobs.ray_worker import RayJobWorker, RaySettings, shares, start_local_ray  # noqa: E402
+from service.jobs.store import CANCELED, COMPLETED, FAILED, RUNNING, JobRecord, JobStore  # noqa: E402
+from service.loop.loop import RenderLoop  # noqa: E402
+from service.loop.spec import LoopSpec  # noqa: E402
+from service_harness import Server, finished, wait_for  # noqa: E402
+
+WORKERS = 2
+
+
+@pytest.fixture(scope="module")
+def ray_runtime():
+    """One local Ray runtime (two CPUs: two workers) for the module; starting one costs ~8 s."""
+    start_local_ray(WORKERS)
+    yield
+    ray.shutdown()
+
+
+@pytest.fixture
+def store(tmp_path):
+    s = JobStore(tmp_path / "data")
+    yield s
+    s.close()
+
+
+@pytest.fixture
+def worker(ray_runtime, store, tiny_networks):
+    w = RayJobWorker(store, tiny_networks, RaySettings(workers=WORKERS))
+    w.start()
+    yield w
+    w.stop()
+
+
+def submit(store: JobStore, worker: RayJobWorker, spec: LoopSpec) -> str:
+    record = store.create(spec.to_stored(), spec.lam)
+    worker.submit(record.id)
+    return record.id
+
+
+def wait_until(store: JobStore, job_id: str, condition, timeout: float = 120.0) -> JobRecord:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        record = store.get(job_id)
+        if condition(record):
+            return record
+        time.sleep(0.02)
+    raise AssertionError(f"timed out; last record {store.get(job_id)}")
+
+
+def slow_job(iterations: int = 8) -> LoopSpec:
+    """Iterations long enough (each doubles the samples) that a test can act during one."""
+    return LoopSpec(scene="cornell-box", width=64, height=64, spp_first=64, max_iterations=iterations)
+
+
+def running_pids(worker: RayJobWorker, job_id: str, timeout: float = 60.0) -> list[int]:
+    """The job's worker processes, once its actors exist (a claimed job starts them)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        pids = worker.worker_pids(job_id)
+        if pids:
+            return pids
+        time.sleep(0.02)
+    raise AssertionError(f"job {job_id} got no workers within {timeout} s: {worker.store.get(job_id)}")
+
+
+def process_gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+def test_frames_split_into_contiguous_shares_no_bigger_than_one_apart():
+    assert shares(5, 2) == [(0, 2), (2, 5)]
+    assert shares(1, 2) == [(0, 1)]
+    assert shares(4, 8) == [(0, 1), (1, 2), (2, 3), (3, 4)]
+
+
+def test_two_jobs_run_at_the_same_time_on_two_workers(worker, store):
+    ids = [submit(store, worker, slow_job(iterations=4)) for _ in range(2)]
+    pids: dict[str, list[int]] = {}
+    deadline = time.monotonic() + 60
+    while len(pids) < 2 and time.monotonic() < deadline:  # both asked in turn: neither may end first
+        pids.update({job_id: found for job_id in ids if job_id not in pids
+                     for found in [worker.worker_pids(job_id)] if found})
+        time.sleep(0.02)
+    a, b = (wait_until(store, job_id, lambda r: r.finished) for job_id in ids)
+    assert (a.state, b.state) == (COMPLETED, COMPLETED)
+    assert a.started_at < b.finished_at and b.started_at < a.finished_at  # their run times overlap
+    assert len(pids) == 2 and pids[ids[0]] != pids[ids[1]]  # each in its own worker process
+
+
+def test_cancel_during_an_iteration_ends_the_job_and_its_worker_within_5_s(worker, store):
+    job_id = submit(store, worker, slow_job())
+    wait_until(store, job_id, lambda r: r.iteration >= 2)  # now inside iteration 3 (64 → 256 spp)
+    pids = running_pids(worker, job_id)
+    started = time.monotonic()
+    worker.cancel(job_id)
+    record = wait_until(store, job_id, lambda r: r.finished, timeout=5.0)
+    while not all(process_gone(pid) for pid in pids) and time.monotonic() - started < 5.0:
+        time.sleep(0.05)
+    assert record.state == CANCELED and record.stop_reason == "canceled"
+    assert time.monotonic() - started < 5.0 and all(process_gone(pid) for pid in pids)
+    assert record.iteration < 8
+
+
+def test_a_worker_killed_mid_job_resumes_on_another_from_its_checkpoint(worker, store):
+    job_id = submit(store, worker, slow_job(iterations=5))
+    wait_until(store, job_id, lambda r: r.iteration >= 2)
+    (pid,) = running_pids(worker, job_id)
+    os.kill(pid, signal.SIGKILL)
+    record = wait_until(store, job_id, lambda r: r.finished)
+    assert (record.state, record.iteration, record.stop_reason) == (COMPLETED, 5, "max_iterations")
+    assert record.resumed_from is not None and record.resumed_from >= 2  # not from scratch
+    assert process_gone(pid)
+    assert worker.files(job_id).result_path(0).is_file()
+
+
+def big_texture_scene(folder: Path) -> Path:
+    """A 16² film whose 8192² texture (a 0.2 MB PNG) takes ~0.8 GB once loaded: the job's memory
+    estimate (its film size) knows nothing of it."""
+    folder.mkdir(parents=True, exist_ok=True)
+    Image.new("RGB", (8192, 8192), (128, 100, 90)).save(folder / "big.png")
+    scene = folder / "scene.xml"
+    scene.write_text("""<scene version="3.0.0">
+  <integrator type="path"/>
+  <sensor type="perspective"><float name="fov" value="40"/>
+    <transform name="to_world"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film></sensor>
+  <emitter type="constant"/>
+  <shape type="sphere"><bsdf type="diffuse">
+    <texture type="bitmap" name="reflectance"><string name="filename" value="big.png"/></texture></bsdf></shape>
+</scene>""")
+    return scene
+
+
+def test_a_job_over_its_memory_share_fails_with_a_clear_message_and_the_next_job_runs(worker, store, tmp_path):
+    greedy = submit(store, worker, LoopSpec(scene=str(big_texture_scene(tmp_path / "greedy")), spp_first=4,
+                                            max_iterations=2))
+    failed = wait_until(store, greedy, lambda r: r.finished)
+    assert failed.state == FAILED
+    assert "over its memory share" in failed.error and "GiB" in failed.error, failed.error
+    after = submit(store, worker, LoopSpec(scene="cornell-box", width=16, height=16, spp_first=4, max_iterations=2))
+    assert wait_until(store, after, lambda r: r.finished).state == COMPLETED
+
+
+def test_lambda_edits_on_a_running_job_rerun_only_the_cached_tail_in_its_worker(worker, store):
+    job_id = submit(store, worker, slow_job())
+    record = wait_until(store, job_id, lambda r: r.iteration >= 1)
+    lam = np.full((64, 64), 3.0, dtype=np.float32)
+    applied = worker.set_lambda(job_id, lam, 3.0)
+    assert store.get(job_id).state == RUNNING  # answered by the job's actor, not a rebuilt loop
+    assert (applied.full_passes, applied.tail_passes) == (0, 1)
+    assert applied.version > record.preview_version
+    preview = worker.files(job_id).load_preview(0)
+    assert preview.version >= applied.version and np.all(preview.layers["lambda"] == 3.0)
+    worker.cancel(job_id)
+    wait_until(store, job_id, lambda r: r.finished)
+
+
+def test_a_sequence_fanned_out_over_two_workers_equals_the_single_process_result(worker, store, tiny_networks):
+    spec = LoopSpec(scene="cornell-box-orbit", width=24, height=24, frames=3, spp_first=4, max_iterations=4)
+    job_id = submit(store, worker, spec)
+    pids = []
+    while not store.get(job_id).finished:
+        pids = pids or worker.worker_pids(job_id)
+        time.sleep(0.02)
+    assert store.get(job_id).state == COMPLETED
+    assert len(set(pids)) == 2  # the frames were shared between two worker processes
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as in the workers (one CPU each): the same float sums
+    try:
+        loop = RenderLoop(spec, tiny_networks)
+        list(loop.run())
+        expected = loop.result_frames()
+    finally:
+        torch.set_num_threads(threads)
+    for f, want in enumerate(expected):
+        got = read_exr(worker.files(job_id).result_path(f))
+        for layer in ("color", "noisy", "variance", "spp", "error", "motion"):
+            np.testing.assert_array_equal(getattr(got, layer), getattr(want, layer), err_msg=f"frame {f} {layer}")
+
+
+def test_serve_with_two_ray_workers_runs_two_submitted_jobs_at_once(tmp_path):
+    server = Server(tmp_path / "data", tmp_path / "server.log",
+                    env={"RENDERLOOP_CONCURRENCY": "", "RENDERLOOP_WORKERS": str(WORKERS)}).start()
+    try:
+        with httpx.Client(base_url=server.url, timeout=60) as client:
+            body = {"scene": "cornell-box", "width": 32, "height": 32, "spp_first": 16, "max_iterations": 3}
+            ids = [client.post("/jobs", json=body).json()["id"] for _ in range(2)]
+            jobs = [wait_for(client, job_id, finished) for job_id in ids]
+    finally:
+        server.stop()
+    assert [job["state"] for job in jobs] == ["completed", "completed"], server.log()
+    a, b = jobs
+    assert a["started_at"] < b["finished_at"] and b["started_at"] < a["finished_at"]
