@@ -43,6 +43,7 @@ class TrainingSample:
     reference: Tensor
     centre: int
     key: str  # "scene/frames/level@y,x", for logs and debugging
+    reference_variance: Tensor | None = None  # (T, 3, h, w) variance of the reference's mean
 
 
 @dataclass
@@ -53,6 +54,7 @@ class TrainingBatch:
     references: list[Tensor]
     centre: int
     keys: list[str]
+    reference_variances: list[Tensor] | None = None
 
 
 def window_items(root: str | Path, split: str, radius: int, levels: tuple[str, ...]) -> list[WindowItem]:
@@ -134,6 +136,7 @@ class DenoiserDataset(Dataset):
         layers = {name: None if getattr(frame, attr) is None else _chw(getattr(frame, attr))
                   for name, attr in _INPUT_LAYERS.items()}
         layers["reference"] = _chw(frame.color)
+        layers["reference_variance"] = None if frame.variance is None else _chw(frame.variance)
         if self._cache is not None:
             self._cache[path] = layers
         return layers
@@ -157,9 +160,10 @@ class DenoiserDataset(Dataset):
             return torch.from_numpy(np.stack([_crop(layer[name], corner, crop) for layer in layers]))
 
         noisy = FrameTensors(**{name: stack(inputs, name) for name in _INPUT_LAYERS})
-        reference = stack([self._layers(p) for p in item.references], "reference")
+        references = [self._layers(p) for p in item.references]
         key = f"{item.scene}/{item.frames[0]}-{item.frames[-1]}/{item.level}@{corner[0]},{corner[1]}"
-        return TrainingSample(noisy=noisy, reference=reference, centre=self.radius, key=key)
+        return TrainingSample(noisy=noisy, reference=stack(references, "reference"), centre=self.radius, key=key,
+                              reference_variance=stack(references, "reference_variance"))
 
 
 def collate_samples(samples: list[TrainingSample]) -> TrainingBatch:
@@ -175,4 +179,6 @@ def collate_samples(samples: list[TrainingSample]) -> TrainingBatch:
         references=[torch.stack([s.reference[t] for s in samples]) for t in range(steps)],
         centre=samples[0].centre,
         keys=[s.key for s in samples],
+        reference_variances=None if any(s.reference_variance is None for s in samples) else
+        [torch.stack([s.reference_variance[t] for s in samples]) for t in range(steps)],
     )

@@ -21,9 +21,8 @@ from tqdm import tqdm
 from models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
-from models.losses import smape_map
 from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, denoiser_smape, error_predictor_loss,
-                             sample_lambda)
+                             error_target, sample_lambda)
 from service.dataset.build import INPUT_ITEMS
 from service.dataset.loader import DenoiserDataset, collate_samples
 from service.training.config import DENOISER_STAGES, TrainConfig
@@ -176,7 +175,8 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
     """
     with torch.no_grad():
         frame = batch.frames[0].to(device)
-        target = smape_map(denoiser([frame], 0, 1.0), batch.references[0].to(device))
+        variance = batch.reference_variances[0].to(device) if batch.reference_variances else None
+        target = error_target(denoiser([frame], 0, 1.0), batch.references[0].to(device), variance)
         median = float(target.median().clamp_min(1e-4))
         model.out.weight.mul_(0.1)
         model.out.bias.fill_(median + torch.log(-torch.expm1(torch.tensor(-median))).item())
@@ -196,7 +196,8 @@ def train_error_predictor(config, device) -> dict:
 
     def loss_fn(step: int):
         b = next(batches)
-        return error_predictor_loss(model, denoiser, b.frames[0].to(device), b.references[0].to(device))
+        variance = b.reference_variances[0].to(device) if b.reference_variances else None
+        return error_predictor_loss(model, denoiser, b.frames[0].to(device), b.references[0].to(device), variance)
 
     @torch.no_grad()
     def val_fn() -> float:
@@ -204,12 +205,18 @@ def train_error_predictor(config, device) -> dict:
         for i in range(len(val)):
             s = val[i]
             frame = s.noisy.map(lambda _, t: t[:1].to(device))
-            losses.append(float(error_predictor_loss(model, denoiser, frame, s.reference[:1].to(device))))
+            losses.append(float(error_predictor_loss(model, denoiser, frame, s.reference[:1].to(device),
+                                                     _first_variance(s, device))))
         return sum(losses) / len(losses)
 
     result = _fit("error", model, loss_fn, val_fn, config, device, {"command": config.command_line, "stage": "error"})
     result["calibration"] = calibrate_error_predictor(Path(result["checkpoint"]), denoiser, val, device)
     return result
+
+
+def _first_variance(sample, device):
+    """The reference variance of a validation sample's first frame, where the data set has one."""
+    return None if sample.reference_variance is None else sample.reference_variance[:1].to(device)
 
 
 @torch.no_grad()
@@ -225,7 +232,7 @@ def calibrate_error_predictor(checkpoint: Path, denoiser, val, device) -> float:
         frame = s.noisy.map(lambda _, t: t[:1].to(device))
         denoised = denoiser([frame], 0, 1.0)
         predicted += float(model(frame, denoised).mean())
-        true += float(smape_map(denoised, s.reference[:1].to(device)).mean())
+        true += float(error_target(denoised, s.reference[:1].to(device), _first_variance(s, device)).mean())
     scale = true / predicted if predicted > 0 else 1.0
     calibrated = ErrorPredictor(dataclasses.replace(model.config, output_scale=model.config.output_scale * scale))
     calibrated.load_state_dict(model.state_dict())
