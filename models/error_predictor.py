@@ -1,8 +1,12 @@
 """Error predictor (Vogels et al. 2018 §7): per-pixel SMAPE of the denoised image, estimated
 without a reference, so the adaptive sampler can send samples where the error is.
 
-    [encoder features of the noisy frame, log demodulated denoised] → conv3x3
-        → 6 residual blocks → conv3x3 → softplus (errors are ≥ 0)
+    [encoder features of the noisy frame, log demodulated denoised (, log2 samples per pixel)]
+        → conv3x3 → 6 residual blocks → conv3x3 → softplus (errors are ≥ 0)
+
+The sample-count channel (`sample_count_input`) tells the network how far each pixel has
+converged under the loop's non-uniform counts; relative variance is already among the encoder
+features.
 
 Trained with L1 against models.losses.smape_map(denoised, reference).
 """
@@ -16,7 +20,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.features import HDR_MAX, demodulate, feature_set, log_transform, sanitize, sanitize_frame
+from models.features import (HDR_MAX, demodulate, feature_set, log_transform, sample_count_feature, sanitize,
+                             sanitize_frame)
 from models.frames import FrameTensors
 from models.layers import channels_last, conv3x3, res_blocks
 
@@ -26,6 +31,8 @@ class ErrorPredictorConfig:
     source: str = "mitsuba-path"  # render source → input features (models.features.FEATURE_SETS)
     width: int = 16               # narrow: it runs every sampling iteration, and only has to rank pixels
     blocks: int = 6               # paper: six residual blocks
+    sample_count_input: bool = False  # + log2(1 + spp) per pixel (weights trained on the loop's own counts)
+    output_scale: float = 1.0     # fitted after training: mean prediction = mean true SMAPE on validation
 
 
 class ErrorPredictor(nn.Module):
@@ -35,7 +42,7 @@ class ErrorPredictor(nn.Module):
         super().__init__()
         self.config = cfg = config or ErrorPredictorConfig()
         self.features = feature_set(cfg.source)              # unknown source fails here
-        self.head = conv3x3(self.features.channels + 3, cfg.width)
+        self.head = conv3x3(self.features.channels + 3 + int(cfg.sample_count_input), cfg.width)
         self.blocks = res_blocks(cfg.width, cfg.blocks)
         self.out = conv3x3(cfg.width, 1)
 
@@ -43,5 +50,10 @@ class ErrorPredictor(nn.Module):
         """frame: the noisy input; denoised (N,3,H,W) → (N,1,H,W) predicted SMAPE ≥ 0."""
         f, _ = sanitize_frame(frame)
         d, _ = sanitize(denoised.float(), 0.0, HDR_MAX)
-        x = channels_last(torch.cat([self.features.build(f), log_transform(demodulate(d, f.albedo))], 1))
-        return F.softplus(self.out(self.blocks(F.relu_(self.head(x))))).contiguous()
+        inputs = [self.features.build(f), log_transform(demodulate(d, f.albedo))]
+        if self.config.sample_count_input:
+            if f.spp is None:
+                raise ValueError("this error network reads the per-pixel sample count: the frame has no spp map")
+            inputs.append(sample_count_feature(f.spp))
+        x = channels_last(torch.cat(inputs, 1))
+        return (F.softplus(self.out(self.blocks(F.relu_(self.head(x))))) * self.config.output_scale).contiguous()

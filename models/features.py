@@ -19,6 +19,8 @@ HDR_MAX = 1e6          # clamp for radiance-like buffers: beyond any real firefl
 MOTION_MAX = 1e4       # pixels; anything larger is off-screen for every supported resolution anyway
 ALBEDO_EPS = 1e-2      # demodulation guard: black albedo divides by ε, not 0 (same ε as SMAPE, eq. 2)
 REL_VAR_EPS = 1e-2     # relative variance var/(mean²+ε): ε keeps dark pixels from exploding (eq. 2's ε)
+SPP_MAX = 2.0 ** 31    # samples per pixel: the frame buffer's count is at most a 32-bit integer
+SPP_LOG_SCALE = 16.0   # log2(1 + spp) / 16 reaches 1 at 65 535 spp, so the channel stays in [0, ~2]
 DEPTH_EPS = 1e-6       # per-image depth normalisation guard for all-zero (no-hit) depth
 
 
@@ -39,6 +41,7 @@ def sanitize(t: Tensor, lo: float = 0.0, hi: float = HDR_MAX) -> tuple[Tensor, i
 _RANGES = {  # buffer → valid range
     "color": (0.0, HDR_MAX), "variance": (0.0, HDR_MAX), "albedo": (0.0, 1.0),
     "normal": (-1.0, 1.0), "depth": (0.0, HDR_MAX), "motion": (-MOTION_MAX, MOTION_MAX),
+    "spp": (0.0, SPP_MAX),
 }
 
 
@@ -78,6 +81,16 @@ def remodulate(irradiance: Tensor, albedo: Tensor) -> Tensor:
 def relative_variance(variance: Tensor, mean: Tensor) -> Tensor:
     """var / (mean² + ε): noise level independent of exposure."""
     return variance / (mean * mean + REL_VAR_EPS)
+
+
+def sample_count_feature(spp: Tensor) -> Tensor:
+    """log2(1 + spp) / SPP_LOG_SCALE: each doubling of a pixel's samples moves it by one step,
+    the way each loop iteration doubles the total (Vogels et al. 2018, §7)."""
+    return torch.log2(1.0 + spp) / SPP_LOG_SCALE
+
+
+def inverse_sample_count_feature(y: Tensor) -> Tensor:
+    return torch.exp2(y * SPP_LOG_SCALE) - 1.0
 
 
 def normalize_depth(depth: Tensor) -> Tensor:

@@ -19,6 +19,7 @@ class FrameTensors:
     normal: Tensor           # (N,3,H,W) shading normal, components in [-1, 1]
     depth: Tensor            # (N,1,H,W) first-hit distance
     motion: Tensor | None = None  # (N,2,H,W) pixels to the previous frame, or None = static
+    spp: Tensor | None = None     # (N,1,H,W) samples per pixel so far (the loop's count map), or None
 
     @property
     def size(self) -> tuple[int, int]:
@@ -27,7 +28,9 @@ class FrameTensors:
     def map(self, fn: Callable[[str, Tensor], Tensor]) -> "FrameTensors":
         """Apply fn(name, tensor) to every present buffer (padding, pooling, device moves)."""
         fields = {k: fn(k, getattr(self, k)) for k in ("color", "variance", "albedo", "normal", "depth")}
-        fields["motion"] = None if self.motion is None else fn("motion", self.motion)
+        for optional in ("motion", "spp"):
+            value = getattr(self, optional)
+            fields[optional] = None if value is None else fn(optional, value)
         return replace(self, **fields)
 
     def to(self, device) -> "FrameTensors":

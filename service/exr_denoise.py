@@ -30,7 +30,8 @@ def frame_from_exr(path: Path, frame: ExrFrame) -> FrameTensors:
                        f"`renderloop render SCENE --no-denoise -o x.exr` to get every layer")
     return FrameTensors(color=nchw(frame.noisy), variance=nchw(frame.variance), albedo=nchw(frame.albedo),
                         normal=nchw(frame.normal), depth=nchw(frame.depth),
-                        motion=None if frame.motion is None else nchw(frame.motion))
+                        motion=None if frame.motion is None else nchw(frame.motion),
+                        spp=None if frame.spp is None else nchw(frame.spp.astype(np.float32)))
 
 
 def load_lambda(lam: float, lambda_map: Path | None, shape: tuple[int, int]) -> np.ndarray:
@@ -68,9 +69,12 @@ def denoise_exr(source: Path, output: Path, networks: Networks, *, lam: float = 
     lam_map = load_lambda(lam, lambda_map, centre_frame.shape)
     with torch.no_grad():
         denoised = networks.denoiser(window, centre, lam_tensor(lam_map))
-        error = networks.error_predictor(window[centre], denoised)
+        # An error network that reads sample counts needs the EXR's `spp` layer; without one the
+        # file still gets its denoised image, only no error estimate.
+        wants_spp = networks.error_predictor.config.sample_count_input
+        error = None if (wants_spp and window[centre].spp is None) else networks.error_predictor(window[centre], denoised)
     centre_frame.color = to_image(denoised)
-    centre_frame.error = to_image(error)
+    centre_frame.error = None if error is None else to_image(error)
     centre_frame.lam = lam_map
     write_exr(output, centre_frame)
     return centre_frame

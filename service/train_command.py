@@ -35,8 +35,15 @@ def add_parser(sub) -> None:
     p.add_argument("--init", type=Path, default=d.init, help="start the denoiser from this checkpoint's weights")
     p.add_argument("--resume", action="store_true", help="continue from OUT/.train_<stage>.pt")
     p.add_argument("--device", default=d.device, help="cpu | cuda (default: cuda when available)")
+    p.add_argument("--error-levels", type=_levels, default=d.error_levels, metavar="L1,L2,…",
+                   help="input levels the error network trains on (default: every uniform/adaptive level); "
+                        "the loop's own: spp16,loop32,loop64,loop128 (renderloop dataset --loop-branch)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=run_train)
+
+
+def _levels(text: str) -> tuple[str, ...]:
+    return tuple(level.strip() for level in text.split(",") if level.strip())
 
 
 def train_config(args) -> TrainConfig:
@@ -44,7 +51,7 @@ def train_config(args) -> TrainConfig:
         data=args.data, out=args.out, stage=args.stage, steps=args.steps, batch=args.batch, crop=args.crop,
         lr=args.lr, val_every=args.val_every, seed=args.seed, width=args.width, spatial_blocks=args.spatial_blocks,
         symmetric_fraction=args.symmetric_fraction, init=args.init, resume=args.resume, device=args.device,
-        quiet=args.quiet, command_line="renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        quiet=args.quiet, error_levels=args.error_levels, command_line="renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
     )
 
 

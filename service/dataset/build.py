@@ -8,7 +8,11 @@ inputs carry exactly the statistics the loop produces:
   iteration doubles the total, spent ∝ relative variance — the error network does not exist
   yet when the data is made, and variance is the loop's own fallback allocator);
 - an independent high-spp reference (its own seed: a reference that shared samples with the
-  input would reward the denoiser for copying noise).
+  input would reward the denoiser for copying noise);
+- with `loop_networks` (`renderloop dataset --loop-branch`), a third branch from the 16-spp
+  buffer that runs the render loop's own steps — denoise, predict the error, allocate by it,
+  render — so the error network can be trained on exactly what the loop feeds it: the shipped
+  denoiser's output on the loop's non-uniform sample counts, at every iteration's budget.
 
 Layout: DIR/<split>/scene_<seed>/frame_<f>/<item>.exr, DIR/manifest.json. Resumable: an item
 whose EXR is already there and readable is not written again; files are written under a
@@ -27,7 +31,10 @@ from service.atomic import atomic_write, atomic_write_text
 from service.dataset.procedural import SceneSpec, sample_spec, scene_dict, sensor_dict
 from service.dataset.splits import SPLITS, scene_seeds
 from service.exr import ExrError, ExrFrame, read_exr, write_exr
+from models.pretrained import Networks
 from service.loop.allocate import allocate_samples, variance_weights
+from service.loop.denoise_session import DenoiseSession
+from service.loop.loop import converged_error, next_counts
 from service.render.framebuffer import FrameBuffer
 from service.render.renderer import render_samples
 from service.render.runtime import mitsuba
@@ -40,6 +47,8 @@ ADAPTIVE_ITEMS = ("adaptive32", "adaptive64")
 REFERENCE = "reference"
 ITEMS = tuple(name for name, _ in UNIFORM_STEPS) + ADAPTIVE_ITEMS + (REFERENCE,)
 INPUT_ITEMS = ITEMS[:-1]
+# The loop branch (optional): the 16-spp buffer continued by the loop's own error allocator.
+LOOP_ITEMS = ("loop32", "loop64", "loop128")
 MANIFEST = "manifest.json"
 FORMAT = "renderloop-dataset"
 FORMAT_VERSION = 1
@@ -47,7 +56,7 @@ FORMAT_VERSION = 1
 # incompatible files under the same names.
 FIXED_SETTINGS = ("size", "frames", "seed", "reference_spp")
 # Seed streams per frame, so inputs, the adaptive branch and the reference never share samples.
-_STREAM_UNIFORM, _STREAM_ADAPTIVE, _STREAM_REFERENCE = 0, 1, 2
+_STREAM_UNIFORM, _STREAM_ADAPTIVE, _STREAM_REFERENCE, _STREAM_LOOP = 0, 1, 2, 3
 
 
 class DatasetError(ValueError):
@@ -62,6 +71,11 @@ class DatasetSettings:
     seed: int
     split: str
     reference_spp: int
+    loop_branch: bool = False
+
+    @property
+    def items(self) -> tuple[str, ...]:
+        return ITEMS + LOOP_ITEMS if self.loop_branch else ITEMS
 
     def validate(self) -> None:
         """Raise DatasetError with a one-line message for the first bad value."""
@@ -81,7 +95,7 @@ class DatasetSettings:
         """The CLI command that (re)builds exactly this data set."""
         return (f"renderloop dataset -o {out_dir} --scenes {self.scenes} --size {self.size} "
                 f"--frames {self.frames} --seed {self.seed} --split {self.split} "
-                f"--reference-spp {self.reference_spp}")
+                f"--reference-spp {self.reference_spp}" + (" --loop-branch" if self.loop_branch else ""))
 
 
 def frame_dir(root: Path, split: str, scene_seed: int, frame: int) -> Path:
@@ -123,6 +137,7 @@ class _FrameJob:
     prev_sensor: object | None
     paths: dict[str, Path]
     missing: set[str]
+    networks: Networks | None = None  # drives the loop branch
 
 
 def _exr_frame(buffer: FrameBuffer, scene_seed: int, iteration: int, *, color: np.ndarray | None = None) -> ExrFrame:
@@ -162,9 +177,25 @@ def _adaptive_branch(job: _FrameJob, start: FrameBuffer) -> None:
         _save(job, item, _exr_frame(buffer, job.scene_seed, iteration))
 
 
+def _loop_branch(job: _FrameJob, start: FrameBuffer) -> None:
+    """Continue a copy of the 16-spp buffer with the render loop's own steps (single frame,
+    λ = 1): denoise, predict the error, zero it where samples agree, allocate ∝ error."""
+    buffer = start.copy()
+    session = DenoiseSession(job.networks, frames=1, temporal_radius=0)
+    lam = np.ones(buffer.shape, dtype=np.float32)
+    for iteration, item in enumerate(LOOP_ITEMS, start=1):
+        images = session.denoise([buffer], lam)
+        error = session.predict_error([buffer], images)[0]  # per frame index (DenoiseSession)
+        budget = int(buffer.spp.sum())  # doubling, as in the loop
+        counts = next_counts("error", buffer, converged_error(buffer.converged(), error), budget,
+                             seed=render_seed(job.scene_seed, job.frame, 100 + iteration))
+        _render(job, buffer, counts, _STREAM_LOOP)
+        _save(job, item, _exr_frame(buffer, job.scene_seed, iteration))
+
+
 def _render_inputs(job: _FrameJob, shape: tuple[int, int]) -> None:
-    """The uniform levels and the adaptive branch; skipped entirely when all exist."""
-    if not job.missing.intersection(INPUT_ITEMS):
+    """The uniform levels and the adaptive (and loop) branches; skipped entirely when all exist."""
+    if not job.missing.intersection(INPUT_ITEMS + LOOP_ITEMS):
         return
     buffer = FrameBuffer.empty(*shape)
     for iteration, (item, added) in enumerate(UNIFORM_STEPS):
@@ -172,6 +203,8 @@ def _render_inputs(job: _FrameJob, shape: tuple[int, int]) -> None:
         _save(job, item, _exr_frame(buffer, job.scene_seed, iteration))
         if iteration == 0 and job.missing.intersection(ADAPTIVE_ITEMS):
             _adaptive_branch(job, buffer)
+        if iteration == 0 and job.missing.intersection(LOOP_ITEMS):
+            _loop_branch(job, buffer)
         if not job.missing.intersection(name for name, _ in UNIFORM_STEPS[iteration + 1:]):
             break  # later levels exist already; the samples to reach them are not needed
 
@@ -184,9 +217,10 @@ def _render_reference(job: _FrameJob, shape: tuple[int, int], spp: int) -> None:
     _save(job, REFERENCE, _exr_frame(buffer, job.scene_seed, 0))
 
 
-def _frame_job(root: Path, settings: DatasetSettings, spec: SceneSpec, frame: int) -> _FrameJob:
+def _frame_job(root: Path, settings: DatasetSettings, spec: SceneSpec, frame: int,
+               networks: Networks | None = None) -> _FrameJob:
     mi = mitsuba()
-    paths = {item: item_path(root, settings.split, spec.seed, frame, item) for item in ITEMS}
+    paths = {item: item_path(root, settings.split, spec.seed, frame, item) for item in settings.items}
     missing = {item for item, path in paths.items() if not is_finished(path)}
     scene = prev_sensor = None
     if missing:
@@ -194,12 +228,14 @@ def _frame_job(root: Path, settings: DatasetSettings, spec: SceneSpec, frame: in
         if settings.frames > 1:
             # Frame −1 exists on the camera path, so frame 0 of a sequence has motion too.
             prev_sensor = mi.load_dict(sensor_dict(spec.camera, size=settings.size, frame=frame - 1))
-    return _FrameJob(spec.seed, frame, scene, prev_sensor, paths, missing)
+    return _FrameJob(spec.seed, frame, scene, prev_sensor, paths, missing, networks)
 
 
-def render_frame(root: Path, settings: DatasetSettings, spec: SceneSpec, frame: int) -> dict[str, Path]:
-    """Render and write whatever items of (scene, frame) are missing; returns all item paths."""
-    job = _frame_job(root, settings, spec, frame)
+def render_frame(root: Path, settings: DatasetSettings, spec: SceneSpec, frame: int,
+                 networks: Networks | None = None) -> dict[str, Path]:
+    """Render and write whatever items of (scene, frame) are missing; returns all item paths.
+    `networks` drive the loop branch (settings.loop_branch)."""
+    job = _frame_job(root, settings, spec, frame, networks)
     shape = (settings.size, settings.size)
     if job.missing:
         _render_inputs(job, shape)
@@ -244,7 +280,7 @@ def _check_compatible(root: Path, manifest: dict, settings: DatasetSettings) -> 
 def _split_entry(root: Path, settings: DatasetSettings, seeds: list[int], complete: bool) -> dict:
     entries = [
         {"scene": seed, "frame": frame,
-         "items": {item: str(item_path(Path(), settings.split, seed, frame, item)) for item in ITEMS}}
+         "items": {item: str(item_path(Path(), settings.split, seed, frame, item)) for item in settings.items}}
         for seed in seeds for frame in range(settings.frames)
     ]
     return {**asdict(settings), "scene_seeds": seeds, "command": settings.command(root),
@@ -264,6 +300,7 @@ def build_dataset(
     split: str = "train",
     reference_spp: int = 1024,
     progress: bool = True,
+    loop_networks: Networks | None = None,
 ) -> Path:
     """Render `scenes` procedural scenes × `frames` frames into `out_dir`; returns the manifest path.
 
@@ -271,8 +308,10 @@ def build_dataset(
     `scenes` with the same seed extends the data set (scene seeds are prefix-stable).
     """
     settings = DatasetSettings(scenes=scenes, size=size, frames=frames, seed=seed, split=split,
-                               reference_spp=reference_spp)
+                               reference_spp=reference_spp, loop_branch=loop_networks is not None)
     settings.validate()
+    if settings.loop_branch and frames != 1:
+        raise DatasetError("--loop-branch renders single frames (the error network sees one frame); use --frames 1")
     root = Path(out_dir)
     if root.exists() and not root.is_dir():
         raise DatasetError(f"--out {root} exists and is not a folder")
@@ -288,7 +327,7 @@ def build_dataset(
             spec = sample_spec(scene_seed)
             for frame in range(frames):
                 bar.set_postfix(scene=scene_seed, frame=frame)
-                render_frame(root, settings, spec, frame)
+                render_frame(root, settings, spec, frame, loop_networks)
                 bar.update(1)
     manifest["splits"][split]["complete"] = True
     _write_manifest(root, manifest)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from service.dataset.splits import SPLITS
 
@@ -28,6 +29,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="seed range to draw scenes from; held-out seeds never occur in train")
     p.add_argument("--reference-spp", type=int, default=DEFAULT_REFERENCE_SPP, metavar="R",
                    help=f"samples per pixel of the reference (default {DEFAULT_REFERENCE_SPP})")
+    p.add_argument("--loop-branch", action="store_true",
+                   help="also continue each 16-spp buffer with the render loop's own steps (denoise, predict "
+                        "error, allocate by it) into loop32/loop64/loop128: what the error network is trained on")
+    p.add_argument("--weights", type=Path, metavar="DIR",
+                   help="networks that drive --loop-branch (default: the shipped ones)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
     return p
@@ -36,14 +42,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Build the data set; a bad value prints one line to stderr and returns 2."""
     # Imported here so `renderloop --help` does not pay for Mitsuba start-up.
+    from models.checkpoint import CheckpointError
+    from models.pretrained import load_networks
     from service.dataset.build import DatasetError, build_dataset
 
     try:
+        networks = load_networks(args.weights) if args.loop_branch else None
         manifest = build_dataset(
             args.out, scenes=args.scenes, size=args.size, frames=args.frames, seed=args.seed,
-            split=args.split, reference_spp=args.reference_spp, progress=not args.quiet,
+            split=args.split, reference_spp=args.reference_spp, progress=not args.quiet, loop_networks=networks,
         )
-    except DatasetError as exc:
+    except (DatasetError, CheckpointError) as exc:
         print(f"renderloop dataset: error: {exc}", file=sys.stderr)
         return 2
     print(f"data set written: {manifest}")

@@ -16,12 +16,12 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from models.frames import FrameTensors
-from service.dataset.build import INPUT_ITEMS, REFERENCE, DatasetError, read_manifest
+from service.dataset.build import INPUT_ITEMS, LOOP_ITEMS, REFERENCE, DatasetError, read_manifest
 from service.exr import ExrFrame, read_exr
 
 # ExrFrame layers → FrameTensors fields of the noisy input (the input's colour is its mean).
 _INPUT_LAYERS = {"color": "noisy", "variance": "variance", "albedo": "albedo", "normal": "normal",
-                 "depth": "depth", "motion": "motion"}
+                 "depth": "depth", "motion": "motion", "spp": "spp"}
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,7 @@ class WindowItem:
 
     scene: int
     frames: tuple[int, ...]  # consecutive frame indices, oldest first
-    level: str  # one of INPUT_ITEMS
+    level: str  # one of INPUT_ITEMS or LOOP_ITEMS
     inputs: tuple[Path, ...]  # per frame: the noisy EXR
     references: tuple[Path, ...]  # per frame: reference.exr
 
@@ -62,9 +62,13 @@ def window_items(root: str | Path, split: str, radius: int, levels: tuple[str, .
     entry = manifest["splits"].get(split)
     if entry is None:
         raise DatasetError(f"{root} has no {split!r} split; build it with renderloop dataset --split {split}")
-    unknown = set(levels) - set(INPUT_ITEMS)
+    unknown = set(levels) - set(INPUT_ITEMS + LOOP_ITEMS)
     if unknown:
-        raise DatasetError(f"unknown input levels {sorted(unknown)}; known: {', '.join(INPUT_ITEMS)}")
+        raise DatasetError(f"unknown input levels {sorted(unknown)}; known: {', '.join(INPUT_ITEMS + LOOP_ITEMS)}")
+    absent = set(levels) - set(entry["entries"][0]["items"]) if entry["entries"] else set()
+    if absent:
+        raise DatasetError(f"{root}/{split} has no {', '.join(sorted(absent))} inputs; the loop levels come from "
+                           f"`renderloop dataset --loop-branch`")
     span = 2 * radius + 1
     if entry["frames"] < span:
         raise DatasetError(f"{root}/{split} has {entry['frames']} frames per scene; a window of "

@@ -22,8 +22,26 @@ from service.loop.tensors import to_image as to_hwc
 from service.loop.spec import IterationRecord, LoopSpec, LoopSpecError, lambda_problem, validate_spec
 from service.loop.state import LoopState
 from service.render.effects import inspect_frames, load_frames, make_integrator
+from service.render.framebuffer import FrameBuffer
 from service.render.renderer import render_samples
 from service.render.runtime import active_variant
+
+
+def next_counts(allocator: str, buffer: FrameBuffer, predicted_error: np.ndarray | None, budget: int,
+                seed: int) -> np.ndarray:
+    """The loop's allocation step for one frame: `budget` new samples per the allocator's
+    weights. Pixels whose samples all agreed (empty background, flat emitters) gain nothing
+    from more: they get only the allocator's uniform floor."""
+    weights = allocation_weights(allocator, predicted_error=predicted_error,
+                                 relative_variance=buffer.relative_variance(), shape=buffer.shape)
+    settled = buffer.converged() if allocator != "uniform" else None
+    return allocate_samples(weights, budget, seed=seed, floor_only=settled)
+
+
+def converged_error(converged: np.ndarray, error: np.ndarray) -> np.ndarray:
+    """A converged pixel's mean (FrameBuffer.converged) is exact for what it sees: no error left
+    to predict."""
+    return np.where(converged, 0.0, error).astype(np.float32)
 
 
 class IterationInterrupted(RuntimeError):
@@ -167,16 +185,8 @@ class RenderLoop:
             budget = iteration_budget(int(buf.spp.sum()))
             if spec.spp_budget is not None:
                 budget = min(budget, max(0, int(round(spec.spp_budget * buf.spp.size)) - int(buf.spp.sum())))
-            weights = allocation_weights(
-                spec.allocator,
-                predicted_error=state.error_maps[f],
-                relative_variance=buf.relative_variance(),
-                shape=buf.shape,
-            )
-            # Pixels whose samples all agreed (empty background, flat emitters) gain nothing
-            # from more: they get only the allocator's uniform floor.
-            settled = buf.converged() if spec.allocator != "uniform" else None
-            counts[f] = allocate_samples(weights, budget, seed=spec.seed * 1000 + state.iteration, floor_only=settled)
+            counts[f] = next_counts(spec.allocator, buf, state.error_maps[f], budget,
+                                    seed=spec.seed * 1000 + state.iteration)
         timings["allocate"] = time.perf_counter() - t0
         return counts
 
@@ -215,8 +225,7 @@ class RenderLoop:
         with self.lock:
             for f in self.owned:
                 self._converged[f] = self.state.buffers[f].converged()
-                # A converged pixel's mean is exact for what it sees: no error left to predict.
-                self.state.error_maps[f] = np.where(self._converged[f], 0.0, errors[f]).astype(np.float32)
+                self.state.error_maps[f] = converged_error(self._converged[f], errors[f])
             # A λ edit that arrived meanwhile wins over the map this pass started with.
             self._keep_converged(self.session.relambda(self.state.lam_map) if not np.array_equal(lam_map, self.state.lam_map)
                                  else {f: to_hwc(image) for f, image in images.items()})

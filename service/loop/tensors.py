@@ -42,6 +42,7 @@ def frame_tensors(buffer: FrameBuffer) -> FrameTensors:
         normal=nchw(buffer.normal),
         depth=nchw(buffer.depth),
         motion=None if motion is None else nchw(motion),
+        spp=nchw(buffer.spp.astype(np.float32)),
     )
 
 

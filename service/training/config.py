@@ -41,6 +41,9 @@ class TrainConfig:
     device: str | None = None  # cpu | cuda (None: cuda when available)
     quiet: bool = False
     command_line: str = ""  # recorded in every checkpoint
+    # Input levels the error network trains on (None: every uniform/adaptive level). The loop's
+    # own inputs are ("spp16", "loop32", "loop64", "loop128"): `renderloop dataset --loop-branch`.
+    error_levels: tuple[str, ...] | None = None
 
     def validate(self) -> None:
         if self.stage not in STAGES:

@@ -1,6 +1,10 @@
+from dataclasses import replace
+
+import pytest
 import torch
 
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from models.features import inverse_sample_count_feature, sample_count_feature
 from tests.models.conftest import make_frame
 
 
@@ -13,3 +17,28 @@ def test_error_predictor_output_is_non_negative_with_right_shape():
     assert (out >= 0).all() and out.isfinite().all()
     out.mean().backward()
     assert all(p.grad.isfinite().all() for p in ep.parameters())
+
+
+def test_sample_count_input_changes_the_prediction_and_is_required():
+    ep = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, sample_count_input=True))
+    f = make_frame(6, 6)
+    denoised = torch.rand(1, 3, 6, 6)
+    with pytest.raises(ValueError, match="sample count"):
+        ep(f, denoised)
+    few = ep(replace(f, spp=torch.full((1, 1, 6, 6), 16.0)), denoised)
+    many = ep(replace(f, spp=torch.full((1, 1, 6, 6), 4096.0)), denoised)
+    assert not torch.allclose(few, many)
+
+
+def test_output_scale_multiplies_every_prediction():
+    torch.manual_seed(3)
+    plain = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1))
+    scaled = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, output_scale=1.5))
+    scaled.load_state_dict(plain.state_dict())
+    f, denoised = make_frame(5, 5), torch.rand(1, 3, 5, 5)
+    assert torch.allclose(scaled(f, denoised), 1.5 * plain(f, denoised))
+
+
+def test_sample_count_feature_round_trips():
+    spp = torch.tensor([0.0, 1.0, 16.0, 4096.0, 2.0 ** 20])
+    assert torch.allclose(inverse_sample_count_feature(sample_count_feature(spp)), spp, rtol=1e-5)

@@ -1,0 +1,87 @@
+"""The loop branch of the data set (`renderloop dataset --loop-branch`) and the error network
+trained on it: what the loop feeds the error network, at every iteration's budget."""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from models.checkpoint import load_checkpoint
+from models.losses import smape_map
+from models.pretrained import SHIPPED_WEIGHTS_DIR, load_networks
+from service.dataset.build import LOOP_ITEMS, DatasetError, build_dataset, item_path, read_manifest
+from service.dataset.loader import DenoiserDataset
+from service.exr import read_exr
+
+LOOP_LEVELS = ("spp16",) + LOOP_ITEMS
+
+
+@pytest.fixture(scope="module")
+def loop_dataset(tmp_path_factory, tiny) -> Path:
+    root = tmp_path_factory.mktemp("loop")
+    build_dataset(root, scenes=2, frames=1, split="train", loop_networks=load_networks(), **tiny)
+    return root
+
+
+def test_loop_branch_doubles_the_total_each_iteration_with_non_uniform_counts(loop_dataset):
+    entry = read_manifest(loop_dataset)["splits"]["train"]
+    assert entry["loop_branch"] and "--loop-branch" in entry["command"]
+    uneven = False
+    for seed in entry["scene_seeds"]:
+        for item, mean in zip(LOOP_ITEMS, (32, 64, 128)):
+            spp = read_exr(item_path(loop_dataset, "train", seed, 0, item)).spp
+            assert spp.mean() == mean  # the loop's budget rule, exactly
+            assert spp.min() >= 1
+            uneven |= bool(spp.std() > 0)
+    assert uneven  # allocated by the predicted error, not uniformly
+
+
+def test_loader_serves_loop_levels_with_their_sample_counts(loop_dataset):
+    data = DenoiserDataset(loop_dataset, split="train", levels=LOOP_LEVELS, crop=8, seed=0)
+    assert {item.level for item in data.items} == set(LOOP_LEVELS)
+    sample = data[0]
+    assert sample.noisy.spp is not None and sample.noisy.spp.shape[-2:] == (8, 8)
+
+
+def test_loop_levels_on_a_data_set_without_them_say_how_to_build_them(still_dataset):
+    with pytest.raises(DatasetError, match="--loop-branch"):
+        DenoiserDataset(still_dataset, split="heldout", levels=LOOP_LEVELS)
+
+
+def test_loop_branch_refuses_sequences(tmp_path, tiny):
+    with pytest.raises(DatasetError, match="--frames 1"):
+        build_dataset(tmp_path, scenes=1, frames=2, loop_networks=load_networks(), **tiny)
+
+
+def test_error_network_trained_on_loop_levels_is_calibrated_on_validation(loop_dataset, tmp_path):
+    out = tmp_path / "weights"
+    out.mkdir()
+    shutil.copy(SHIPPED_WEIGHTS_DIR / "denoiser.pt", out / "denoiser.pt")
+    result = subprocess.run(
+        [sys.executable, "-m", "service.cli", "train", "--data", str(loop_dataset), "--stage", "error", "-o", str(out),
+         "--steps", "4", "--val-every", "2", "--batch", "2", "--crop", "8", "--quiet",
+         "--error-levels", ",".join(LOOP_LEVELS)],
+        capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    model = load_checkpoint(out / "error_predictor.pt", expected_kind="error_predictor")
+    assert model.config.sample_count_input
+    assert ",".join(LOOP_LEVELS) in model.checkpoint_extra["command"]
+    denoiser = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser")
+    # The trainer holds back the last scene of two for validation: there the mean prediction
+    # must equal the mean true SMAPE of the denoised image.
+    val = DenoiserDataset(loop_dataset, split="train", levels=LOOP_LEVELS, crop=None)
+    held = sorted({item.scene for item in val.items})[-1]
+    val.items = [item for item in val.items if item.scene == held]
+    predicted, true = [], []
+    with torch.no_grad():
+        for i in range(len(val)):
+            s = val[i]
+            denoised = denoiser([s.noisy], 0, 1.0)
+            predicted.append(float(model(s.noisy, denoised).mean()))
+            true.append(float(smape_map(denoised, s.reference).mean()))
+    assert np.sum(predicted) == pytest.approx(np.sum(true), rel=1e-3)
