@@ -184,7 +184,7 @@ def _loop_branch(job: _FrameJob, start: FrameBuffer) -> None:
     session = DenoiseSession(job.networks, frames=1, temporal_radius=0)
     lam = np.ones(buffer.shape, dtype=np.float32)
     for iteration, item in enumerate(LOOP_ITEMS, start=1):
-        error = session.predict_error([buffer], session.denoise([buffer], lam))[0]
+        error = session.predict_error([buffer], session.denoise([buffer], lam))[0]  # keyed by frame index
         budget = int(buffer.spp.sum())  # doubling, as in the loop
         counts = next_counts("error", buffer, converged_error(buffer.converged(), error), budget,
                              seed=render_seed(job.scene_seed, job.frame, 100 + iteration))
