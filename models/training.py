@@ -40,7 +40,7 @@ def cut_window(frames: list[FrameTensors], centre: int, single: bool) -> tuple[l
 
 
 def denoiser_loss(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor,
-                  lam: Tensor) -> Tensor:
+                  lam: Tensor, candidate: Tensor | None = None) -> Tensor:
     """Eq. 6 on the composited result, plus COARSE_LEVEL_WEIGHT × eq. 6 on each coarse level's
     own result against the pooled reference.
 
@@ -51,7 +51,7 @@ def denoiser_loss(model: Denoiser, frames: list[FrameTensors], centre: int, refe
     report shows both), and the multi-scale network is single-scale with extra work. Training
     each level on its own target keeps the coarse path useful, so α has something to choose.
     """
-    cache = model.prepare(frames, centre)
+    cache = model.prepare(frames, centre, candidate)
     levels = model.filter_levels(cache, lam)
     loss = asymmetric_loss(model.merge_levels(cache, levels), reference, frames[centre].color, lam)
     if len(levels) > 1:
@@ -84,16 +84,17 @@ def error_predictor_loss(model: ErrorPredictor, denoiser: Denoiser, frame: Frame
 
 
 @torch.no_grad()
-def denoiser_smape(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor) -> float:
+def denoiser_smape(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor,
+                   candidate: Tensor | None = None) -> float:
     """Validation metric: symmetric SMAPE at λ = 1 (the default the loop uses)."""
-    return float(smape(model(frames, centre, 1.0), reference))
+    return float(smape(model(frames, centre, 1.0, candidate), reference))
 
 
 @torch.no_grad()
 def denoiser_lambda_loss(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor,
-                         lambdas: tuple[float, ...] = VALIDATION_LAMBDAS) -> float:
+                         lambdas: tuple[float, ...] = VALIDATION_LAMBDAS, candidate: Tensor | None = None) -> float:
     """Validation metric of the λ stage: mean eq. 6 over λ > 1. SMAPE at λ = 1 cannot rank λ-stage
     checkpoints: the anchored λ module leaves λ = 1 exactly as the symmetric stages made it."""
-    cache = model.prepare(frames, centre)
+    cache = model.prepare(frames, centre, candidate)
     noisy = frames[centre].color
     return sum(float(asymmetric_loss(model.apply(cache, lam), reference, noisy, lam)) for lam in lambdas) / len(lambdas)

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from models.pretrained import Networks
+from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, lam_tensor, temporal_window, to_image
 from service.render.framebuffer import FrameBuffer
 
@@ -39,7 +40,9 @@ class DenoiseSession:
         caches, images = [], []
         for f in range(len(tensors)):
             indices, centre = temporal_window(f, len(tensors), self.temporal_radius)
-            cache = self.networks.denoiser.prepare([tensors[i] for i in indices], centre)
+            # the candidate image (OIDN) is computed once per iteration and cached with the features
+            candidate = candidate_for(self.networks.denoiser, tensors[f])
+            cache = self.networks.denoiser.prepare([tensors[i] for i in indices], centre, candidate)
             caches.append(cache)
             images.append(self.networks.denoiser.apply(cache, lam))
         with self.lock:

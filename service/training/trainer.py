@@ -39,9 +39,10 @@ def _split_items(dataset):
     return [i for i in dataset.items if i.scene not in held], [i for i in dataset.items if i.scene in held]
 
 
-def _datasets(config, radius: int):
+def _datasets(config, radius: int, candidate: bool = False):
 
-    train = DenoiserDataset(config.data, split="train", radius=radius, crop=config.crop, seed=config.seed)
+    train = DenoiserDataset(config.data, split="train", radius=radius, crop=config.crop, seed=config.seed,
+                            candidate=candidate)
     train_items, val_items = _split_items(train)
     val = copy.copy(train)
     val.crop = None
@@ -106,12 +107,14 @@ def _fit(stage: str, model, loss_fn, val_fn, config: TrainConfig, device, extra:
 def _denoiser_to_train(config, device, switches: dict):
     """A fresh network, or --init's weights in a network with the stage's switches (modules the
     earlier stage lacked — compositor, temporal extractor — start fresh)."""
+    wanted = {"oidn_candidate": config.oidn_candidate, "temporal": config.temporal}
     if config.init is None:
         sizes = {"width": config.width, "spatial_blocks": config.spatial_blocks}
-        base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None})
+        base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None}, **wanted)
         return Denoiser(dataclasses.replace(base, **switches)).to(device)
     trained = load_checkpoint(config.init, expected_kind="denoiser", device=device)
-    full = dataclasses.replace(trained.config, temporal=True, multiscale=True)
+    # a candidate gate the earlier weights lack starts fresh (near "copy the candidate")
+    full = dataclasses.replace(trained.config, multiscale=True, **wanted)
     model = Denoiser(dataclasses.replace(full, **switches)).to(device)
     model.load_state_dict(trained.state_dict(), strict=False)
     return model
@@ -129,7 +132,8 @@ def train_denoiser(config, device, stage: str = "denoiser", switches: dict | Non
         # (the λ module is anchored at s(1)) and the service's cached features stay valid.
         for name, parameter in model.named_parameters():
             parameter.requires_grad_(name.startswith(("specialise.mix.", "specialise.delta")))
-    train, val = _datasets(config, model.config.temporal_radius)
+    radius = model.config.temporal_radius if model.config.temporal else 0
+    train, val = _datasets(config, radius, model.config.oidn_candidate)
     batches = _batches(train, config.batch, config.seed)
     gen = torch.Generator().manual_seed(config.seed)
     symmetric_steps = {"symmetric": config.steps, "random": 0}.get(schedule, int(config.symmetric_fraction * config.steps))
@@ -139,12 +143,13 @@ def train_denoiser(config, device, stage: str = "denoiser", switches: dict | Non
         single = bool(torch.rand(1, generator=gen) < 0.5)
         frames, centre = cut_window([f.to(device) for f in b.frames], b.centre, single)
         ref = b.references[b.centre].to(device)
+        candidate = None if b.candidates is None else b.candidates.to(device)
         n, _, h, w = ref.shape
         # Vogels et al. train the λ specialisation on top of a network that already denoises:
         # a random λ from step 0 rewards doing nothing (λ > 1 punishes every blur), so the
         # symmetric loss (λ = 1) comes first.
         lam = torch.ones(n, 1, h, w) if step < symmetric_steps else sample_lambda(n, h, w, gen)
-        return denoiser_loss(model, frames, centre, ref, lam.to(device))
+        return denoiser_loss(model, frames, centre, ref, lam.to(device), candidate)
 
     def val_fn() -> float:
         scores = []
@@ -152,10 +157,11 @@ def train_denoiser(config, device, stage: str = "denoiser", switches: dict | Non
             s = val[i]
             frames = [s.noisy.map(lambda _, t, k=k: t[k:k + 1].to(device)) for k in range(s.noisy.color.shape[0])]
             reference = s.reference[s.centre:s.centre + 1].to(device)
+            candidate = None if s.candidate is None else s.candidate[None].to(device)
             if schedule == "random":
-                scores.append(denoiser_lambda_loss(model, frames, s.centre, reference))
+                scores.append(denoiser_lambda_loss(model, frames, s.centre, reference, candidate=candidate))
             else:
-                scores.append(denoiser_smape(model, frames, s.centre, reference))
+                scores.append(denoiser_smape(model, frames, s.centre, reference, candidate))
         return sum(scores) / len(scores)
 
     # Checkpoints from a symmetric phase have an untrained λ module (λ would do nothing): when
