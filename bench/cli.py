@@ -14,6 +14,7 @@ from bench.models_report import main as models_main
 from bench.quality_report import run_quality_report
 from bench.sampler_report import bench_memory, bench_sampler, write_memory_report, write_sampler_report
 from bench.suite_quality_report import run_suite_quality_report
+from models.pretrained import DENOISER_FILE, weights_dir
 
 HELP = "measure and write reports (to ./bench-reports; -o docs regenerates the committed ones)"
 
@@ -92,7 +93,9 @@ def run_bench(args: argparse.Namespace) -> int:
         print(f"wrote {write_sampler_report(results, args.out)}")
     if args.models:
         # The defaults (256² and 512², 2 threads); `python -m bench.models_report --help` has the options.
-        print(f"wrote {models_main([], out=args.out)}")
+        # The shipped denoiser's architecture (models/weights/denoiser.pt, or --weights DIR's).
+        shipped = weights_dir(args.weights) / DENOISER_FILE
+        print(f"wrote {models_main(['--config-from', str(shipped)] if shipped.is_file() else [], out=args.out)}")
     if args.denoiser:
         if args.data is None:
             print("renderloop bench: error: --denoiser needs --data DIR with a held-out split", file=sys.stderr)

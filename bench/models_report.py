@@ -23,13 +23,17 @@ from pathlib import Path
 import torch
 
 from bench.common import fill, pinned_torch_threads, provenance
+from models.checkpoint import read_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
+from service.loop.oidn import oidn_tensor
 
 # single-frame: no temporal, no pyramid (KPCN); multi-scale: 3 levels, one frame; temporal-3:
 # the full default model on a 3-frame window; lambda-tail(-map): apply() alone on a cached
-# temporal-3 prepare, with a global λ / a per-pixel λ map.
-CASES = ("single-frame", "multi-scale", "temporal-3", "lambda-tail", "lambda-tail-map")
+# temporal-3 prepare, with a global λ / a per-pixel λ map; oidn: Intel Open Image Denoise alone
+# on one frame (its own threads), the yardstick. With `oidn_candidate` every full case includes
+# the OIDN call the service makes for the candidate image (what a denoise costs the product).
+CASES = ("single-frame", "multi-scale", "temporal-3", "lambda-tail", "lambda-tail-map", "oidn")
 
 
 def _frame(h: int, w: int, gen: torch.Generator) -> FrameTensors:
@@ -47,13 +51,16 @@ def _case(name: str, size: int, repeats: int, threads: int, queue, base: Denoise
     model = Denoiser(cfg).eval()
     window = [_frame(size, size, gen) for _ in range(3 if cfg.temporal else 1)]
     center = len(window) // 2
+    candidate = (lambda: oidn_tensor(window[center])) if cfg.oidn_candidate else (lambda: None)
     with torch.inference_mode():
-        if name.startswith("lambda-tail"):
-            cache = model.prepare(window, center)
+        if name == "oidn":
+            run = lambda: oidn_tensor(window[center])
+        elif name.startswith("lambda-tail"):
+            cache = model.prepare(window, center, candidate())
             lam = torch.rand(1, 1, size, size, generator=gen) * 9 + 1 if name.endswith("map") else 4.0
             run = lambda: model.apply(cache, lam)
         else:
-            run = lambda: model(window, center, 1.0)
+            run = lambda: model(window, center, 1.0, candidate())
         run()                                               # warm-up (oneDNN primitive caches)
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         times, cpu = [], []
@@ -133,9 +140,13 @@ def main(argv: list[str] | None = None, out: Path | None = None) -> Path | None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--width", type=int, default=DenoiserConfig.width)
     parser.add_argument("--spatial-blocks", type=int, default=DenoiserConfig.spatial_blocks)
+    parser.add_argument("--config-from", type=Path, metavar="CHECKPOINT",
+                        help="time the architecture a checkpoint holds (e.g. models/weights/denoiser.pt)")
     parser.add_argument("-o", "--out", type=Path, default=out, help="write DIR/models-speed.md")
     args = parser.parse_args(argv)
     config = DenoiserConfig(width=args.width, spatial_blocks=args.spatial_blocks)
+    if args.config_from is not None:
+        config = DenoiserConfig(**read_checkpoint(args.config_from)["config"])
     rows = benchmark_models(tuple(args.sizes), args.repeats, args.threads, config=config)
     for r in rows:
         print(f"{r['model']} {r['size']}² {r['threads']} thread(s): {r['ms_median']:.0f} ms median, "

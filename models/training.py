@@ -76,9 +76,9 @@ def coarse_levels_loss(model: Denoiser, cache: DenoiserCache, levels: list[Tenso
 
 
 def error_predictor_loss(model: ErrorPredictor, denoiser: Denoiser, frame: FrameTensors,
-                         reference: Tensor) -> Tensor:
+                         reference: Tensor, candidate: Tensor | None = None) -> Tensor:
     with torch.no_grad():
-        denoised = denoiser([frame], 0, 1.0)
+        denoised = denoiser([frame], 0, 1.0, candidate)
         target = smape_map(denoised, reference)
     return l1(model(frame, denoised), target)
 

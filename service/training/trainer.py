@@ -181,7 +181,8 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
     """
     with torch.no_grad():
         frame = batch.frames[0].to(device)
-        target = smape_map(denoiser([frame], 0, 1.0), batch.references[0].to(device))
+        candidate = None if batch.candidates is None else batch.candidates.to(device)
+        target = smape_map(denoiser([frame], 0, 1.0, candidate), batch.references[0].to(device))
         median = float(target.median().clamp_min(1e-4))
         model.out.weight.mul_(0.1)
         model.out.bias.fill_(median + torch.log(-torch.expm1(torch.tensor(-median))).item())
@@ -193,13 +194,14 @@ def train_error_predictor(config, device) -> dict:
     for p in denoiser.parameters():
         p.requires_grad_(False)
     model = ErrorPredictor().to(device)
-    train, val = _datasets(config, 0)
+    train, val = _datasets(config, 0, denoiser.config.oidn_candidate)
     batches = _batches(train, config.batch, config.seed + 1)
     start_at_typical_error(model, denoiser, next(_batches(train, config.batch, config.seed + 2)), device)
 
     def loss_fn(step: int):
         b = next(batches)
-        return error_predictor_loss(model, denoiser, b.frames[0].to(device), b.references[0].to(device))
+        candidate = None if b.candidates is None else b.candidates.to(device)
+        return error_predictor_loss(model, denoiser, b.frames[0].to(device), b.references[0].to(device), candidate)
 
     @torch.no_grad()
     def val_fn() -> float:
@@ -207,7 +209,8 @@ def train_error_predictor(config, device) -> dict:
         for i in range(len(val)):
             s = val[i]
             frame = s.noisy.map(lambda _, t: t[:1].to(device))
-            losses.append(float(error_predictor_loss(model, denoiser, frame, s.reference[:1].to(device))))
+            candidate = None if s.candidate is None else s.candidate[None].to(device)
+            losses.append(float(error_predictor_loss(model, denoiser, frame, s.reference[:1].to(device), candidate)))
         return sum(losses) / len(losses)
 
     return _fit("error", model, loss_fn, val_fn, config, device, {"command": config.command_line, "stage": "error"})
