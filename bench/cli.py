@@ -40,6 +40,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="samples per pixel of every reference (default 16384; 65536 for the noisiest scenes)")
     p.add_argument("--only", nargs="+", default=None, metavar="SCENE",
                    help="with --references, --dev-suite or --calibration: these development scenes only")
+    p.add_argument("--suite-spp", type=int, nargs="+", default=None, metavar="SPP",
+                   help="with --denoiser --suite dev: these sample counts only (default 16 64 256)")
     p.add_argument("--dev-suite", action="store_true",
                    help="KPCN vs OIDN at 16 spp and the loop vs uniform + OIDN at 128 spp on scenes/dev → docs/dev-suite.md")
     p.add_argument("--calibration", action="store_true",
@@ -78,7 +80,8 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.loop:
         return run_loop_command(args)
     if args.denoiser and args.suite == "dev":
-        print(f"wrote {run_suite_quality_report(args.out, weights_dir=args.weights, only=args.only)}")
+        levels = {} if args.suite_spp is None else {"spp_levels": tuple(args.suite_spp)}
+        print(f"wrote {run_suite_quality_report(args.out, weights_dir=args.weights, only=args.only, **levels)}")
         return 0
     if args.memory:
         memory = bench_memory()

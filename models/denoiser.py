@@ -303,8 +303,10 @@ class Denoiser(nn.Module):
     def apply(self, cache: DenoiserCache, lam: float | Tensor = 1.0) -> Tensor:
         return self.merge_levels(cache, self.filter_levels(cache, lam))
 
-    def filter_levels(self, cache: DenoiserCache, lam: float | Tensor = 1.0) -> list[Tensor]:
-        """Each pyramid level's own filtered, demodulated result (finest first, padded sizes)."""
+    def filter_levels(self, cache: DenoiserCache, lam: float | Tensor = 1.0,
+                      kernel_only: list[Tensor] | None = None) -> list[Tensor]:
+        """Each pyramid level's own filtered, demodulated result (finest first, padded sizes).
+        kernel_only: a list to receive each level's result before the candidate joins (training)."""
         k = self.config.kernel_size
         code = self._lambda_code(cache, lam)
         results = []
@@ -313,6 +315,8 @@ class Denoiser(nn.Module):
                 code = down(code)           # per-pixel λ map follows the pyramid
             weights = unnormalised_weights(self.specialise(level.hidden, code))   # joint softmax, eq. 4
             result = filter_padded(level.padded, weights, k)                      # eq. 3
+            if kernel_only is not None:
+                kernel_only.append(result)
             if level.candidate is not None:                                       # eq. 4 + one candidate
                 result = blend(result, level.candidate, self.gate.weight(level.gate_hidden, code))
             results.append(result)

@@ -22,6 +22,7 @@ from models.losses import asymmetric_loss, l1, smape, smape_map
 LAMBDA_BLOCK = 8  # per-pixel λ maps are drawn on a coarse grid: painted maps are piecewise smooth
 VALIDATION_LAMBDAS = (2.0, 4.0, 10.0)  # λ-stage validation: spread over log λ ∈ (0, log 10]
 COARSE_LEVEL_WEIGHT = 0.5  # weight of the coarse levels' own loss next to the composited result's
+KERNEL_PATH_WEIGHT = 0.5   # with a candidate image: weight of eq. 6 on the kernels' result alone
 
 
 def sample_lambda(n: int, height: int, width: int, generator: torch.Generator) -> Tensor:
@@ -52,8 +53,17 @@ def denoiser_loss(model: Denoiser, frames: list[FrameTensors], centre: int, refe
     each level on its own target keeps the coarse path useful, so α has something to choose.
     """
     cache = model.prepare(frames, centre, candidate)
-    levels = model.filter_levels(cache, lam)
+    kernel_only: list[Tensor] = []
+    levels = model.filter_levels(cache, lam, kernel_only)
     loss = asymmetric_loss(model.merge_levels(cache, levels), reference, frames[centre].color, lam)
+    if candidate is not None:
+        # Why: the kernels reach the output only through (1 − σ(g)); where the gate trusts the
+        # candidate their gradient vanishes, and from random init the gate learned to trust it
+        # everywhere (the kernels never got good enough to be chosen). Their own loss keeps
+        # them learning, so the gate has a real second candidate to weigh.
+        loss = loss + KERNEL_PATH_WEIGHT * asymmetric_loss(model.merge_levels(cache, kernel_only), reference,
+                                                           frames[centre].color, lam)
+        levels = kernel_only
     if len(levels) > 1:
         loss = loss + COARSE_LEVEL_WEIGHT * coarse_levels_loss(model, cache, levels, frames[centre].color,
                                                                reference, lam)

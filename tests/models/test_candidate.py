@@ -46,7 +46,7 @@ def test_output_stays_between_a_constant_input_and_a_constant_candidate():
     frame.albedo.fill_(0.6)
     out = Denoiser(CANDIDATE).eval()([frame], 0, 3.0, torch.full((1, 3, H, W), 2.0))
     assert out.min() >= 0.5 - 1e-5 and out.max() <= 2.0 + 1e-5
-    assert out.mean() > 0.5 + 0.1   # the fresh gate leans towards the candidate (σ(2) ≈ 0.88)
+    assert out.mean() > 0.5 + 0.1   # the fresh gate leans towards the candidate (σ(1) ≈ 0.73)
 
 
 @pytest.mark.parametrize("lam", [1.0, 7.0, "map"])
@@ -57,7 +57,8 @@ def test_a_saturated_candidate_logit_returns_the_candidate_image_exactly(lam):
     candidate = candidate_image()
     lam = torch.rand(H, W) * 9 + 1 if lam == "map" else lam
     out = model([make_frame(H, W), make_frame(H, W, seed=1)], 0, lam, candidate)
-    torch.testing.assert_close(out, candidate, atol=1e-5, rtol=1e-5)
+    # σ is bounded at σ(10) = 1 − 4.5e-5 (models.candidate.GATE_LOGIT_BOUND)
+    torch.testing.assert_close(out, candidate, atol=2e-4, rtol=1e-4)
 
 
 @torch.no_grad()
@@ -67,7 +68,7 @@ def test_a_suppressed_candidate_logit_returns_the_plain_kernel_network():
     plain = Denoiser(TINY).eval()
     plain.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith("gate.")})
     window = [make_frame(H, W), make_frame(H, W, seed=1)]
-    torch.testing.assert_close(model(window, 0, 4.0, candidate_image()), plain(window, 0, 4.0))
+    torch.testing.assert_close(model(window, 0, 4.0, candidate_image()), plain(window, 0, 4.0), atol=2e-4, rtol=1e-4)
 
 
 @torch.no_grad()
