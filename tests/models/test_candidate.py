@@ -119,3 +119,13 @@ def test_checkpoints_record_the_candidate_flag_and_reload_it(tmp_path):
     window, candidate = [make_frame(H, W)], candidate_image()
     with torch.no_grad():
         torch.testing.assert_close(loaded(window, 0, 2.0, candidate), model(window, 0, 2.0, candidate))
+
+
+def test_the_training_loss_keeps_the_kernels_learning_when_the_gate_trusts_the_candidate():
+    from models.training import denoiser_loss
+
+    model = Denoiser(CANDIDATE)
+    saturate_gate(model, 1e4)
+    frame = make_frame(16, 16)
+    denoiser_loss(model, [frame], 0, frame.color * 0.9, torch.ones(1, 1, 16, 16), torch.rand(1, 3, 16, 16)).backward()
+    assert model.specialise.base.grad.abs().sum() > 1e-4
