@@ -15,6 +15,7 @@ from bench.quality_report import run_quality_report
 from bench.scale_report import run_scale_report
 from bench.sampler_report import bench_memory, bench_sampler, write_memory_report, write_sampler_report
 from bench.suite_quality_report import run_suite_quality_report
+from models.pretrained import DENOISER_FILE, weights_dir
 
 HELP = "measure and write reports (to ./bench-reports; -o docs regenerates the committed ones)"
 
@@ -40,6 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="samples per pixel of every reference (default 16384; 65536 for the noisiest scenes)")
     p.add_argument("--only", nargs="+", default=None, metavar="SCENE",
                    help="with --references, --dev-suite or --calibration: these development scenes only")
+    p.add_argument("--suite-spp", type=int, nargs="+", default=None, metavar="SPP",
+                   help="with --denoiser --suite dev: these sample counts only (default 16 64 256)")
     p.add_argument("--dev-suite", action="store_true",
                    help="KPCN vs OIDN at 16 spp and the loop vs uniform + OIDN at 128 spp on scenes/dev → docs/dev-suite.md")
     p.add_argument("--calibration", action="store_true",
@@ -84,7 +87,8 @@ def run_bench(args: argparse.Namespace) -> int:
         print(f"wrote {run_scale_report(args.out, weights_dir=args.weights)}")
         return 0
     if args.denoiser and args.suite == "dev":
-        print(f"wrote {run_suite_quality_report(args.out, weights_dir=args.weights, only=args.only)}")
+        levels = {} if args.suite_spp is None else {"spp_levels": tuple(args.suite_spp)}
+        print(f"wrote {run_suite_quality_report(args.out, weights_dir=args.weights, only=args.only, **levels)}")
         return 0
     if args.memory:
         memory = bench_memory()
@@ -99,7 +103,9 @@ def run_bench(args: argparse.Namespace) -> int:
         print(f"wrote {write_sampler_report(results, args.out)}")
     if args.models:
         # The defaults (256² and 512², 2 threads); `python -m bench.models_report --help` has the options.
-        print(f"wrote {models_main([], out=args.out)}")
+        # The shipped denoiser's architecture (models/weights/denoiser.pt, or --weights DIR's).
+        shipped = weights_dir(args.weights) / DENOISER_FILE
+        print(f"wrote {models_main(['--config-from', str(shipped)] if shipped.is_file() else [], out=args.out)}")
     if args.denoiser:
         if args.data is None:
             print("renderloop bench: error: --denoiser needs --data DIR with a held-out split", file=sys.stderr)

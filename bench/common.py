@@ -34,6 +34,7 @@ from service.render.framebuffer import FrameBuffer
 from service.render.renderer import render_samples
 from service.render.runtime import active_variant
 from service.render.scenes import load_scene
+from service.loop.oidn import OIDN_SETTINGS, oidn_image
 from service.loop.tensors import nchw
 
 # Every reference render draws from its own stream: a reference that shared samples with an
@@ -41,10 +42,8 @@ from service.loop.tensors import nchw
 REFERENCE_SEED = 7_777_777
 # The metric names every report uses, in this order.
 METRIC_NAMES = ("smape", "relmse", "psnr", "dssim")
-# How OIDN is run everywhere, stated in every report that shows it. "high" is also what OIDN's
-# RT filter does when no quality is set, so the loop benchmark's earlier low-level call (no
-# quality given) ran the same setting; the one call below names it.
-OIDN_SETTINGS = "RT filter, `hdr=True`, quality high, noisy colour + albedo + normal"
+# How OIDN is run everywhere (OIDN_SETTINGS, service/loop/oidn.py), stated in every report that
+# shows it. "high" is also what OIDN's RT filter does when no quality is set.
 # Report prose lives in bench/templates/*.md (string.Template: $name, $$ for a dollar sign).
 TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
 
@@ -225,27 +224,13 @@ def true_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 # --- Intel Open Image Denoise -----------------------------------------------------------------
 
-def _hwc(t: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    a = np.nan_to_num(np.asarray(t, dtype=np.float32), nan=0.0, posinf=hi, neginf=lo)
-    return np.ascontiguousarray(np.clip(a, lo, hi), dtype=np.float32)
-
-
 def oidn_denoiser() -> tuple[OidnDenoise | None, str]:
-    """(color, albedo, normal) HWC → denoised HWC through `pyoidn`, or None and why not.
+    """(color, albedo, normal) HWC → denoised HWC: the service's own OIDN call (the candidate
+    image of a denoiser with `oidn_candidate`), so the comparison runs exactly what ours mixes in.
 
-    The second value describes the call (or the reason it is missing) for the report."""
-    try:
-        import pyoidn  # optional: the reports say OIDN was skipped when it is missing
-    except Exception as exc:  # not installed, or its shared library does not load here
-        return None, f"`pyoidn` is not available here ({type(exc).__name__}: {exc}); OIDN was skipped."
+    The second value describes the call for the report."""
     try:
         installed = f" {version('pyoidn')}"
     except PackageNotFoundError:
         installed = ""
-
-    def denoise(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
-        out = pyoidn.denoise(_hwc(color, 0.0, 1e6), _hwc(albedo, 0.0, 1.0), _hwc(normal, -1.0, 1.0),
-                             hdr=True, quality="high")
-        return np.maximum(np.asarray(out, dtype=np.float32), 0.0)
-
-    return denoise, f"Intel Open Image Denoise through `pyoidn`{installed} ({OIDN_SETTINGS})."
+    return oidn_image, f"Intel Open Image Denoise through `pyoidn`{installed} ({OIDN_SETTINGS})."

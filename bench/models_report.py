@@ -23,13 +23,17 @@ from pathlib import Path
 import torch
 
 from bench.common import fill, pinned_torch_threads, provenance
+from models.checkpoint import read_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
+from service.loop.oidn import oidn_tensor
 
 # single-frame: no temporal, no pyramid (KPCN); multi-scale: 3 levels, one frame; temporal-3:
 # the full default model on a 3-frame window; lambda-tail(-map): apply() alone on a cached
-# temporal-3 prepare, with a global λ / a per-pixel λ map.
-CASES = ("single-frame", "multi-scale", "temporal-3", "lambda-tail", "lambda-tail-map")
+# temporal-3 prepare, with a global λ / a per-pixel λ map; oidn: Intel Open Image Denoise alone
+# on one frame (its own threads), the yardstick. With `oidn_candidate` every full case includes
+# the OIDN call the service makes for the candidate image (what a denoise costs the product).
+CASES = ("single-frame", "multi-scale", "temporal-3", "lambda-tail", "lambda-tail-map", "oidn")
 
 
 def _frame(h: int, w: int, gen: torch.Generator) -> FrameTensors:
@@ -47,13 +51,16 @@ def _case(name: str, size: int, repeats: int, threads: int, queue, base: Denoise
     model = Denoiser(cfg).eval()
     window = [_frame(size, size, gen) for _ in range(3 if cfg.temporal else 1)]
     center = len(window) // 2
+    candidate = (lambda: oidn_tensor(window[center])) if cfg.oidn_candidate else (lambda: None)
     with torch.inference_mode():
-        if name.startswith("lambda-tail"):
-            cache = model.prepare(window, center)
+        if name == "oidn":
+            run = lambda: oidn_tensor(window[center])
+        elif name.startswith("lambda-tail"):
+            cache = model.prepare(window, center, candidate())
             lam = torch.rand(1, 1, size, size, generator=gen) * 9 + 1 if name.endswith("map") else 4.0
             run = lambda: model.apply(cache, lam)
         else:
-            run = lambda: model(window, center, 1.0)
+            run = lambda: model(window, center, 1.0, candidate())
         run()                                               # warm-up (oneDNN primitive caches)
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         times, cpu = [], []
@@ -125,6 +132,34 @@ def denoise_ms_by_threads(denoiser: Denoiser, size: int, thread_counts: tuple[in
     return ThreadTiming(size, repeats, {t: 1e3 * statistics.median(v) for t, v in times.items()})
 
 
+def versus_oidn(config: DenoiserConfig, size: int = 512, repeats: int = 7, threads: int = 2) -> dict[str, float]:
+    """Wall ms (minimum and median of `repeats`) of OIDN alone and of one frame through a denoiser
+    of `config` (λ = 1, with the OIDN call it needs when `oidn_candidate`), its network part alone
+    and its λ tail, interleaved round by round in this process so the machine's load hits every
+    case alike: on a shared host the minimum is the figure least disturbed by other work."""
+    gen = torch.Generator().manual_seed(0)
+    frame = _frame(size, size, gen)
+    model = Denoiser(replace(config, temporal=False)).eval()
+    candidate = oidn_tensor(frame) if config.oidn_candidate else None
+    cache = model.prepare([frame], 0, candidate)
+    cases = {
+        "oidn": lambda: oidn_tensor(frame),
+        "denoise (with its OIDN call)": lambda: model([frame], 0, 1.0, oidn_tensor(frame) if config.oidn_candidate else None),
+        "network only": lambda: model([frame], 0, 1.0, candidate),
+        "lambda tail": lambda: model.apply(cache, 4.0),
+    }
+    times: dict[str, list[float]] = {name: [] for name in cases}
+    with torch.inference_mode(), pinned_torch_threads(threads):
+        for run in cases.values():
+            run()                                               # warm-up
+        for _ in range(repeats):
+            for name, run in cases.items():
+                t0 = time.perf_counter()
+                run()
+                times[name].append(1e3 * (time.perf_counter() - t0))
+    return {f"{name} {stat}": f(v) for name, v in times.items() for stat, f in (("min", min), ("median", statistics.median))}
+
+
 def main(argv: list[str] | None = None, out: Path | None = None) -> Path | None:
     """python -m bench.models_report [SIZE ...] [--threads T] [--repeats R] [--width W] [--spatial-blocks B] [-o DIR]"""
     parser = argparse.ArgumentParser(description="CPU benchmark of the default denoiser")
@@ -133,9 +168,20 @@ def main(argv: list[str] | None = None, out: Path | None = None) -> Path | None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--width", type=int, default=DenoiserConfig.width)
     parser.add_argument("--spatial-blocks", type=int, default=DenoiserConfig.spatial_blocks)
+    parser.add_argument("--config-from", type=Path, metavar="CHECKPOINT",
+                        help="time the architecture a checkpoint holds (e.g. models/weights/denoiser.pt)")
+    parser.add_argument("--versus-oidn", action="store_true",
+                        help="one frame through the denoiser beside OIDN, interleaved in one process (prints only)")
     parser.add_argument("-o", "--out", type=Path, default=out, help="write DIR/models-speed.md")
     args = parser.parse_args(argv)
     config = DenoiserConfig(width=args.width, spatial_blocks=args.spatial_blocks)
+    if args.config_from is not None:
+        config = DenoiserConfig(**read_checkpoint(args.config_from)["config"])
+    if args.versus_oidn:
+        for size in args.sizes:
+            for name, ms in versus_oidn(config, size, args.repeats, args.threads).items():
+                print(f"{size}² {args.threads} thread(s) {name}: {ms:.0f} ms")
+        return None
     rows = benchmark_models(tuple(args.sizes), args.repeats, args.threads, config=config)
     for r in rows:
         print(f"{r['model']} {r['size']}² {r['threads']} thread(s): {r['ms_median']:.0f} ms median, "

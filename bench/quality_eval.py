@@ -26,6 +26,7 @@ from models.losses import SMAPE_EPS, smape, smape_map
 from service.dataset.build import read_manifest
 from service.dataset.loader import DenoiserDataset
 from service.exr import read_exr
+from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, nchw, to_image
 from service.render.effects import inspect_scene, make_integrator
 from service.render.framebuffer import FrameBuffer
@@ -119,9 +120,9 @@ def make_methods(denoiser: Denoiser, use_oidn: bool) -> tuple[dict[str, Denoise]
     single = ablation(denoiser, multiscale=False, temporal=False)
     methods: dict[str, Denoise] = {
         NOISY: lambda im: im.frame.color,
-        SINGLE: lambda im: single([im.frame], 0, 1.0),
-        MULTISCALE: lambda im: denoiser([im.frame], 0, 1.0),
-        TEMPORAL: lambda im: denoiser(im.window, im.centre, 1.0),
+        SINGLE: lambda im: single([im.frame], 0, 1.0, candidate_for(single, im.frame)),
+        MULTISCALE: lambda im: denoiser([im.frame], 0, 1.0, candidate_for(denoiser, im.frame)),
+        TEMPORAL: lambda im: denoiser(im.window, im.centre, 1.0, candidate_for(denoiser, im.frame)),
     }
     note = None
     if use_oidn:
@@ -223,7 +224,7 @@ def evaluate(images: list[EvalImage], methods: dict[str, Denoise], denoiser: Den
         results = {name: method(image) for name, method in methods.items()}
         out = Outputs(image, results, predicted_error=predictor(image.frame, results[TEMPORAL]))
         if image.spp == HEADLINE_SPP:
-            cache = denoiser.prepare(image.window, image.centre)
+            cache = denoiser.prepare(image.window, image.centre, candidate_for(denoiser, image.frame))
             out.lambda_results = {lam: denoiser.apply(cache, lam) for lam in lambdas}
             out.pyramid = pyramid_levels(denoiser, cache, image)
         outputs.append(out)

@@ -72,9 +72,9 @@ def three_images(record, frame: int, oidn: OidnDenoise) -> dict[str, np.ndarray]
 
 
 def score_scene(scene: DevScene, reference: np.ndarray, networks: Networks, oidn: OidnDenoise,
-                figures: Path | None) -> SceneQuality:
+                figures: Path | None, spp_levels: tuple[int, ...] = SPP_LEVELS) -> SceneQuality:
     scores, shown = {}, {}
-    for spp in SPP_LEVELS:
+    for spp in spp_levels:
         images = three_images(uniform_render(scene, spp, networks), 0, oidn)
         scores[spp] = {method: score(image, reference) for method, image in images.items()}
         shown[spp] = images
@@ -112,9 +112,10 @@ def write_crops(name: str, shown: dict[int, dict[str, np.ndarray]], reference: n
     """Rows: each spp level; columns: noisy, KPCN, OIDN, reference, KPCN error, OIDN error —
     all on the crop where KPCN's 16-spp error is largest."""
     folder.mkdir(parents=True, exist_ok=True)
-    rows, cols = _hardest_crop(true_error_map(shown[SPP_LEVELS[0]]["kpcn"], reference))
-    fig, axes = plt.subplots(len(SPP_LEVELS), 6, figsize=(9.0, 1.6 * len(SPP_LEVELS)), squeeze=False)
-    for row, spp in zip(axes, SPP_LEVELS):
+    levels = sorted(shown)
+    rows, cols = _hardest_crop(true_error_map(shown[levels[0]]["kpcn"], reference))
+    fig, axes = plt.subplots(len(levels), 6, figsize=(9.0, 1.6 * len(levels)), squeeze=False)
+    for row, spp in zip(axes, levels):
         images = shown[spp]
         errors = {m: true_error_map(images[m], reference)[rows, cols] for m in ("kpcn", "oidn")}
         top = max(float(e.max()) for e in errors.values()) or 1.0

@@ -19,7 +19,7 @@ def summary_table(results: list[SceneQuality]) -> str:
     lines = ["| spp | median SMAPE noisy / KPCN / OIDN | KPCN ≤ OIDN: SMAPE | KPCN ≤ OIDN: relMSE | "
              "energy within 2 %: KPCN / OIDN |", "|---:|---|---:|---:|---:|"]
     n = len(results)
-    for spp in SPP_LEVELS:
+    for spp in results[0].scores:
         medians = " / ".join(fmt(statistics.median(r.scores[spp][m].smape for r in results)) for m in METHODS)
         smape_wins = sum(r.scores[spp]["kpcn"].smape <= r.scores[spp]["oidn"].smape for r in results)
         relmse_wins = sum(r.scores[spp]["kpcn"].relmse <= r.scores[spp]["oidn"].relmse for r in results)
@@ -33,7 +33,7 @@ def scene_tables(results: list[SceneQuality], out_dir: Path) -> str:
     blocks = []
     for r in results:
         lines = [f"### {r.name}", "", "| spp | method | SMAPE | relMSE | PSNR dB | energy |", "|---:|---|---:|---:|---:|---:|"]
-        for spp in SPP_LEVELS:
+        for spp in r.scores:
             for method in METHODS:
                 s = r.scores[spp][method]
                 lines.append(f"| {spp} | {LABELS[method]} | {s.smape:.4f} | {s.relmse:.4g} | {s.psnr:.2f} | {s.energy:.3f} |")
@@ -58,13 +58,14 @@ def write_suite_quality_report(results: list[SceneQuality], flicker: dict[str, d
     out_dir.mkdir(parents=True, exist_ok=True)
     path.write_text(fill(
         "suite_quality.md", provenance=provenance(variant=active_variant()), oidn=oidn_note, weights=weights,
-        count=len(results), spp_levels=", ".join(str(s) for s in SPP_LEVELS), summary=summary_table(results),
+        count=len(results), spp_levels=", ".join(str(s) for s in results[0].scores), summary=summary_table(results),
         flicker=flicker_table(flicker), scenes=scene_tables(results, out_dir)))
     return path
 
 
 def run_suite_quality_report(out_dir: Path, *, weights_dir: Path | None = None, only: list[str] | None = None,
-                             reference_dir: Path = DEFAULT_REFERENCE_DIR) -> Path:
+                             reference_dir: Path = DEFAULT_REFERENCE_DIR,
+                             spp_levels: tuple[int, ...] = SPP_LEVELS) -> Path:
     oidn, oidn_note = oidn_denoiser()
     if oidn is None:
         raise RuntimeError(f"the suite quality report compares with OIDN: {oidn_note}")
@@ -74,9 +75,9 @@ def run_suite_quality_report(out_dir: Path, *, weights_dir: Path | None = None, 
     with pinned_torch_threads(TORCH_THREADS):
         for scene in dev_scenes(only):
             reference, _ = load_reference(reference_dir, scene, None if scene.frames == 1 else 0)
-            quality = score_scene(scene, reference, nets.networks, oidn, figures)
+            quality = score_scene(scene, reference, nets.networks, oidn, figures, spp_levels)
             results.append(quality)
-            low = quality.scores[SPP_LEVELS[0]]
+            low = quality.scores[spp_levels[0]]
             print(f"bench --denoiser --suite dev: {scene.name}: 16 spp SMAPE noisy {low['noisy'].smape:.4f} "
                   f"KPCN {low['kpcn'].smape:.4f} OIDN {low['oidn'].smape:.4f}", flush=True)
             if scene.frames > 1:

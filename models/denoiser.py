@@ -23,7 +23,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.features import demodulate, feature_set, log_transform, remodulate, sanitize_frame
+from models.candidate import CandidateGate, blend
+from models.features import HDR_MAX, demodulate, feature_set, log_transform, remodulate, sanitize, sanitize_frame
 from models.frames import FrameTensors
 from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
 from models.layers import Pointwise, cat_channels_last, conv3x3, res_blocks
@@ -46,6 +47,8 @@ class DenoiserConfig:
     composite_width: int = 8       # channels of the per-pixel α CNN (eq. 5)
     temporal: bool = True          # False: single-frame model, neighbours ignored
     multiscale: bool = True        # False: finest level only, no compositing
+    oidn_candidate: bool = False   # an external denoiser's image joins every level's joint softmax (models.candidate)
+    gate_width: int = 8            # hidden channels of the candidate gate
 
     @property
     def n_levels(self) -> int:
@@ -185,6 +188,8 @@ class ScaleCompositor(nn.Module):
 class LevelCache:
     padded: list[Tensor]   # demodulated radiance per frame, warped to the center (center first), kernel-padded
     hidden: Tensor         # (N,F,C+1,H,W) pre-λ kernel-head features of all frames, ones channel last
+    candidate: Tensor | None = None     # demodulated external candidate at this level (N,3,H,W)
+    gate_hidden: Tensor | None = None   # (N,1,G+1,H,W) pre-λ candidate-gate features, ones channel last
 
 
 @dataclass
@@ -208,10 +213,18 @@ class Denoiser(nn.Module):
         self.kernel_head = Pointwise(cfg.width, cfg.lambda_width)
         self.specialise = LambdaModule(cfg.lambda_width, cfg.lambda_width, cfg.kernel_size, cfg.lambda_rank)
         self.composite = ScaleCompositor(cfg.composite_width) if cfg.multiscale else None
+        self.gate = CandidateGate(
+            cfg.lambda_width, cfg.gate_width, LambdaModule(cfg.gate_width, cfg.lambda_width, 1, cfg.lambda_rank),
+        ) if cfg.oidn_candidate else None
 
     # -- prepare: everything before λ -----------------------------------------------------
 
-    def prepare(self, window: list[FrameTensors], center: int) -> DenoiserCache:
+    def prepare(self, window: list[FrameTensors], center: int, candidate: Tensor | None = None) -> DenoiserCache:
+        """candidate: (N,3,H,W) linear radiance of an external denoiser on the center frame
+        (OIDN), required exactly when the config has `oidn_candidate`."""
+        if (candidate is None) == self.config.oidn_candidate:
+            raise ValueError("this denoiser " + ("needs" if self.config.oidn_candidate else "takes no")
+                             + " candidate image (DenoiserConfig.oidn_candidate)")
         if not window:
             raise ValueError("empty window")
         if not -len(window) <= center < len(window):
@@ -230,13 +243,29 @@ class Denoiser(nn.Module):
         # (D(c)/D(a) ≠ D(c/a) on textures and albedo edges) made every coarse result differ
         # from D(fine) by a texture-shaped bias, and eq. 5 then learned α → 0.
         images = [demodulate(f.color, f.albedo) for f in frames]
+        extra = self._demodulated_candidate(candidate, frames[center], align) if candidate is not None else None
+        n_bad += extra[2] if extra is not None else 0
         levels = []
         for level in range(self.config.n_levels):
             if level:
                 frames = [down_frame(f) for f in frames]
                 images = [down(i) for i in images]
-            levels.append(self._prepare_level(frames, images, center))
+                # pooled like the images (variance of a 4-pixel mean ÷ 4), so a level whose
+                # gate is saturated returns exactly D(candidate) and eq. 5 then changes nothing
+                extra = None if extra is None else (down(extra[0]), down(extra[1]) * 0.25, 0)
+            cache = self._prepare_level(frames, images, center)
+            if extra is not None:
+                cache.candidate = extra[0]
+                cache.gate_hidden = self.gate.prepare(cache.hidden[:, 0, :-1], images[center], extra[0], extra[1])
+            levels.append(cache)
         return DenoiserCache(levels, albedo, size, n_bad)
+
+    @staticmethod
+    def _demodulated_candidate(candidate: Tensor, frame: FrameTensors, align: int) -> tuple[Tensor, Tensor, int]:
+        """Candidate and the center's variance in the kernels' demodulated space (Var(x/a) = Var(x)/a²)."""
+        clean, n_bad = sanitize(candidate.float(), 0.0, HDR_MAX)
+        scale = demodulate(torch.ones_like(frame.albedo), frame.albedo)
+        return demodulate(pad_to(clean, align), frame.albedo), frame.variance * scale * scale, n_bad
 
     def _prepare_level(self, frames: list[FrameTensors], images: list[Tensor], center: int) -> LevelCache:
         n = frames[0].color.shape[0]
@@ -274,8 +303,10 @@ class Denoiser(nn.Module):
     def apply(self, cache: DenoiserCache, lam: float | Tensor = 1.0) -> Tensor:
         return self.merge_levels(cache, self.filter_levels(cache, lam))
 
-    def filter_levels(self, cache: DenoiserCache, lam: float | Tensor = 1.0) -> list[Tensor]:
-        """Each pyramid level's own filtered, demodulated result (finest first, padded sizes)."""
+    def filter_levels(self, cache: DenoiserCache, lam: float | Tensor = 1.0,
+                      kernel_only: list[Tensor] | None = None) -> list[Tensor]:
+        """Each pyramid level's own filtered, demodulated result (finest first, padded sizes).
+        kernel_only: a list to receive each level's result before the candidate joins (training)."""
         k = self.config.kernel_size
         code = self._lambda_code(cache, lam)
         results = []
@@ -283,8 +314,25 @@ class Denoiser(nn.Module):
             if code.shape[-2:] != (1, 1) and code.shape[-2:] != level.hidden.shape[-2:]:
                 code = down(code)           # per-pixel λ map follows the pyramid
             weights = unnormalised_weights(self.specialise(level.hidden, code))   # joint softmax, eq. 4
-            results.append(filter_padded(level.padded, weights, k))             # eq. 3
+            result = filter_padded(level.padded, weights, k)                      # eq. 3
+            if kernel_only is not None:
+                kernel_only.append(result)
+            if level.candidate is not None:                                       # eq. 4 + one candidate
+                result = blend(result, level.candidate, self.gate.weight(level.gate_hidden, code))
+            results.append(result)
         return results
+
+    def candidate_weights(self, cache: DenoiserCache, lam: float | Tensor = 1.0) -> list[Tensor]:
+        """The candidate's share σ(g) of each level's softmax (finest first), for diagnostics."""
+        if self.gate is None:
+            return []
+        code = self._lambda_code(cache, lam)
+        out = []
+        for level in cache.levels:
+            if code.shape[-2:] != (1, 1) and code.shape[-2:] != level.hidden.shape[-2:]:
+                code = down(code)
+            out.append(self.gate.weight(level.gate_hidden, code))
+        return out
 
     def merge_levels(self, cache: DenoiserCache, results: list[Tensor], alphas: list[Tensor] | None = None) -> Tensor:
         """Scale compositor coarse → fine (eq. 5), albedo back in, crop to the input size.
@@ -312,5 +360,6 @@ class Denoiser(nn.Module):
         lam = torch.nan_to_num(lam, nan=LAMBDA_MIN).expand(n, 1, h, w)
         return lambda_code(pad_to(lam, self.config.alignment))
 
-    def forward(self, window: list[FrameTensors], center: int, lam: float | Tensor = 1.0) -> Tensor:
-        return self.apply(self.prepare(window, center), lam)
+    def forward(self, window: list[FrameTensors], center: int, lam: float | Tensor = 1.0,
+                candidate: Tensor | None = None) -> Tensor:
+        return self.apply(self.prepare(window, center, candidate), lam)

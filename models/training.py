@@ -22,6 +22,7 @@ from models.losses import asymmetric_loss, debiased_smape_map, l1, smape, smape_
 LAMBDA_BLOCK = 8  # per-pixel λ maps are drawn on a coarse grid: painted maps are piecewise smooth
 VALIDATION_LAMBDAS = (2.0, 4.0, 10.0)  # λ-stage validation: spread over log λ ∈ (0, log 10]
 COARSE_LEVEL_WEIGHT = 0.5  # weight of the coarse levels' own loss next to the composited result's
+KERNEL_PATH_WEIGHT = 0.5   # with a candidate image: weight of eq. 6 on the kernels' result alone
 
 
 def sample_lambda(n: int, height: int, width: int, generator: torch.Generator) -> Tensor:
@@ -40,7 +41,7 @@ def cut_window(frames: list[FrameTensors], centre: int, single: bool) -> tuple[l
 
 
 def denoiser_loss(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor,
-                  lam: Tensor) -> Tensor:
+                  lam: Tensor, candidate: Tensor | None = None) -> Tensor:
     """Eq. 6 on the composited result, plus COARSE_LEVEL_WEIGHT × eq. 6 on each coarse level's
     own result against the pooled reference.
 
@@ -51,9 +52,18 @@ def denoiser_loss(model: Denoiser, frames: list[FrameTensors], centre: int, refe
     report shows both), and the multi-scale network is single-scale with extra work. Training
     each level on its own target keeps the coarse path useful, so α has something to choose.
     """
-    cache = model.prepare(frames, centre)
-    levels = model.filter_levels(cache, lam)
+    cache = model.prepare(frames, centre, candidate)
+    kernel_only: list[Tensor] = []
+    levels = model.filter_levels(cache, lam, kernel_only)
     loss = asymmetric_loss(model.merge_levels(cache, levels), reference, frames[centre].color, lam)
+    if candidate is not None:
+        # Why: the kernels reach the output only through (1 − σ(g)); where the gate trusts the
+        # candidate their gradient vanishes, and from random init the gate learned to trust it
+        # everywhere (the kernels never got good enough to be chosen). Their own loss keeps
+        # them learning, so the gate has a real second candidate to weigh.
+        loss = loss + KERNEL_PATH_WEIGHT * asymmetric_loss(model.merge_levels(cache, kernel_only), reference,
+                                                           frames[centre].color, lam)
+        levels = kernel_only
     if len(levels) > 1:
         loss = loss + COARSE_LEVEL_WEIGHT * coarse_levels_loss(model, cache, levels, frames[centre].color,
                                                                reference, lam)
@@ -84,24 +94,26 @@ def error_target(denoised: Tensor, reference: Tensor, reference_variance: Tensor
 
 
 def error_predictor_loss(model: ErrorPredictor, denoiser: Denoiser, frame: FrameTensors,
-                         reference: Tensor, reference_variance: Tensor | None = None) -> Tensor:
+                         reference: Tensor, reference_variance: Tensor | None = None,
+                         candidate: Tensor | None = None) -> Tensor:
     with torch.no_grad():
-        denoised = denoiser([frame], 0, 1.0)
+        denoised = denoiser([frame], 0, 1.0, candidate)
         target = error_target(denoised, reference, reference_variance)
     return l1(model(frame, denoised), target)
 
 
 @torch.no_grad()
-def denoiser_smape(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor) -> float:
+def denoiser_smape(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor,
+                   candidate: Tensor | None = None) -> float:
     """Validation metric: symmetric SMAPE at λ = 1 (the default the loop uses)."""
-    return float(smape(model(frames, centre, 1.0), reference))
+    return float(smape(model(frames, centre, 1.0, candidate), reference))
 
 
 @torch.no_grad()
 def denoiser_lambda_loss(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor,
-                         lambdas: tuple[float, ...] = VALIDATION_LAMBDAS) -> float:
+                         lambdas: tuple[float, ...] = VALIDATION_LAMBDAS, candidate: Tensor | None = None) -> float:
     """Validation metric of the λ stage: mean eq. 6 over λ > 1. SMAPE at λ = 1 cannot rank λ-stage
     checkpoints: the anchored λ module leaves λ = 1 exactly as the symmetric stages made it."""
-    cache = model.prepare(frames, centre)
+    cache = model.prepare(frames, centre, candidate)
     noisy = frames[centre].color
     return sum(float(asymmetric_loss(model.apply(cache, lam), reference, noisy, lam)) for lam in lambdas) / len(lambdas)

@@ -10,6 +10,7 @@ import torch
 from models.frames import FrameTensors
 from models.pretrained import Networks
 from service.exr import ExrError, ExrFrame, read_exr, write_exr
+from service.loop.oidn import candidate_for
 from service.loop.spec import lambda_problem
 from service.loop.tensors import lam_tensor, nchw, to_image
 
@@ -68,7 +69,8 @@ def denoise_exr(source: Path, output: Path, networks: Networks, *, lam: float = 
     window = [frame_from_exr(p, f) for p, f in zip(paths, loaded)]
     lam_map = load_lambda(lam, lambda_map, centre_frame.shape)
     with torch.no_grad():
-        denoised = networks.denoiser(window, centre, lam_tensor(lam_map))
+        candidate = candidate_for(networks.denoiser, window[centre])
+        denoised = networks.denoiser(window, centre, lam_tensor(lam_map), candidate)
         # An error network that reads sample counts needs the EXR's `spp` layer; without one the
         # file still gets its denoised image, only no error estimate.
         wants_spp = networks.error_predictor.config.sample_count_input

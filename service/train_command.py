@@ -32,6 +32,10 @@ def add_parser(sub) -> None:
     p.add_argument("--symmetric-fraction", type=float, default=d.symmetric_fraction,
                    help=f"first fraction of denoiser steps trained at λ = 1 before λ is randomised "
                         f"(default {d.symmetric_fraction:g})")
+    p.add_argument("--oidn-candidate", action="store_true",
+                   help="OIDN's image on the same inputs joins the joint softmax (models/candidate.py)")
+    p.add_argument("--single-frame", action="store_true",
+                   help="no temporal extractor: a one-frame network (data sets of single frames)")
     p.add_argument("--init", type=Path, default=d.init, help="start the denoiser from this checkpoint's weights")
     p.add_argument("--resume", action="store_true", help="continue from OUT/.train_<stage>.pt")
     p.add_argument("--device", default=d.device, help="cpu | cuda (default: cuda when available)")
@@ -50,8 +54,10 @@ def train_config(args) -> TrainConfig:
     return TrainConfig(
         data=args.data, out=args.out, stage=args.stage, steps=args.steps, batch=args.batch, crop=args.crop,
         lr=args.lr, val_every=args.val_every, seed=args.seed, width=args.width, spatial_blocks=args.spatial_blocks,
-        symmetric_fraction=args.symmetric_fraction, init=args.init, resume=args.resume, device=args.device,
-        quiet=args.quiet, error_levels=args.error_levels, command_line="renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        symmetric_fraction=args.symmetric_fraction, oidn_candidate=args.oidn_candidate,
+        temporal=not args.single_frame, init=args.init, resume=args.resume, device=args.device,
+        quiet=args.quiet, error_levels=args.error_levels,
+        command_line="renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
     )
 
 
@@ -62,7 +68,11 @@ def run_train(args) -> int:
     except TrainConfigError as exc:
         print(f"renderloop train: error: {exc}", file=sys.stderr)
         return 2
+    from service.loop.tensors import configure_torch_threads
     from service.training.trainer import run_training  # torch and the data loader: only when training
 
+    # RENDERLOOP_TORCH_THREADS holds for training too: two spinning torch threads on a busy
+    # 2-core host measured 1.7 CPU-s per step where one thread needs 0.2
+    configure_torch_threads()
     run_training(config, report=print)
     return 0

@@ -18,6 +18,7 @@ from torch.utils.data import Dataset
 from models.frames import FrameTensors
 from service.dataset.build import INPUT_ITEMS, LOOP_ITEMS, REFERENCE, DatasetError, read_manifest
 from service.exr import ExrFrame, read_exr
+from service.loop.oidn import oidn_image
 
 # ExrFrame layers → FrameTensors fields of the noisy input (the input's colour is its mean).
 _INPUT_LAYERS = {"color": "noisy", "variance": "variance", "albedo": "albedo", "normal": "normal",
@@ -44,6 +45,7 @@ class TrainingSample:
     centre: int
     key: str  # "scene/frames/level@y,x", for logs and debugging
     reference_variance: Tensor | None = None  # (T, 3, h, w) variance of the reference's mean
+    candidate: Tensor | None = None  # (C, h, w) OIDN on the whole centre frame, cropped
 
 
 @dataclass
@@ -55,6 +57,7 @@ class TrainingBatch:
     centre: int
     keys: list[str]
     reference_variances: list[Tensor] | None = None
+    candidates: Tensor | None = None  # (B, C, h, w) when the data set serves candidate images
 
 
 def window_items(root: str | Path, split: str, radius: int, levels: tuple[str, ...]) -> list[WindowItem]:
@@ -107,13 +110,15 @@ class DenoiserDataset(Dataset):
     """
 
     def __init__(self, root: str | Path, *, split: str = "train", levels: tuple[str, ...] = INPUT_ITEMS,
-                 radius: int = 0, crop: int | None = 64, seed: int = 0, cache: bool = True) -> None:
+                 radius: int = 0, crop: int | None = 64, seed: int = 0, cache: bool = True,
+                 candidate: bool = False) -> None:
         if radius < 0:
             raise DatasetError(f"window radius must be >= 0, got {radius}")
         self.items = window_items(root, split, radius, tuple(levels))
         if not self.items:
             raise DatasetError(f"{root}/{split} has no finished items for levels {list(levels)}")
         self.crop, self.seed, self.radius, self.epoch = crop, seed, radius, 0
+        self.candidate = candidate  # serve OIDN on the centre frame (the denoiser's oidn_candidate)
         self._cache: dict[Path, dict[str, np.ndarray | None]] | None = {} if cache else None
         self._check_crop(read_exr(self.items[0].inputs[0]).shape)
 
@@ -141,6 +146,15 @@ class DenoiserDataset(Dataset):
             self._cache[path] = layers
         return layers
 
+    def _candidate(self, path: Path) -> np.ndarray:
+        """OIDN on the whole frame (CHW), computed once per file: OIDN sees the full image, as in
+        the service, not the crop."""
+        layers = self._layers(path)
+        if "candidate" not in layers:
+            hwc = {name: layers[name].transpose(1, 2, 0) for name in ("color", "albedo", "normal")}
+            layers["candidate"] = _chw(oidn_image(hwc["color"], hwc["albedo"], hwc["normal"]))
+        return layers["candidate"]
+
     def _corner(self, index: int, shape: tuple[int, int]) -> tuple[int, int]:
         if self.crop is None:
             return 0, 0
@@ -162,8 +176,11 @@ class DenoiserDataset(Dataset):
         noisy = FrameTensors(**{name: stack(inputs, name) for name in _INPUT_LAYERS})
         references = [self._layers(p) for p in item.references]
         key = f"{item.scene}/{item.frames[0]}-{item.frames[-1]}/{item.level}@{corner[0]},{corner[1]}"
+        candidate = None
+        if self.candidate:
+            candidate = torch.from_numpy(np.ascontiguousarray(_crop(self._candidate(item.inputs[self.radius]), corner, crop)))
         return TrainingSample(noisy=noisy, reference=stack(references, "reference"), centre=self.radius, key=key,
-                              reference_variance=stack(references, "reference_variance"))
+                              reference_variance=stack(references, "reference_variance"), candidate=candidate)
 
 
 def collate_samples(samples: list[TrainingSample]) -> TrainingBatch:
@@ -181,4 +198,5 @@ def collate_samples(samples: list[TrainingSample]) -> TrainingBatch:
         keys=[s.key for s in samples],
         reference_variances=None if any(s.reference_variance is None for s in samples) else
         [torch.stack([s.reference_variance[t] for s in samples]) for t in range(steps)],
+        candidates=None if samples[0].candidate is None else torch.stack([s.candidate for s in samples]),
     )

@@ -14,6 +14,7 @@ import torch
 
 from models.frames import FrameTensors
 from models.pretrained import Networks
+from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, lam_tensor, temporal_window, to_image
 from service.render.framebuffer import FrameBuffer
 
@@ -49,7 +50,9 @@ class DenoiseSession:
         caches, images = {}, {}
         for f in self.owned:
             indices, centre = temporal_window(f, len(buffers), self.temporal_radius)
-            caches[f] = self.networks.denoiser.prepare([tensors[i] for i in indices], centre)
+            # the candidate image (OIDN) is computed once per iteration and cached with the features
+            candidate = candidate_for(self.networks.denoiser, tensors[f])
+            caches[f] = self.networks.denoiser.prepare([tensors[i] for i in indices], centre, candidate)
             images[f] = self.networks.denoiser.apply(caches[f], lam)
         with self.lock:
             self._caches = caches

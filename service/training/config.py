@@ -36,6 +36,8 @@ class TrainConfig:
     width: int | None = None  # denoiser feature width (None: the model's default)
     spatial_blocks: int | None = None  # residual blocks of the spatial extractor (None: default)
     symmetric_fraction: float = 0.5  # end to end: first fraction of steps at λ = 1
+    oidn_candidate: bool = False  # OIDN's image as one more candidate of the joint softmax
+    temporal: bool = True  # False: a single-frame denoiser (no temporal extractor, one-frame windows)
     init: Path | None = None  # start the denoiser from this checkpoint's weights
     resume: bool = False  # continue from OUT/.train_<stage>.pt
     device: str | None = None  # cpu | cuda (None: cuda when available)

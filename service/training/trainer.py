@@ -39,9 +39,9 @@ def _split_items(dataset):
     return [i for i in dataset.items if i.scene not in held], [i for i in dataset.items if i.scene in held]
 
 
-def _datasets(config, radius: int, levels: tuple[str, ...] = INPUT_ITEMS):
+def _datasets(config, radius: int, candidate: bool = False, levels: tuple[str, ...] = INPUT_ITEMS):
     train = DenoiserDataset(config.data, split="train", levels=levels, radius=radius, crop=config.crop,
-                            seed=config.seed)
+                            seed=config.seed, candidate=candidate)
     train_items, val_items = _split_items(train)
     val = copy.copy(train)
     val.crop = None
@@ -106,12 +106,14 @@ def _fit(stage: str, model, loss_fn, val_fn, config: TrainConfig, device, extra:
 def _denoiser_to_train(config, device, switches: dict):
     """A fresh network, or --init's weights in a network with the stage's switches (modules the
     earlier stage lacked — compositor, temporal extractor — start fresh)."""
+    wanted = {"oidn_candidate": config.oidn_candidate, "temporal": config.temporal}
     if config.init is None:
         sizes = {"width": config.width, "spatial_blocks": config.spatial_blocks}
-        base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None})
+        base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None}, **wanted)
         return Denoiser(dataclasses.replace(base, **switches)).to(device)
     trained = load_checkpoint(config.init, expected_kind="denoiser", device=device)
-    full = dataclasses.replace(trained.config, temporal=True, multiscale=True)
+    # a candidate gate the earlier weights lack starts fresh (near "copy the candidate")
+    full = dataclasses.replace(trained.config, multiscale=True, **wanted)
     model = Denoiser(dataclasses.replace(full, **switches)).to(device)
     model.load_state_dict(trained.state_dict(), strict=False)
     return model
@@ -129,7 +131,8 @@ def train_denoiser(config, device, stage: str = "denoiser", switches: dict | Non
         # (the λ module is anchored at s(1)) and the service's cached features stay valid.
         for name, parameter in model.named_parameters():
             parameter.requires_grad_(name.startswith(("specialise.mix.", "specialise.delta")))
-    train, val = _datasets(config, model.config.temporal_radius)
+    radius = model.config.temporal_radius if model.config.temporal else 0
+    train, val = _datasets(config, radius, model.config.oidn_candidate)
     batches = _batches(train, config.batch, config.seed)
     gen = torch.Generator().manual_seed(config.seed)
     symmetric_steps = {"symmetric": config.steps, "random": 0}.get(schedule, int(config.symmetric_fraction * config.steps))
@@ -139,12 +142,13 @@ def train_denoiser(config, device, stage: str = "denoiser", switches: dict | Non
         single = bool(torch.rand(1, generator=gen) < 0.5)
         frames, centre = cut_window([f.to(device) for f in b.frames], b.centre, single)
         ref = b.references[b.centre].to(device)
+        candidate = None if b.candidates is None else b.candidates.to(device)
         n, _, h, w = ref.shape
         # Vogels et al. train the λ specialisation on top of a network that already denoises:
         # a random λ from step 0 rewards doing nothing (λ > 1 punishes every blur), so the
         # symmetric loss (λ = 1) comes first.
         lam = torch.ones(n, 1, h, w) if step < symmetric_steps else sample_lambda(n, h, w, gen)
-        return denoiser_loss(model, frames, centre, ref, lam.to(device))
+        return denoiser_loss(model, frames, centre, ref, lam.to(device), candidate)
 
     def val_fn() -> float:
         scores = []
@@ -152,10 +156,11 @@ def train_denoiser(config, device, stage: str = "denoiser", switches: dict | Non
             s = val[i]
             frames = [s.noisy.map(lambda _, t, k=k: t[k:k + 1].to(device)) for k in range(s.noisy.color.shape[0])]
             reference = s.reference[s.centre:s.centre + 1].to(device)
+            candidate = None if s.candidate is None else s.candidate[None].to(device)
             if schedule == "random":
-                scores.append(denoiser_lambda_loss(model, frames, s.centre, reference))
+                scores.append(denoiser_lambda_loss(model, frames, s.centre, reference, candidate=candidate))
             else:
-                scores.append(denoiser_smape(model, frames, s.centre, reference))
+                scores.append(denoiser_smape(model, frames, s.centre, reference, candidate))
         return sum(scores) / len(scores)
 
     # Checkpoints from a symmetric phase have an untrained λ module (λ would do nothing): when
@@ -176,7 +181,8 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
     with torch.no_grad():
         frame = batch.frames[0].to(device)
         variance = batch.reference_variances[0].to(device) if batch.reference_variances else None
-        target = error_target(denoiser([frame], 0, 1.0), batch.references[0].to(device), variance)
+        candidate = None if batch.candidates is None else batch.candidates.to(device)
+        target = error_target(denoiser([frame], 0, 1.0, candidate), batch.references[0].to(device), variance)
         median = float(target.median().clamp_min(1e-4))
         model.out.weight.mul_(0.1)
         model.out.bias.fill_(median + torch.log(-torch.expm1(torch.tensor(-median))).item())
@@ -190,14 +196,16 @@ def train_error_predictor(config, device) -> dict:
     # The sample count tells the network how converged each pixel is under the loop's
     # non-uniform counts (every data set's EXRs carry their spp layer).
     model = ErrorPredictor(ErrorPredictorConfig(sample_count_input=True)).to(device)
-    train, val = _datasets(config, 0, config.error_levels or INPUT_ITEMS)
+    train, val = _datasets(config, 0, denoiser.config.oidn_candidate, config.error_levels or INPUT_ITEMS)
     batches = _batches(train, config.batch, config.seed + 1)
     start_at_typical_error(model, denoiser, next(_batches(train, config.batch, config.seed + 2)), device)
 
     def loss_fn(step: int):
         b = next(batches)
         variance = b.reference_variances[0].to(device) if b.reference_variances else None
-        return error_predictor_loss(model, denoiser, b.frames[0].to(device), b.references[0].to(device), variance)
+        candidate = None if b.candidates is None else b.candidates.to(device)
+        return error_predictor_loss(model, denoiser, b.frames[0].to(device), b.references[0].to(device), variance,
+                                    candidate)
 
     @torch.no_grad()
     def val_fn() -> float:
@@ -205,8 +213,9 @@ def train_error_predictor(config, device) -> dict:
         for i in range(len(val)):
             s = val[i]
             frame = s.noisy.map(lambda _, t: t[:1].to(device))
+            candidate = None if s.candidate is None else s.candidate[None].to(device)
             losses.append(float(error_predictor_loss(model, denoiser, frame, s.reference[:1].to(device),
-                                                     _first_variance(s, device))))
+                                                     _first_variance(s, device), candidate)))
         return sum(losses) / len(losses)
 
     result = _fit("error", model, loss_fn, val_fn, config, device, {"command": config.command_line, "stage": "error"})
@@ -230,7 +239,8 @@ def calibrate_error_predictor(checkpoint: Path, denoiser, val, device) -> float:
     for i in range(len(val)):
         s = val[i]
         frame = s.noisy.map(lambda _, t: t[:1].to(device))
-        denoised = denoiser([frame], 0, 1.0)
+        candidate = None if s.candidate is None else s.candidate[None].to(device)
+        denoised = denoiser([frame], 0, 1.0, candidate)
         predicted += float(model(frame, denoised).mean())
         true += float(error_target(denoised, s.reference[:1].to(device), _first_variance(s, device)).mean())
     scale = true / predicted if predicted > 0 else 1.0

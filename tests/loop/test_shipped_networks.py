@@ -4,17 +4,22 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from bench.common import image_metrics
 from bench.dev_references import DEFAULT_REFERENCE_DIR, dev_scenes, load_reference
-from models.pretrained import load_networks
+from models.denoiser import Denoiser
+from models.pretrained import Networks, load_networks
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
 
-# Measured with the shipped weights (`renderloop bench --dev-suite`, docs/dev-suite.md): 16-spp
-# SMAPE 0.093 noisy → 0.029 denoised (3.2×); the error network's per-pixel Spearman correlation
-# with the true error of that image is 0.19 (weak: issue 14). Margins allow for seeds and platforms.
-MIN_SMAPE_CUT = 2.5
+# Measured with the shipped weights (the loop's first iteration, 16 spp, docs/oidn-candidate.md):
+# SMAPE 0.0931 noisy → 0.0174 denoised (5.36×; OIDN alone 0.0158, 5.89×); the error network's
+# per-pixel Spearman correlation with the true error of that image is 0.157 (weak: issue 14).
+# The shipped denoiser mixes OIDN's image in (oidn_candidate) and a fresh gate already leans to
+# it, so an untrained network of the shipped architecture scores 4.78×: the bar sits between,
+# not far below the measured figure. Margins allow for seeds and platforms.
+MIN_SMAPE_CUT = 5.1
 MIN_ERROR_RANK_CORRELATION = 0.12
 
 
@@ -39,9 +44,17 @@ def test_shipped_denoiser_keeps_its_smape_cut_on_an_unseen_scene(hard_shadows):
     assert smape_cut(first_iteration(scene, load_networks()), reference) >= MIN_SMAPE_CUT
 
 
-def test_an_untrained_denoiser_does_not_pass_the_guard(hard_shadows, tiny_networks):
+def untrained_shipped_architecture() -> Networks:
+    shipped = load_networks()
+    torch.manual_seed(0)
+    return Networks(Denoiser(shipped.denoiser.config).eval(), shipped.error_predictor)
+
+
+@pytest.mark.parametrize("untrained", ["tiny", "shipped-architecture"])
+def test_an_untrained_denoiser_does_not_pass_the_guard(hard_shadows, tiny_networks, untrained):
     scene, reference = hard_shadows
-    assert smape_cut(first_iteration(scene, tiny_networks), reference) < MIN_SMAPE_CUT
+    networks = tiny_networks if untrained == "tiny" else untrained_shipped_architecture()
+    assert smape_cut(first_iteration(scene, networks), reference) < MIN_SMAPE_CUT
 
 
 def test_shipped_error_network_ranks_pixels_by_their_true_error(hard_shadows):

@@ -1,0 +1,47 @@
+"""The loop with a denoiser that mixes OIDN's image into its joint softmax (service/loop/oidn.py)."""
+import numpy as np
+import pytest
+import torch
+
+from models.denoiser import Denoiser, DenoiserConfig
+from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from models.pretrained import Networks
+from service.loop.loop import RenderLoop
+from service.loop.spec import LoopSpec
+
+SIZE = 16
+
+
+@pytest.fixture
+def candidate_networks() -> Networks:
+    torch.manual_seed(0)
+    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, oidn_candidate=True)).eval()
+    with torch.no_grad():   # fresh λ modules ignore λ; perturb them so an edit visibly matters
+        for delta in (denoiser.specialise.delta, denoiser.gate.specialise.delta):
+            delta.add_(torch.randn_like(delta) * 0.5)
+    return Networks(denoiser, ErrorPredictor(ErrorPredictorConfig(width=8)).eval())
+
+
+def test_oidn_runs_once_per_frame_per_iteration_and_not_on_a_lambda_edit(candidate_networks, monkeypatch):
+    import service.loop.denoise_session as session_module
+
+    calls = []
+    real = session_module.candidate_for
+    monkeypatch.setattr(session_module, "candidate_for", lambda d, f: calls.append(1) or real(d, f))
+    loop = RenderLoop(LoopSpec(scene="cornell-box", width=SIZE, height=SIZE, max_iterations=2), candidate_networks)
+    before = list(loop.run())[-1].denoised[0]
+    assert len(calls) == 2 and np.isfinite(before).all()
+    lam = np.full((SIZE, SIZE), 10.0, np.float32)
+    after = loop.set_lambda(lam)[0]
+    assert len(calls) == 2 and loop.session.tail_calls == 1
+    assert not np.allclose(before, after)
+
+
+def test_the_oidn_candidate_is_what_pyoidn_returns_on_the_frame(candidate_networks):
+    from service.loop.oidn import candidate_for, oidn_image
+    from service.loop.tensors import frame_tensors, to_image
+
+    loop = RenderLoop(LoopSpec(scene="cornell-box", width=SIZE, height=SIZE, max_iterations=1), candidate_networks)
+    buffer = list(loop.run())[-1].buffers[0]
+    candidate = candidate_for(candidate_networks.denoiser, frame_tensors(buffer))
+    np.testing.assert_allclose(to_image(candidate), oidn_image(buffer.mean, buffer.albedo, buffer.normal), atol=1e-6)

@@ -1,0 +1,131 @@
+"""An external denoiser's image (OIDN) as one more candidate of the joint softmax (models/candidate.py)."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from models.checkpoint import load_checkpoint, save_checkpoint
+from models.denoiser import Denoiser
+
+from .conftest import TINY, make_frame
+
+CANDIDATE = dataclasses.replace(TINY, oidn_candidate=True)
+H, W = 13, 18   # not a multiple of the pyramid's alignment: padding is exercised too
+
+
+def candidate_image(seed: int = 5) -> torch.Tensor:
+    return torch.rand(1, 3, H, W, generator=torch.Generator().manual_seed(seed)) * 3
+
+
+def saturate_gate(model: Denoiser, logit: float) -> None:
+    """Force the candidate's logit g everywhere (the bias column of its λ module)."""
+    with torch.no_grad():
+        model.gate.hidden.weight.zero_()
+        model.gate.specialise.base.zero_()
+        model.gate.specialise.base[:, -1] = logit
+
+
+@torch.no_grad()
+def test_candidate_weight_is_a_share_in_0_1_at_every_level_and_every_lambda():
+    model = Denoiser(CANDIDATE).eval()
+    cache = model.prepare([make_frame(H, W)], 0, candidate_image())
+    for lam in (1.0, 10.0, torch.rand(H, W) * 9 + 1):
+        weights = model.candidate_weights(cache, lam)
+        assert len(weights) == CANDIDATE.levels
+        assert all(((w >= 0) & (w <= 1)).all() for w in weights)
+
+
+@torch.no_grad()
+def test_output_stays_between_a_constant_input_and_a_constant_candidate():
+    """Every level is (1 − w)·kernel result + w·candidate and the kernels are convex: with a flat
+    noisy image a and a flat candidate b the result must lie in [a, b] everywhere."""
+    frame = make_frame(H, W)
+    frame.color.fill_(0.5)
+    frame.albedo.fill_(0.6)
+    out = Denoiser(CANDIDATE).eval()([frame], 0, 3.0, torch.full((1, 3, H, W), 2.0))
+    assert out.min() >= 0.5 - 1e-5 and out.max() <= 2.0 + 1e-5
+    assert out.mean() > 0.5 + 0.1   # the fresh gate leans towards the candidate (σ(1) ≈ 0.73)
+
+
+@pytest.mark.parametrize("lam", [1.0, 7.0, "map"])
+@torch.no_grad()
+def test_a_saturated_candidate_logit_returns_the_candidate_image_exactly(lam):
+    model = Denoiser(CANDIDATE).eval()
+    saturate_gate(model, 1e4)
+    candidate = candidate_image()
+    lam = torch.rand(H, W) * 9 + 1 if lam == "map" else lam
+    out = model([make_frame(H, W), make_frame(H, W, seed=1)], 0, lam, candidate)
+    # σ is bounded at σ(10) = 1 − 4.5e-5 (models.candidate.GATE_LOGIT_BOUND)
+    torch.testing.assert_close(out, candidate, atol=2e-4, rtol=1e-4)
+
+
+@torch.no_grad()
+def test_a_suppressed_candidate_logit_returns_the_plain_kernel_network():
+    model = Denoiser(CANDIDATE).eval()
+    saturate_gate(model, -1e4)
+    plain = Denoiser(TINY).eval()
+    plain.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith("gate.")})
+    window = [make_frame(H, W), make_frame(H, W, seed=1)]
+    torch.testing.assert_close(model(window, 0, 4.0, candidate_image()), plain(window, 0, 4.0), atol=2e-4, rtol=1e-4)
+
+
+@torch.no_grad()
+def test_a_lambda_edit_reruns_only_the_tail_with_the_candidate_cached(monkeypatch):
+    model = Denoiser(CANDIDATE).eval()
+    for delta in (model.specialise.delta, model.gate.specialise.delta):   # fresh λ modules ignore λ
+        delta.add_(torch.randn_like(delta))
+    cache = model.prepare([make_frame(H, W)], 0, candidate_image())
+    assert all(level.candidate is not None and level.gate_hidden is not None for level in cache.levels)
+    calls = []
+    for name in ("encoder", "spatial", "kernel_head"):
+        getattr(model, name).register_forward_hook(lambda *_, n=name: calls.append(n))
+    monkeypatch.setattr("models.candidate.gate_statistics", lambda *_: pytest.fail("statistics recomputed"))
+    a, b = model.apply(cache, 1.0), model.apply(cache, 10.0)
+    assert calls == [] and not torch.equal(a, b)
+
+
+@torch.no_grad()
+def test_nan_and_inf_in_the_candidate_are_replaced_and_counted():
+    candidate = candidate_image()
+    candidate[0, 0, 2, 3], candidate[0, 1, 5, 5], candidate[0, 2, 7, 1] = float("nan"), float("inf"), -float("inf")
+    model = Denoiser(CANDIDATE).eval()
+    cache = model.prepare([make_frame(H, W)], 0, candidate)
+    out = model.apply(cache, 2.0)
+    assert torch.isfinite(out).all() and (out >= 0).all()
+    assert cache.n_bad == 3
+
+
+def test_the_candidate_must_be_given_exactly_when_the_config_asks_for_it():
+    with pytest.raises(ValueError, match="needs"):
+        Denoiser(CANDIDATE).prepare([make_frame(H, W)], 0)
+    with pytest.raises(ValueError, match="takes no"):
+        Denoiser(TINY).prepare([make_frame(H, W)], 0, candidate_image())
+
+
+def test_gradients_reach_the_gate_and_the_kernels():
+    model = Denoiser(CANDIDATE)
+    out = model([make_frame(H, W)], 0, 1.0, candidate_image())
+    out.mean().backward()
+    assert model.gate.specialise.base.grad.abs().sum() > 0
+    assert model.specialise.base.grad.abs().sum() > 0
+
+
+def test_checkpoints_record_the_candidate_flag_and_reload_it(tmp_path):
+    model = Denoiser(CANDIDATE).eval()
+    loaded = load_checkpoint(save_checkpoint(tmp_path / "d.pt", model), expected_kind="denoiser")
+    assert loaded.config.oidn_candidate
+    window, candidate = [make_frame(H, W)], candidate_image()
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(window, 0, 2.0, candidate), model(window, 0, 2.0, candidate))
+
+
+def test_the_training_loss_keeps_the_kernels_learning_when_the_gate_trusts_the_candidate():
+    from models.training import denoiser_loss
+
+    model = Denoiser(CANDIDATE)
+    saturate_gate(model, 1e4)
+    frame = make_frame(16, 16)
+    denoiser_loss(model, [frame], 0, frame.color * 0.9, torch.ones(1, 1, 16, 16), torch.rand(1, 3, 16, 16)).backward()
+    assert model.specialise.base.grad.abs().sum() > 1e-4
