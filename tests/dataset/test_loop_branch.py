@@ -17,6 +17,7 @@ from models.pretrained import SHIPPED_WEIGHTS_DIR, load_networks
 from service.dataset.build import LOOP_ITEMS, DatasetError, build_dataset, item_path, read_manifest
 from service.dataset.loader import DenoiserDataset
 from service.exr import read_exr
+from service.loop.oidn import candidate_for
 
 LOOP_LEVELS = ("spp16",) + LOOP_ITEMS
 
@@ -81,7 +82,7 @@ def test_error_network_trained_on_loop_levels_is_calibrated_on_validation(loop_d
     with torch.no_grad():
         for i in range(len(val)):
             s = val[i]
-            denoised = denoiser([s.noisy], 0, 1.0)
+            denoised = denoiser([s.noisy], 0, 1.0, candidate_for(denoiser, s.noisy))
             predicted.append(float(model(s.noisy, denoised).mean()))
             true.append(float(error_target(denoised, s.reference, s.reference_variance).mean()))
     assert np.sum(predicted) == pytest.approx(np.sum(true), rel=1e-3)
