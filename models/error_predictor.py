@@ -32,7 +32,6 @@ class ErrorPredictorConfig:
     width: int = 16               # narrow: it runs every sampling iteration, and only has to rank pixels
     blocks: int = 6               # paper: six residual blocks
     sample_count_input: bool = False  # + log2(1 + spp) per pixel (weights trained on the loop's own counts)
-    output_scale: float = 1.0     # fitted after training: mean prediction = mean true SMAPE on validation
 
 
 class ErrorPredictor(nn.Module):
@@ -56,4 +55,4 @@ class ErrorPredictor(nn.Module):
                 raise ValueError("this error network reads the per-pixel sample count: the frame has no spp map")
             inputs.append(sample_count_feature(f.spp))
         x = channels_last(torch.cat(inputs, 1))
-        return (F.softplus(self.out(self.blocks(F.relu_(self.head(x))))) * self.config.output_scale).contiguous()
+        return F.softplus(self.out(self.blocks(F.relu_(self.head(x))))).contiguous()

@@ -22,20 +22,6 @@ def smape_map(d: Tensor, r: Tensor, eps: float = SMAPE_EPS) -> Tensor:
     return smape_elementwise(d, r, eps).mean(dim=1, keepdim=True)
 
 
-def debiased_smape_map(d: Tensor, r: Tensor, r_variance: Tensor, eps: float = SMAPE_EPS) -> Tensor:
-    """Per-pixel SMAPE against a noisy reference r = r* + n with the reference's own noise taken
-    out: E[(d − r)²] = (d − r*)² + Var(r), so per pixel
-        √max(0, mean_c [((d − r)² − Var(r)) / (|d| + |r| + ε)²])
-    estimates the relative error against r* (for an error equal in every channel it is exactly
-    eq. 2's SMAPE). Plain SMAPE against a finite-spp reference has a floor of ≈ 0.8·σ/(|d|+|r|+ε)
-    even where d is exact, and an error network trained on it predicts that floor on converged
-    images (seen: 1.3× the true error at 256 spp with 512-spp training references). Pooling the
-    channels before the clamp makes the exact image's median target 0 (P(χ²₃ ≤ 3) ≈ 0.61)."""
-    scale = (d.abs() + r.abs() + eps) ** 2
-    excess = (((d - r) ** 2 - r_variance) / scale).mean(dim=1, keepdim=True)
-    return torch.sqrt(torch.clamp(excess, min=0.0))
-
-
 def l1(d: Tensor, r: Tensor) -> Tensor:
     return (d - r).abs().mean()
 

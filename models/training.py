@@ -17,7 +17,7 @@ from models.denoiser import LAMBDA_MAX, Denoiser, DenoiserCache, down, pad_to
 from models.error_predictor import ErrorPredictor
 from models.features import demodulate
 from models.frames import FrameTensors
-from models.losses import asymmetric_loss, debiased_smape_map, l1, smape, smape_map
+from models.losses import asymmetric_loss, l1, smape, smape_map
 
 LAMBDA_BLOCK = 8  # per-pixel λ maps are drawn on a coarse grid: painted maps are piecewise smooth
 VALIDATION_LAMBDAS = (2.0, 4.0, 10.0)  # λ-stage validation: spread over log λ ∈ (0, log 10]
@@ -85,20 +85,11 @@ def coarse_levels_loss(model: Denoiser, cache: DenoiserCache, levels: list[Tenso
     return torch.stack(terms).mean()
 
 
-def error_target(denoised: Tensor, reference: Tensor, reference_variance: Tensor | None = None) -> Tensor:
-    """The error network's target: the per-pixel SMAPE of the denoised image, with the
-    reference's own noise taken out where its variance is known (models.losses.debiased_smape_map)."""
-    if reference_variance is None:
-        return smape_map(denoised, reference)
-    return debiased_smape_map(denoised, reference, reference_variance)
-
-
 def error_predictor_loss(model: ErrorPredictor, denoiser: Denoiser, frame: FrameTensors,
-                         reference: Tensor, reference_variance: Tensor | None = None,
-                         candidate: Tensor | None = None) -> Tensor:
+                         reference: Tensor, candidate: Tensor | None = None) -> Tensor:
     with torch.no_grad():
         denoised = denoiser([frame], 0, 1.0, candidate)
-        target = error_target(denoised, reference, reference_variance)
+        target = smape_map(denoised, reference)
     return l1(model(frame, denoised), target)
 
 

@@ -44,7 +44,6 @@ class TrainingSample:
     reference: Tensor
     centre: int
     key: str  # "scene/frames/level@y,x", for logs and debugging
-    reference_variance: Tensor | None = None  # (T, 3, h, w) variance of the reference's mean
     candidate: Tensor | None = None  # (C, h, w) OIDN on the whole centre frame, cropped
 
 
@@ -56,7 +55,6 @@ class TrainingBatch:
     references: list[Tensor]
     centre: int
     keys: list[str]
-    reference_variances: list[Tensor] | None = None
     candidates: Tensor | None = None  # (B, C, h, w) when the data set serves candidate images
 
 
@@ -141,7 +139,6 @@ class DenoiserDataset(Dataset):
         layers = {name: None if getattr(frame, attr) is None else _chw(getattr(frame, attr))
                   for name, attr in _INPUT_LAYERS.items()}
         layers["reference"] = _chw(frame.color)
-        layers["reference_variance"] = None if frame.variance is None else _chw(frame.variance)
         if self._cache is not None:
             self._cache[path] = layers
         return layers
@@ -180,7 +177,7 @@ class DenoiserDataset(Dataset):
         if self.candidate:
             candidate = torch.from_numpy(np.ascontiguousarray(_crop(self._candidate(item.inputs[self.radius]), corner, crop)))
         return TrainingSample(noisy=noisy, reference=stack(references, "reference"), centre=self.radius, key=key,
-                              reference_variance=stack(references, "reference_variance"), candidate=candidate)
+                              candidate=candidate)
 
 
 def collate_samples(samples: list[TrainingSample]) -> TrainingBatch:
@@ -196,7 +193,5 @@ def collate_samples(samples: list[TrainingSample]) -> TrainingBatch:
         references=[torch.stack([s.reference[t] for s in samples]) for t in range(steps)],
         centre=samples[0].centre,
         keys=[s.key for s in samples],
-        reference_variances=None if any(s.reference_variance is None for s in samples) else
-        [torch.stack([s.reference_variance[t] for s in samples]) for t in range(steps)],
         candidates=None if samples[0].candidate is None else torch.stack([s.candidate for s in samples]),
     )

@@ -18,11 +18,12 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from models.checkpoint import load_checkpoint, save_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from models.losses import smape_map
 from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, denoiser_smape, error_predictor_loss,
-                             error_target, sample_lambda)
+                             sample_lambda)
 from service.dataset.build import INPUT_ITEMS
 from service.dataset.loader import DenoiserDataset, collate_samples
 from service.training.config import DENOISER_STAGES, TrainConfig
@@ -180,9 +181,8 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
     """
     with torch.no_grad():
         frame = batch.frames[0].to(device)
-        variance = batch.reference_variances[0].to(device) if batch.reference_variances else None
         candidate = None if batch.candidates is None else batch.candidates.to(device)
-        target = error_target(denoiser([frame], 0, 1.0, candidate), batch.references[0].to(device), variance)
+        target = smape_map(denoiser([frame], 0, 1.0, candidate), batch.references[0].to(device))
         median = float(target.median().clamp_min(1e-4))
         model.out.weight.mul_(0.1)
         model.out.bias.fill_(median + torch.log(-torch.expm1(torch.tensor(-median))).item())
@@ -202,10 +202,8 @@ def train_error_predictor(config, device) -> dict:
 
     def loss_fn(step: int):
         b = next(batches)
-        variance = b.reference_variances[0].to(device) if b.reference_variances else None
         candidate = None if b.candidates is None else b.candidates.to(device)
-        return error_predictor_loss(model, denoiser, b.frames[0].to(device), b.references[0].to(device), variance,
-                                    candidate)
+        return error_predictor_loss(model, denoiser, b.frames[0].to(device), b.references[0].to(device), candidate)
 
     @torch.no_grad()
     def val_fn() -> float:
@@ -215,39 +213,10 @@ def train_error_predictor(config, device) -> dict:
             frame = s.noisy.map(lambda _, t: t[:1].to(device))
             candidate = None if s.candidate is None else s.candidate[None].to(device)
             losses.append(float(error_predictor_loss(model, denoiser, frame, s.reference[:1].to(device),
-                                                     _first_variance(s, device), candidate)))
+                                                     candidate)))
         return sum(losses) / len(losses)
 
-    result = _fit("error", model, loss_fn, val_fn, config, device, {"command": config.command_line, "stage": "error"})
-    result["calibration"] = calibrate_error_predictor(Path(result["checkpoint"]), denoiser, val, device)
-    return result
-
-
-def _first_variance(sample, device):
-    """The reference variance of a validation sample's first frame, where the data set has one."""
-    return None if sample.reference_variance is None else sample.reference_variance[:1].to(device)
-
-
-@torch.no_grad()
-def calibrate_error_predictor(checkpoint: Path, denoiser, val, device) -> float:
-    """Scale the kept network so its mean prediction equals the mean true SMAPE on the
-    validation scenes. L1 (the paper's loss) makes each output the conditional *median* of a
-    right-skewed error, so the raw mean falls short of the true mean (0.78–0.86× before this,
-    docs/calibration.md) — and `--target-error` stops on that mean. One scalar keeps the ranking."""
-    model = load_checkpoint(checkpoint, expected_kind="error_predictor", device=device)
-    predicted, true = 0.0, 0.0
-    for i in range(len(val)):
-        s = val[i]
-        frame = s.noisy.map(lambda _, t: t[:1].to(device))
-        candidate = None if s.candidate is None else s.candidate[None].to(device)
-        denoised = denoiser([frame], 0, 1.0, candidate)
-        predicted += float(model(frame, denoised).mean())
-        true += float(error_target(denoised, s.reference[:1].to(device), _first_variance(s, device)).mean())
-    scale = true / predicted if predicted > 0 else 1.0
-    calibrated = ErrorPredictor(dataclasses.replace(model.config, output_scale=model.config.output_scale * scale))
-    calibrated.load_state_dict(model.state_dict())
-    save_checkpoint(checkpoint, calibrated, {**read_checkpoint(checkpoint).get("extra", {}), "calibration_scale": scale})
-    return scale
+    return _fit("error", model, loss_fn, val_fn, config, device, {"command": config.command_line, "stage": "error"})
 
 
 def run_training(config: TrainConfig, report: Callable[[str], None] = lambda line: None) -> list[str]:
@@ -275,7 +244,6 @@ def run_training(config: TrainConfig, report: Callable[[str], None] = lambda lin
         config = dataclasses.replace(config, init=Path(result["checkpoint"]), resume=False)  # the next stage starts here
     if config.stage in ("error", "all", "staged"):
         result = train_error_predictor(config, device)
-        lines.append(report_line(f"error predictor: best validation L1 {result['best_val']:.4f}, mean calibrated "
-                                 f"×{result['calibration']:.3f} → {result['checkpoint']}"))
+        lines.append(report_line(f"error predictor: best validation L1 {result['best_val']:.4f} → {result['checkpoint']}"))
     lines.append(report_line(f"trained in {time.perf_counter() - started:.0f} s on {device}"))
     return lines

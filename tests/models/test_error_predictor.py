@@ -30,15 +30,6 @@ def test_sample_count_input_changes_the_prediction_and_is_required():
     assert not torch.allclose(few, many)
 
 
-def test_output_scale_multiplies_every_prediction():
-    torch.manual_seed(3)
-    plain = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1))
-    scaled = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, output_scale=1.5))
-    scaled.load_state_dict(plain.state_dict())
-    f, denoised = make_frame(5, 5), torch.rand(1, 3, 5, 5)
-    assert torch.allclose(scaled(f, denoised), 1.5 * plain(f, denoised))
-
-
 def test_sample_count_feature_round_trips():
     spp = torch.tensor([0.0, 1.0, 16.0, 4096.0, 2.0 ** 20])
     assert torch.allclose(inverse_sample_count_feature(sample_count_feature(spp)), spp, rtol=1e-5)
