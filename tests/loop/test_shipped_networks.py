@@ -15,12 +15,13 @@ from service.loop.spec import LoopSpec
 
 # Measured with the shipped weights (the loop's first iteration, 16 spp, docs/oidn-candidate.md):
 # SMAPE 0.0931 noisy → 0.0174 denoised (5.36×; OIDN alone 0.0158, 5.89×); the error network's
-# per-pixel Spearman correlation with the true error of that image is 0.157 (weak: issue 14).
+# per-pixel Spearman correlation with the true error of that image is 0.231 (retrained on the
+# loop's own inputs, docs/error-network.md; the previous network scored 0.157 — weak: issue 14).
 # The shipped denoiser mixes OIDN's image in (oidn_candidate) and a fresh gate already leans to
 # it, so an untrained network of the shipped architecture scores 4.78×: the bar sits between,
 # not far below the measured figure. Margins allow for seeds and platforms.
 MIN_SMAPE_CUT = 5.1
-MIN_ERROR_RANK_CORRELATION = 0.12
+MIN_ERROR_RANK_CORRELATION = 0.18
 
 
 @pytest.fixture(scope="module")
