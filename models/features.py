@@ -89,10 +89,6 @@ def sample_count_feature(spp: Tensor) -> Tensor:
     return torch.log2(1.0 + spp) / SPP_LOG_SCALE
 
 
-def inverse_sample_count_feature(y: Tensor) -> Tensor:
-    return torch.exp2(y * SPP_LOG_SCALE) - 1.0
-
-
 def normalize_depth(depth: Tensor) -> Tensor:
     """Depth divided by its per-image maximum, so scene scale does not matter."""
     peak = depth.flatten(1).amax(dim=1).view(-1, 1, 1, 1)

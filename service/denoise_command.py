@@ -38,7 +38,9 @@ def run_denoise(args) -> int:
     configure_torch_threads()
     networks = load_networks(args.weights)
     frame = denoise_exr(args.input, args.output, networks, lam=args.lam, lambda_map=args.lambda_map, frames=args.frames)
-    print(f"wrote {args.output}  (mean predicted SMAPE {frame.error.mean():.4f})")
+    estimate = (f"mean predicted SMAPE {frame.error.mean():.4f}" if frame.error is not None
+                else "no error estimate: the input has no spp layer, which the error network reads")
+    print(f"wrote {args.output}  ({estimate})")
     if args.png:
         print(f"wrote {write_png(args.output.with_suffix('.png'), tonemap(frame.color))}")
     return 0

@@ -109,6 +109,24 @@ def test_denoise_takes_a_no_denoise_render_end_to_end(tmp_path):
     assert bad.returncode == 2 and "[1, 10]" in bad.stderr
 
 
+def test_denoise_of_an_exr_without_sample_counts_writes_the_image_and_no_error_layer(tmp_path):
+    from service.exr import write_exr
+
+    noisy = tmp_path / "noisy.exr"
+    assert renderloop("render", "cornell-box", "--width", 16, "--height", 16, "--spp", 8, "--no-denoise",
+                      "-o", noisy).returncode == 0
+    frame = read_exr(noisy)
+    frame.spp = None  # an EXR from another tool: every layer the denoiser needs, no spp
+    stripped = tmp_path / "no-spp.exr"
+    write_exr(stripped, frame)
+    out = tmp_path / "denoised.exr"
+    result = renderloop("denoise", stripped, "-o", out)
+    assert result.returncode == 0, result.stderr
+    denoised = read_exr(out)
+    assert np.isfinite(denoised.color).all() and not np.array_equal(denoised.color, frame.noisy)
+    assert denoised.error is None  # the shipped error network reads sample counts
+
+
 def test_default_render_runs_the_adaptive_loop_with_the_shipped_weights(tmp_path):
     out = tmp_path / "loop.exr"
     result = renderloop("render", "fireflies", "--width", 24, "--height", 24, "--iterations", 3, "-o", out)

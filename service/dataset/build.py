@@ -27,11 +27,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from models.pretrained import Networks
 from service.atomic import atomic_write, atomic_write_text
 from service.dataset.procedural import SceneSpec, sample_spec, scene_dict, sensor_dict
 from service.dataset.splits import SPLITS, scene_seeds
 from service.exr import ExrError, ExrFrame, read_exr, write_exr
-from models.pretrained import Networks
 from service.loop.allocate import allocate_samples, variance_weights
 from service.loop.denoise_session import DenoiseSession
 from service.loop.loop import converged_error, next_counts
@@ -57,6 +57,8 @@ FORMAT_VERSION = 1
 FIXED_SETTINGS = ("size", "frames", "seed", "reference_spp")
 # Seed streams per frame, so inputs, the adaptive branch and the reference never share samples.
 _STREAM_UNIFORM, _STREAM_ADAPTIVE, _STREAM_REFERENCE, _STREAM_LOOP = 0, 1, 2, 3
+# The loop branch's allocation rounding draws from its own seeds, apart from the adaptive branch's.
+LOOP_ROUNDING_STREAM = 100
 
 
 class DatasetError(ValueError):
@@ -187,7 +189,7 @@ def _loop_branch(job: _FrameJob, start: FrameBuffer) -> None:
         error = session.predict_error([buffer], session.denoise([buffer], lam))[0]  # keyed by frame index
         budget = int(buffer.spp.sum())  # doubling, as in the loop
         counts = next_counts("error", buffer, converged_error(buffer.converged(), error), budget,
-                             seed=render_seed(job.scene_seed, job.frame, 100 + iteration))
+                             seed=render_seed(job.scene_seed, job.frame, LOOP_ROUNDING_STREAM + iteration))
         _render(job, buffer, counts, _STREAM_LOOP)
         _save(job, item, _exr_frame(buffer, job.scene_seed, iteration))
 

@@ -4,7 +4,6 @@ import pytest
 import torch
 
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
-from models.features import inverse_sample_count_feature, sample_count_feature
 from tests.models.conftest import make_frame
 
 
@@ -29,7 +28,3 @@ def test_sample_count_input_changes_the_prediction_and_is_required():
     many = ep(replace(f, spp=torch.full((1, 1, 6, 6), 4096.0)), denoised)
     assert not torch.allclose(few, many)
 
-
-def test_sample_count_feature_round_trips():
-    spp = torch.tensor([0.0, 1.0, 16.0, 4096.0, 2.0 ** 20])
-    assert torch.allclose(inverse_sample_count_feature(sample_count_feature(spp)), spp, rtol=1e-5)
