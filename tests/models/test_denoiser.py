@@ -3,7 +3,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from models.denoiser import Denoiser
+from models.denoiser import Denoiser, ScaleCompositor, down, up
 from models.frames import FrameTensors
 from tests.models.conftest import TINY, make_frame
 
@@ -157,3 +157,24 @@ def test_filter_levels_then_merge_levels_is_apply():
         levels = den.filter_levels(cache, 2.0)
         assert [t.shape[-1] for t in levels] == [16, 8, 4]
         torch.testing.assert_close(den.merge_levels(cache, levels), den.apply(cache, 2.0))
+
+
+def test_scale_compositor_takes_a_fireflys_excess_from_the_firefly_not_its_neighbours():
+    # Fine level kept a firefly the coarse level removed: the band swap subtracts the block's
+    # excess from all four pixels of the 2×2 block alike; the floor keeps the neighbours at
+    # what both levels agree on, and the firefly still gives up its excess.
+    torch.manual_seed(0)
+    compositor = ScaleCompositor(4)
+    with torch.no_grad():
+        compositor.alpha[2].bias.fill_(20.0)       # α ≈ 1: take the coarse band everywhere
+    fine = torch.ones(1, 3, 8, 8)
+    fine[..., 4, 4] = 1000.0
+    coarse = torch.ones(1, 3, 4, 4)
+    with torch.no_grad():
+        out = compositor(fine, coarse)
+    neighbours = torch.ones(8, 8, dtype=torch.bool)
+    neighbours[4, 4] = False
+    assert out[0, :, neighbours].min() >= 1.0 - 1e-5
+    assert out[0, :, 4, 4].max() < 900.0                     # ≈ 1000 − 0.56 × 250 (bilinear U)
+    unfloored = torch.addcmul(fine, up(compositor.blend_weight(down(fine), coarse)), up(coarse - down(fine)))
+    assert unfloored[0, :, neighbours].min() < 0.0             # what the floor prevents
