@@ -18,6 +18,7 @@ import numpy as np
 
 from bench.common import OidnDenoise, image_metrics, true_error_map
 from bench.dev_references import DevScene
+from bench.quality_measures import shadow_contrast_ratio
 from models.pretrained import Networks
 from service.images import linear_to_srgb
 from service.loop.loop import RenderLoop
@@ -37,6 +38,9 @@ METHODS = ("noisy", "kpcn", "oidn")
 CROP = 64
 ENERGY_TOLERANCE = 0.02  # issue 13: mean radiance within 2 % of the reference on every scene
 SEED = 1
+# Regions (top, bottom, left, right as frame fractions) of one albedo crossed by hard shadows,
+# where the shadow contrast is measured: hard_shadows' right wall with the lattice's shadow.
+SHADOW_REGIONS = {"hard_shadows": (0.34, 0.73, 0.65, 0.91)}
 
 
 @dataclass(frozen=True)
@@ -52,6 +56,7 @@ class SceneQuality:
     name: str
     scores: dict[int, dict[str, Scores]]  # spp → method → scores
     figure: Path | None = None
+    shadow_contrast: dict[int, dict[str, float]] | None = None  # spp → method → share of the reference's
 
 
 def score(image: np.ndarray, reference: np.ndarray) -> Scores:
@@ -73,12 +78,15 @@ def three_images(record, frame: int, oidn: OidnDenoise) -> dict[str, np.ndarray]
 
 def score_scene(scene: DevScene, reference: np.ndarray, networks: Networks, oidn: OidnDenoise,
                 figures: Path | None, spp_levels: tuple[int, ...] = SPP_LEVELS) -> SceneQuality:
-    scores, shown = {}, {}
+    scores, shown, contrast = {}, {}, {}
+    region = SHADOW_REGIONS.get(scene.name)
     for spp in spp_levels:
         images = three_images(uniform_render(scene, spp, networks), 0, oidn)
         scores[spp] = {method: score(image, reference) for method, image in images.items()}
+        if region is not None:
+            contrast[spp] = {method: shadow_contrast_ratio(image, reference, region) for method, image in images.items()}
         shown[spp] = images
-    quality = SceneQuality(scene.name, scores)
+    quality = SceneQuality(scene.name, scores, shadow_contrast=contrast or None)
     if figures is not None and plt is not None:
         quality.figure = write_crops(scene.name, shown, reference, figures)
     return quality

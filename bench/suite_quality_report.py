@@ -43,6 +43,15 @@ def scene_tables(results: list[SceneQuality], out_dir: Path) -> str:
     return "\n\n".join(blocks)
 
 
+def shadow_table(results: list[SceneQuality]) -> str:
+    rows = [(r.name, spp, values) for r in results if r.shadow_contrast for spp, values in r.shadow_contrast.items()]
+    if not rows:
+        return "(no scene with a shadow region in this run)"
+    lines = ["| scene | spp | noisy | KPCN (ours) | OIDN |", "|---|---:|---:|---:|---:|"]
+    lines += [f"| {name} | {spp} | {v['noisy']:.3f} | {v['kpcn']:.3f} | {v['oidn']:.3f} |" for name, spp, v in rows]
+    return "\n".join(lines)
+
+
 def flicker_table(flicker: dict[str, dict[str, float]]) -> str:
     if not flicker:
         return "(no animated scene in this run)"
@@ -59,7 +68,7 @@ def write_suite_quality_report(results: list[SceneQuality], flicker: dict[str, d
     path.write_text(fill(
         "suite_quality.md", provenance=provenance(variant=active_variant()), oidn=oidn_note, weights=weights,
         count=len(results), spp_levels=", ".join(str(s) for s in results[0].scores), summary=summary_table(results),
-        flicker=flicker_table(flicker), scenes=scene_tables(results, out_dir)))
+        flicker=flicker_table(flicker), shadows=shadow_table(results), scenes=scene_tables(results, out_dir)))
     return path
 
 

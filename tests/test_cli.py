@@ -53,6 +53,8 @@ def test_uniform_render_writes_every_layer_and_matches_mi_render(tmp_path):
     (["denoise", "missing.exr", "-o", "o.exr"], "no such file"),
     (["train", "--data", "no-data", "--width", "0"], "--width must be >= 1"),
     (["train", "--data", "no-data", "--spatial-blocks", "-1"], "--spatial-blocks must be >= 0"),
+    (["train", "--data", "no-data", "--stage", "gate", "--oidn-candidate"], "name it with --init"),
+    (["train", "--data", "no-data", "--stage", "gate", "--init", "d.pt"], "add --oidn-candidate"),
 ])
 def test_bad_input_gives_one_clear_line_and_a_nonzero_exit(tmp_path, args, message):
     result = renderloop(*args, cwd=tmp_path)

@@ -15,7 +15,13 @@ DENOISER_STAGES: dict[str, tuple[dict, str]] = {   # stage → (DenoiserConfig s
     "temporal": ({}, "symmetric"),
     "lambda": ({}, "random"),
 }
-STAGES = (*DENOISER_STAGES, "staged", "denoiser", "error", "all")
+# Fine-tuning of one part of a trained denoiser (--init), everything else frozen. `gate`: only the
+# OIDN candidate's gate learns (models/candidate.py), at λ = 1 — end to end, the kernels' own
+# loss dominates and the gate stayed near its initial share (docs/oidn-candidate.md).
+FINE_TUNE_STAGES: dict[str, tuple[dict, str, tuple[str, ...]]] = {   # stage → (switches, λ schedule, trainable prefixes)
+    "gate": ({}, "symmetric", ("gate.",)),
+}
+STAGES = (*DENOISER_STAGES, *FINE_TUNE_STAGES, "staged", "denoiser", "error", "all")
 
 
 class TrainConfigError(ValueError):
@@ -57,3 +63,7 @@ class TrainConfig:
                 raise TrainConfigError(f"--{name.replace('_', '-')} must be >= {least}")
         if not 0.0 <= self.symmetric_fraction <= 1.0:
             raise TrainConfigError("--symmetric-fraction must lie in [0, 1]")
+        if self.stage in FINE_TUNE_STAGES and self.init is None:
+            raise TrainConfigError(f"--stage {self.stage} fine-tunes a trained denoiser: name it with --init")
+        if self.stage == "gate" and not self.oidn_candidate:
+            raise TrainConfigError("--stage gate trains the OIDN candidate's gate: add --oidn-candidate")

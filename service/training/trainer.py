@@ -26,7 +26,7 @@ from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, de
                              sample_lambda)
 from service.dataset.build import INPUT_ITEMS
 from service.dataset.loader import DenoiserDataset, collate_samples
-from service.training.config import DENOISER_STAGES, TrainConfig
+from service.training.config import DENOISER_STAGES, FINE_TUNE_STAGES, TrainConfig
 
 VALIDATION_EVERY_NTH_SCENE = 8  # scenes with index % 8 == 7 are held back for validation
 
@@ -132,6 +132,10 @@ def train_denoiser(config, device, stage: str = "denoiser", switches: dict | Non
         # (the λ module is anchored at s(1)) and the service's cached features stay valid.
         for name, parameter in model.named_parameters():
             parameter.requires_grad_(name.startswith(("specialise.mix.", "specialise.delta")))
+    if stage in FINE_TUNE_STAGES:
+        trainable = FINE_TUNE_STAGES[stage][2]
+        for name, parameter in model.named_parameters():
+            parameter.requires_grad_(name.startswith(trainable))
     radius = model.config.temporal_radius if model.config.temporal else 0
     train, val = _datasets(config, radius, model.config.oidn_candidate)
     batches = _batches(train, config.batch, config.seed)
@@ -167,7 +171,7 @@ def train_denoiser(config, device, stage: str = "denoiser", switches: dict | Non
     # Checkpoints from a symmetric phase have an untrained λ module (λ would do nothing): when
     # a λ phase follows, the kept one must come from it.
     keep_from = symmetric_steps if symmetric_steps < config.steps else 0
-    out_name = "denoiser.pt" if stage in ("denoiser", "lambda") else f"stage_{stage}.pt"
+    out_name = "denoiser.pt" if stage in ("denoiser", "lambda", *FINE_TUNE_STAGES) else f"stage_{stage}.pt"
     return _fit(stage, model, loss_fn, val_fn, config, device, {"command": config.command_line, "stage": stage},
                 keep_from, out_name)
 
@@ -242,6 +246,10 @@ def run_training(config: TrainConfig, report: Callable[[str], None] = lambda lin
         metric = "eq. 6 loss at λ = 2, 4, 10" if schedule == "random" else "SMAPE"
         lines.append(report_line(f"stage {stage}: best validation {metric} {result['best_val']:.4f} → {result['checkpoint']}"))
         config = dataclasses.replace(config, init=Path(result["checkpoint"]), resume=False)  # the next stage starts here
+    if config.stage in FINE_TUNE_STAGES:
+        switches, schedule, _ = FINE_TUNE_STAGES[config.stage]
+        result = train_denoiser(config, device, config.stage, switches, schedule)
+        lines.append(report_line(f"stage {config.stage}: best validation SMAPE {result['best_val']:.4f} → {result['checkpoint']}"))
     if config.stage in ("error", "all", "staged"):
         result = train_error_predictor(config, device)
         lines.append(report_line(f"error predictor: best validation L1 {result['best_val']:.4f} → {result['checkpoint']}"))
