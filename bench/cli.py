@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from bench.calibration_report import run_calibration_report
-from bench.dev_references import DEFAULT_REFERENCE_DIR, write_references
+from bench.dev_references import DEFAULT_REFERENCE_DIR, VAL_REFERENCE_DIR, VAL_SCENES, write_references
 from bench.dev_suite_report import run_dev_suite_report
 from bench.loop_report import add_arguments as add_loop_arguments, run_loop_command
 from bench.models_report import main as models_main
@@ -35,8 +35,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--out", type=Path, default=Path("bench-reports"),
                    help="folder the reports go to (default ./bench-reports; the committed ones live in docs/)")
     p.add_argument("--references", action="store_true",
-                   help="render the development suite's references (scenes/dev, mi.render as written; use a GPU)")
-    p.add_argument("--references-dir", type=Path, default=DEFAULT_REFERENCE_DIR)
+                   help="render the development suite's references (scenes/dev, mi.render as written; use a GPU), "
+                        "or with --suite val the validation scenes' (scenes/val)")
+    p.add_argument("--references-dir", type=Path, default=None,
+                   help=f"default {DEFAULT_REFERENCE_DIR.relative_to(DEFAULT_REFERENCE_DIR.parents[2])}, "
+                        f"or {VAL_REFERENCE_DIR.relative_to(VAL_REFERENCE_DIR.parents[2])} with --suite val")
     p.add_argument("--reference-spp", type=int, default=None,
                    help="samples per pixel of every reference (default 16384; 65536 for the noisiest scenes)")
     p.add_argument("--only", nargs="+", default=None, metavar="SCENE",
@@ -72,8 +75,11 @@ def main(argv: list[str]) -> int:
 
 def run_bench(args: argparse.Namespace) -> int:
     if args.references:
-        written = write_references(args.references_dir, spp=args.reference_spp, only=args.only)
-        print(f"wrote {len(written)} reference(s) to {args.references_dir}")
+        val = args.suite == "val"
+        folder = args.references_dir or (VAL_REFERENCE_DIR if val else DEFAULT_REFERENCE_DIR)
+        root = {"root": VAL_SCENES} if val else {}
+        written = write_references(folder, spp=args.reference_spp, only=args.only, **root)
+        print(f"wrote {len(written)} reference(s) to {folder}")
         return 0
     if args.calibration:
         print(f"wrote {run_calibration_report(args.out, weights_dir=args.weights, only=args.only)}")
@@ -86,9 +92,11 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.scale:
         print(f"wrote {run_scale_report(args.out, weights_dir=args.weights)}")
         return 0
-    if args.denoiser and args.suite == "dev":
+    if args.denoiser and args.suite in ("dev", "val"):
         levels = {} if args.suite_spp is None else {"spp_levels": tuple(args.suite_spp)}
-        print(f"wrote {run_suite_quality_report(args.out, weights_dir=args.weights, only=args.only, **levels)}")
+        report = run_suite_quality_report(args.out, weights_dir=args.weights, only=args.only, suite=args.suite,
+                                          **levels)
+        print(f"wrote {report}")
         return 0
     if args.memory:
         memory = bench_memory()

@@ -24,6 +24,11 @@ from service.render.runtime import active_variant, mitsuba
 
 DEV_SCENES = Path(__file__).resolve().parents[1] / "scenes" / "dev"
 DEFAULT_REFERENCE_DIR = DEV_SCENES / "references"
+# The validation scenes (scenes/val/): hand-written like the suite, disjoint from it, for
+# choosing between trained networks; claims are measured on the suite only.
+VAL_SCENES = DEV_SCENES.parent / "val"
+VAL_REFERENCE_DIR = VAL_SCENES / "references"
+VAL_SPP = 4096  # what a 2-core CPU renders in minutes for the four 192×144 scenes
 DEFAULT_SPP = 16384
 # Scenes whose 16k-spp image is still visibly noisy (tiny bright light, fog, caustics).
 HIGH_VARIANCE_SPP = {"lamp_room": 65536, "fog_spot": 65536, "glass_box": 65536}
@@ -46,9 +51,10 @@ class DevScene:
         return digest.hexdigest()[:16]
 
 
-def dev_scenes(only: list[str] | None = None) -> list[DevScene]:
+def dev_scenes(only: list[str] | None = None, root: Path = DEV_SCENES) -> list[DevScene]:
+    """The hand-written scenes under `root` (the development suite, or VAL_SCENES)."""
     scenes = []
-    for path in sorted(DEV_SCENES.glob("*/scene.xml")):
+    for path in sorted(root.glob("*/scene.xml")):
         name = path.parent.name
         if only and name not in only:
             continue
@@ -56,8 +62,8 @@ def dev_scenes(only: list[str] | None = None) -> list[DevScene]:
         frames = int(defaults.get("frames", 1)) if "frame" in defaults else 1
         scenes.append(DevScene(name, path, frames))
     if only and len(scenes) != len(set(only)):
-        known = ", ".join(p.parent.name for p in sorted(DEV_SCENES.glob("*/scene.xml")))
-        raise ValueError(f"unknown development scene(s) among {only}; known: {known}")
+        known = ", ".join(p.parent.name for p in sorted(root.glob("*/scene.xml")))
+        raise ValueError(f"unknown scene(s) among {only} in {root.name}/; known: {known}")
     return scenes
 
 
@@ -81,11 +87,12 @@ def render_reference(scene: DevScene, spp: int, frame: int | None) -> tuple[np.n
 
 
 def write_references(folder: Path = DEFAULT_REFERENCE_DIR, *, spp: int | None = None,
-                     only: list[str] | None = None) -> list[Path]:
-    """Render and write every missing or stale reference; returns the files written."""
+                     only: list[str] | None = None, root: Path = DEV_SCENES) -> list[Path]:
+    """Render and write the references of the scenes under `root`; returns the files written."""
     written = []
-    for scene in dev_scenes(only):
-        scene_spp = spp or HIGH_VARIANCE_SPP.get(scene.name, DEFAULT_SPP)
+    default_spp = VAL_SPP if root == VAL_SCENES else DEFAULT_SPP
+    for scene in dev_scenes(only, root):
+        scene_spp = spp or HIGH_VARIANCE_SPP.get(scene.name, default_spp)
         frames = [None] if scene.frames == 1 else list(range(scene.frames))
         for frame in frames:
             started = time.perf_counter()

@@ -10,6 +10,7 @@ import argparse
 import csv
 import math
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -345,11 +346,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", type=Path, default=None,
                         help="with --loop or --denoiser: weights folder (default models/weights)")
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE_DIR, help="with --loop: reference cache folder")
-    parser.add_argument("--suite", choices=("procedural", "dev"), default="procedural",
-                        help="with --loop: 'dev' runs the development suite at its own sizes → benchmarks-dev.md")
+    parser.add_argument("--suite", choices=("procedural", "dev", "val"), default="procedural",
+                        help="with --loop: 'dev' runs the development suite at its own sizes → benchmarks-dev.md; "
+                             "with --denoiser or --references: 'dev' (scenes/dev) or 'val' (scenes/val, "
+                             "the validation scenes networks are chosen on)")
 
 
 def run_loop_command(args: argparse.Namespace) -> int:
+    if args.suite == "val":
+        print("renderloop bench: error: --loop runs on --suite procedural or dev; the validation scenes "
+              "(--suite val) are for --denoiser", file=sys.stderr)
+        return 2
     path = run_loop_benchmark(args.out, quick=args.quick, weights_dir=args.weights, cache_dir=args.cache,
                               suite=args.suite, only=args.only)
     print(f"wrote {path}")

@@ -1,0 +1,35 @@
+"""The validation scenes (scenes/val/): hand-written, disjoint from the development suite, with
+committed references; `renderloop bench --denoiser --suite val` scores networks on them."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from bench.dev_references import VAL_REFERENCE_DIR, VAL_SCENES, VAL_SPP, dev_scenes, load_reference
+from bench.suite_quality_report import run_suite_quality_report
+
+
+def test_validation_scenes_are_disjoint_from_the_suite_and_have_current_references():
+    validation, suite = dev_scenes(root=VAL_SCENES), dev_scenes()
+    assert len(validation) >= 4
+    assert not {s.name for s in validation} & {s.name for s in suite}
+    assert not {s.content_hash for s in validation} & {s.content_hash for s in suite}
+    for scene in validation:
+        image, header = load_reference(VAL_REFERENCE_DIR, scene)
+        assert image.ndim == 3 and image.shape[2] == 3 and int(header["spp"]) >= VAL_SPP
+        assert math.isfinite(float(image.mean())) and image.mean() > 0
+
+
+def test_validation_report_scores_noisy_ours_and_oidn(tmp_path: Path):
+    pytest.importorskip("pyoidn")
+    report = run_suite_quality_report(tmp_path, suite="val", only=["kitchen_counter"], spp_levels=(16,))
+    assert report.name == "val-quality.md"
+    text = report.read_text()
+    assert "scenes/val/" in text and "$" not in text
+    rows = [line for line in text.splitlines() if line.startswith("| 16 |") and line.count("|") == 7]
+    assert len(rows) == 3
+    for row in rows:
+        smape, relmse, psnr, energy = (float(c) for c in row.strip("|").split("|")[2:])
+        assert all(math.isfinite(v) for v in (smape, relmse, psnr, energy)) and 0.5 < energy < 1.5
