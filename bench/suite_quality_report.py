@@ -1,12 +1,14 @@
-"""`renderloop bench --denoiser --suite dev` → docs/suite-quality.md: runs the measurements of
-bench/suite_quality.py on every development scene and writes the tables."""
+"""`renderloop bench --denoiser --suite dev` → docs/suite-quality.md (or `--suite val` →
+val-quality.md, the validation scenes): runs the measurements of bench/suite_quality.py on every
+scene of the suite and writes the tables."""
 from __future__ import annotations
 
 import statistics
 from pathlib import Path
 
 from bench.common import fill, fmt, load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance
-from bench.dev_references import DEV_SCENES, VAL_REFERENCE_DIR, VAL_SCENES, dev_scenes, load_reference
+from bench.dev_references import (DEFAULT_REFERENCE_DIR, DEV_SCENES, VAL_REFERENCE_DIR, VAL_SCENES, dev_scenes,
+                                  load_reference)
 from bench.suite_quality import (ENERGY_TOLERANCE, METHODS, REPORT_NAME, SPP_LEVELS, SceneQuality, score_scene,
                                  temporal_flicker)
 from service.render.runtime import active_variant
@@ -63,7 +65,7 @@ def flicker_table(flicker: dict[str, dict[str, float]]) -> str:
 
 # --suite → (scene folder, references, report file, what the scenes are for)
 SUITES = {
-    "dev": (DEV_SCENES, DEV_SCENES / "references", REPORT_NAME,
+    "dev": (DEV_SCENES, DEFAULT_REFERENCE_DIR, REPORT_NAME,
             "the development suite: scenes/dev/, never trained on, where every quality claim is measured"),
     "val": (VAL_SCENES, VAL_REFERENCE_DIR, "val-quality.md",
             "the validation scenes: scenes/val/, never trained on and disjoint from the suite, where "
