@@ -1,5 +1,6 @@
 """`renderloop bench --calibration`: can a user trust the predicted error? On the hand-written
-development scenes (never trained on) and their committed references.
+development scenes (never trained on) and their committed references, or with `--suite val` on
+the validation scenes (where error networks are compared before one ships).
 
 Per scene, one adaptive loop (error allocator, 16 → 256 spp mean) at the scene's own size; per
 iteration the mean predicted SMAPE of the denoised image next to its true SMAPE against the
@@ -15,13 +16,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.common import fill, fmt, image_metrics, load_bench_networks, pinned_torch_threads, provenance, true_error_map
-from bench.dev_references import DEFAULT_REFERENCE_DIR, dev_scenes, load_reference
+from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.quality_measures import spearman
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
 from service.render.runtime import active_variant
 
-REPORT_NAME = "calibration.md"
+REPORT_NAMES = {"dev": "calibration.md", "val": "calibration-val.md"}  # --suite → the report's file
 ITERATIONS = 5  # 16 → 32 → 64 → 128 → 256 spp mean
 TARGETS = (0.01, 0.02, 0.05)
 TRUSTED = 0.25  # issue 14: the true SMAPE at a target-error stop within 25 % of the target
@@ -58,17 +59,17 @@ def stop_for_target(scores: list[IterationScore], target: float) -> IterationSco
 
 
 def run_calibration_report(out_dir: Path, *, weights_dir: Path | None = None, only: list[str] | None = None,
-                           reference_dir: Path = DEFAULT_REFERENCE_DIR) -> Path:
+                           suite: str = "dev") -> Path:
     nets = load_bench_networks(weights_dir)
     results: dict[str, list[IterationScore]] = {}
     with pinned_torch_threads(TORCH_THREADS):
-        for scene in dev_scenes(only):
-            reference, _ = load_reference(reference_dir, scene, None if scene.frames == 1 else 0)
+        for scene in dev_scenes(only, SUITES[suite].root):
+            reference, _ = load_reference(SUITES[suite].references, scene, None if scene.frames == 1 else 0)
             results[scene.name] = score_scene(scene.path, reference, nets.networks)
             last = results[scene.name][-1]
             print(f"bench --calibration: {scene.name}: predicted {last.predicted:.4f} true {last.true:.4f} "
                   f"spearman {last.spearman:.2f}", flush=True)
-    return write_calibration_report(results, out_dir, nets.description)
+    return write_calibration_report(results, out_dir, nets.description, suite)
 
 
 def _per_iteration_table(results: dict[str, list[IterationScore]]) -> str:
@@ -92,7 +93,8 @@ def _target_table(results: dict[str, list[IterationScore]]) -> str:
     return "\n".join(rows)
 
 
-def write_calibration_report(results: dict[str, list[IterationScore]], out_dir: Path, weights: str) -> Path:
+def write_calibration_report(results: dict[str, list[IterationScore]], out_dir: Path, weights: str,
+                             suite: str = "dev") -> Path:
     iterations = min(len(scores) for scores in results.values())
     spp_header = " | ".join(f"{next(iter(results.values()))[i].spp:g} spp" for i in range(iterations))
     medians = []
@@ -103,10 +105,11 @@ def write_calibration_report(results: dict[str, list[IterationScore]], out_dir: 
         medians.append(f"| {results[next(iter(results))][i].spp:g} | {statistics.median(ratios):.2f} | "
                        f"{within} of {len(ratios)} | {rho:.2f} |")
     target_table = _target_table(results)
-    path = out_dir / REPORT_NAME
+    path = out_dir / REPORT_NAMES[suite]
     out_dir.mkdir(parents=True, exist_ok=True)
     path.write_text(fill(
         "calibration.md", provenance=provenance(variant=active_variant()), weights=weights, count=len(results),
+        about=SUITES[suite].about,
         spp_header=spp_header, spp_rule="|".join(["---:"] * iterations), per_iteration=_per_iteration_table(results),
         medians="\n".join(medians), targets=target_table, trusted=f"{TRUSTED:.0%}", tolerance=f"{MEAN_TOLERANCE:.0%}"))
     return path

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from bench.calibration_report import run_calibration_report
-from bench.dev_references import DEFAULT_REFERENCE_DIR, VAL_REFERENCE_DIR, VAL_SCENES, write_references
+from bench.dev_references import DEFAULT_REFERENCE_DIR, SUITES, VAL_REFERENCE_DIR, write_references
 from bench.dev_suite_report import run_dev_suite_report
 from bench.loop_report import add_arguments as add_loop_arguments, run_loop_command
 from bench.models_report import main as models_main
@@ -49,7 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dev-suite", action="store_true",
                    help="KPCN vs OIDN at 16 spp and the loop vs uniform + OIDN at 128 spp on scenes/dev → docs/dev-suite.md")
     p.add_argument("--calibration", action="store_true",
-                   help="predicted vs true error per iteration and where --target-error stops, on scenes/dev → calibration.md")
+                   help="predicted vs true error per iteration and where --target-error stops, on scenes/dev → "
+                        "calibration.md (with --suite val: scenes/val → calibration-val.md)")
     p.add_argument("--scale", action="store_true",
                    help="Ray workers: 8 jobs on 1 vs 2 workers, Ray vs in-process overhead per iteration, a 5-frame "
                         "sequence on 1 vs 2 workers → scale.md")
@@ -75,14 +76,14 @@ def main(argv: list[str]) -> int:
 
 def run_bench(args: argparse.Namespace) -> int:
     if args.references:
-        val = args.suite == "val"
-        folder = args.references_dir or (VAL_REFERENCE_DIR if val else DEFAULT_REFERENCE_DIR)
-        root = {"root": VAL_SCENES} if val else {}
-        written = write_references(folder, spp=args.reference_spp, only=args.only, **root)
+        suite = SUITES["val" if args.suite == "val" else "dev"]
+        folder = args.references_dir or suite.references
+        written = write_references(folder, spp=args.reference_spp, only=args.only, root=suite.root)
         print(f"wrote {len(written)} reference(s) to {folder}")
         return 0
     if args.calibration:
-        print(f"wrote {run_calibration_report(args.out, weights_dir=args.weights, only=args.only)}")
+        suite = "val" if args.suite == "val" else "dev"
+        print(f"wrote {run_calibration_report(args.out, weights_dir=args.weights, only=args.only, suite=suite)}")
         return 0
     if args.dev_suite:
         print(f"wrote {run_dev_suite_report(args.out, weights_dir=args.weights, only=args.only)}")

@@ -224,7 +224,7 @@ def true_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 # --- Intel Open Image Denoise -----------------------------------------------------------------
 
-def oidn_denoiser() -> tuple[OidnDenoise | None, str]:
+def oidn_denoiser() -> tuple[OidnDenoise, str]:
     """(color, albedo, normal) HWC → denoised HWC: the service's own OIDN call (the candidate
     image of a denoiser with `oidn_candidate`), so the comparison runs exactly what ours mixes in.
 

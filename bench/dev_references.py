@@ -29,6 +29,25 @@ DEFAULT_REFERENCE_DIR = DEV_SCENES / "references"
 VAL_SCENES = DEV_SCENES.parent / "val"
 VAL_REFERENCE_DIR = VAL_SCENES / "references"
 VAL_SPP = 4096  # what a 2-core CPU renders in minutes for the four 192×144 scenes
+
+
+@dataclass(frozen=True)
+class Suite:
+    """A folder of hand-written scenes, its references, and what the reports say it is for."""
+
+    root: Path
+    references: Path
+    about: str
+
+
+# `renderloop bench … --suite NAME` → the scenes it runs on.
+SUITES = {
+    "dev": Suite(DEV_SCENES, DEFAULT_REFERENCE_DIR,
+                 "the development suite: scenes/dev/, never trained on, where every quality claim is measured"),
+    "val": Suite(VAL_SCENES, VAL_REFERENCE_DIR,
+                 "the validation scenes: scenes/val/, never trained on and disjoint from the suite, where "
+                 "trained networks are compared before one is shipped"),
+}
 DEFAULT_SPP = 16384
 # Scenes whose 16k-spp image is still visibly noisy (tiny bright light, fog, caustics).
 HIGH_VARIANCE_SPP = {"lamp_room": 65536, "fog_spot": 65536, "glass_box": 65536}

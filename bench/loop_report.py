@@ -104,12 +104,11 @@ def measure_loops(settings: BenchSettings, quick: bool, weights_dir: Path | None
     nets = load_bench_networks(weights_dir)
     oidn, oidn_status = oidn_denoiser()
     results = LoopResults(command or command_line(), settings, quick, nets, oidn_status, load_average())
-    methods = [m for m in METHODS if m.denoiser != "oidn" or oidn is not None]
     for scene in prepare_scenes(settings, cache_dir, only):
         reference = scene_reference_image(scene, settings, cache_dir)
         warm_up(scene, settings, nets)
         runs = {}
-        for method in methods:
+        for method in METHODS:
             runs[method.key] = run_method(scene, method, settings, nets, reference, oidn)
             last = runs[method.key].rows[-1]
             print(f"bench --loop: {scene.label} ({method.key}) SMAPE {last.metrics['smape']:.4f} "

@@ -102,11 +102,9 @@ def ablation(trained: Denoiser, **switches: bool) -> Denoiser:
     return model.eval()
 
 
-def oidn_method() -> tuple[Denoise | None, str]:
-    """OIDN (bench.common's one call) on the centre frame's noisy colour, albedo and normal."""
+def oidn_method() -> tuple[Denoise, str]:
+    """OIDN (the service's one call) on the centre frame's noisy colour, albedo and normal."""
     denoise, note = oidn_denoiser()
-    if denoise is None:
-        return None, note
 
     def run(image: EvalImage) -> Tensor:
         f = image.frame
@@ -126,9 +124,7 @@ def make_methods(denoiser: Denoiser, use_oidn: bool) -> tuple[dict[str, Denoise]
     }
     note = None
     if use_oidn:
-        run, note = oidn_method()
-        if run is not None:
-            methods[OIDN] = run
+        methods[OIDN], note = oidn_method()
     else:
         note = "OIDN was not run (switched off for this run)."
     return methods, note

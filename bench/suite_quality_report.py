@@ -7,8 +7,7 @@ import statistics
 from pathlib import Path
 
 from bench.common import fill, fmt, load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance
-from bench.dev_references import (DEFAULT_REFERENCE_DIR, DEV_SCENES, VAL_REFERENCE_DIR, VAL_SCENES, dev_scenes,
-                                  load_reference)
+from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.suite_quality import (ENERGY_TOLERANCE, METHODS, REPORT_NAME, SPP_LEVELS, SceneQuality, score_scene,
                                  temporal_flicker)
 from service.render.runtime import active_variant
@@ -63,24 +62,16 @@ def flicker_table(flicker: dict[str, dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
-# --suite → (scene folder, references, report file, what the scenes are for)
-SUITES = {
-    "dev": (DEV_SCENES, DEFAULT_REFERENCE_DIR, REPORT_NAME,
-            "the development suite: scenes/dev/, never trained on, where every quality claim is measured"),
-    "val": (VAL_SCENES, VAL_REFERENCE_DIR, "val-quality.md",
-            "the validation scenes: scenes/val/, never trained on and disjoint from the suite, where "
-            "trained networks are compared before one is shipped"),
-}
+REPORT_NAMES = {"dev": REPORT_NAME, "val": "val-quality.md"}  # --suite → the report's file
 
 
 def write_suite_quality_report(results: list[SceneQuality], flicker: dict[str, dict[str, float]], out_dir: Path,
                                oidn_note: str, weights: str, suite: str = "dev") -> Path:
-    _, _, name, about = SUITES[suite]
-    path = out_dir / name
+    path = out_dir / REPORT_NAMES[suite]
     out_dir.mkdir(parents=True, exist_ok=True)
     path.write_text(fill(
         "suite_quality.md", provenance=provenance(variant=active_variant()), oidn=oidn_note, weights=weights,
-        about=about,
+        about=SUITES[suite].about,
         count=len(results), spp_levels=", ".join(str(s) for s in results[0].scores), summary=summary_table(results),
         flicker=flicker_table(flicker), shadows=shadow_table(results), scenes=scene_tables(results, out_dir)))
     return path
@@ -89,16 +80,13 @@ def write_suite_quality_report(results: list[SceneQuality], flicker: dict[str, d
 def run_suite_quality_report(out_dir: Path, *, weights_dir: Path | None = None, only: list[str] | None = None,
                              reference_dir: Path | None = None, spp_levels: tuple[int, ...] = SPP_LEVELS,
                              suite: str = "dev") -> Path:
-    root, default_references, name, _ = SUITES[suite]
-    reference_dir = reference_dir or default_references
+    reference_dir = reference_dir or SUITES[suite].references
     oidn, oidn_note = oidn_denoiser()
-    if oidn is None:
-        raise RuntimeError(f"the suite quality report compares with OIDN: {oidn_note}")
     nets = load_bench_networks(weights_dir)
-    figures = out_dir / Path(name).stem
+    figures = out_dir / Path(REPORT_NAMES[suite]).stem
     results, flicker = [], {}
     with pinned_torch_threads(TORCH_THREADS):
-        for scene in dev_scenes(only, root):
+        for scene in dev_scenes(only, SUITES[suite].root):
             reference, _ = load_reference(reference_dir, scene, None if scene.frames == 1 else 0)
             quality = score_scene(scene, reference, nets.networks, oidn, figures, spp_levels)
             results.append(quality)

@@ -315,11 +315,8 @@ class Denoiser(nn.Module):
         """Each pyramid level's own filtered, demodulated result (finest first, padded sizes).
         kernel_only: a list to receive each level's result before the candidate joins (training)."""
         k = self.config.kernel_size
-        code = self._lambda_code(cache, lam)
         results = []
-        for level in cache.levels:
-            if code.shape[-2:] != (1, 1) and code.shape[-2:] != level.hidden.shape[-2:]:
-                code = down(code)           # per-pixel λ map follows the pyramid
+        for level, code in zip(cache.levels, self._level_codes(cache, lam)):
             weights = unnormalised_weights(self.specialise(level.hidden, code))   # joint softmax, eq. 4
             result = filter_padded(level.padded, weights, k)                      # eq. 3
             if kernel_only is not None:
@@ -333,13 +330,18 @@ class Denoiser(nn.Module):
         """The candidate's share σ(g) of each level's softmax (finest first), for diagnostics."""
         if self.gate is None:
             return []
+        return [self.gate.weight(level.gate_hidden, code)
+                for level, code in zip(cache.levels, self._level_codes(cache, lam))]
+
+    def _level_codes(self, cache: DenoiserCache, lam: float | Tensor) -> list[Tensor]:
+        """The λ code of each level, finest first: a per-pixel λ map follows the pyramid."""
         code = self._lambda_code(cache, lam)
-        out = []
+        codes = []
         for level in cache.levels:
             if code.shape[-2:] != (1, 1) and code.shape[-2:] != level.hidden.shape[-2:]:
                 code = down(code)
-            out.append(self.gate.weight(level.gate_hidden, code))
-        return out
+            codes.append(code)
+        return codes
 
     def merge_levels(self, cache: DenoiserCache, results: list[Tensor], alphas: list[Tensor] | None = None) -> Tensor:
         """Scale compositor coarse → fine (eq. 5), albedo back in, crop to the input size.

@@ -32,7 +32,7 @@ from service.atomic import atomic_write, atomic_write_text
 from service.dataset.procedural import SceneSpec, sample_spec, scene_dict, sensor_dict
 from service.dataset.splits import SPLITS, scene_seeds
 from service.exr import ExrError, ExrFrame, read_exr, write_exr
-from service.loop.allocate import allocate_samples, variance_weights
+from service.loop.allocate import allocate_samples, iteration_budget, variance_weights
 from service.loop.denoise_session import DenoiseSession
 from service.loop.loop import converged_error, next_counts
 from service.render.framebuffer import FrameBuffer
@@ -187,8 +187,8 @@ def _loop_branch(job: _FrameJob, start: FrameBuffer) -> None:
     lam = np.ones(buffer.shape, dtype=np.float32)
     for iteration, item in enumerate(LOOP_ITEMS, start=1):
         error = session.predict_error([buffer], session.denoise([buffer], lam))[0]  # keyed by frame index
-        budget = int(buffer.spp.sum())  # doubling, as in the loop
-        counts = next_counts("error", buffer, converged_error(buffer.converged(), error), budget,
+        counts = next_counts("error", buffer, converged_error(buffer.converged(), error),
+                             iteration_budget(int(buffer.spp.sum())),
                              seed=render_seed(job.scene_seed, job.frame, LOOP_ROUNDING_STREAM + iteration))
         _render(job, buffer, counts, _STREAM_LOOP)
         _save(job, item, _exr_frame(buffer, job.scene_seed, iteration))

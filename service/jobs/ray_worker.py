@@ -32,7 +32,7 @@ from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles
 from service.jobs.ray_actor import ACTOR_THREADS, FAILURE_FILE, ActorPlan, IterationReport, JobActor
 from service.jobs.store import CANCELED, COMPLETED, FAILED, JobRecord, JobStore
-from service.jobs.worker import (JobWorker, NoObserver, Relambda, WorkerObserver, _add_timings, bundle_scene,
+from service.jobs.worker import (JobWorker, NoObserver, Relambda, WorkerObserver, add_timings, bundle_scene,
                                  job_spec)
 from service.loop.loop import IterationInterrupted
 from service.loop.spec import estimated_memory
@@ -60,12 +60,11 @@ def start_local_ray(cpus: int) -> None:
 @dataclass(frozen=True)
 class RaySettings:
     """`workers`: jobs (or sequence shares) rendered at once; a local Ray runtime gets that many
-    CPUs. `address`: join that cluster instead (`ray start --head` somewhere); then the
-    cluster's resources decide. `fanout`: most workers one sequence spreads over."""
+    CPUs (and a sequence spreads over at most that many). `address`: join that cluster instead
+    (`ray start --head` somewhere); then the cluster's resources decide."""
 
     workers: int = 1
     address: str | None = None
-    fanout: int | None = None  # default: workers
 
     def __post_init__(self) -> None:
         if self.workers < 1:
@@ -244,7 +243,7 @@ class RayJobWorker(JobWorker):
             report = run_iteration(group)
             published = time.perf_counter()
             self._publish(job_id, files, report.layers)
-            timings = _add_timings(_add_timings(timings, report.timings), {"io": time.perf_counter() - published})
+            timings = add_timings(add_timings(timings, report.timings), {"io": time.perf_counter() - published})
             self.store.record_iteration(job_id, report.iteration + 1, report.spp_mean, report.predicted_error,
                                         timings, report.stop_reason)
             self.observer.iteration_finished(report.timings, report.samples - samples)
@@ -272,7 +271,7 @@ class RayJobWorker(JobWorker):
                                   frames=spec.frames)
         gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0
         group = []
-        for share in shares(spec.frames, self.settings.fanout or self.settings.workers):
+        for share in shares(spec.frames, self.settings.workers):
             memory = estimated_memory(width, height, share[1] - share[0])
             plan = ActorPlan(str(files.root), record, share, memory, CPUS_PER_ACTOR)
             actor_class = ray.remote(JobActor).options(

@@ -78,7 +78,7 @@ def _failure_message(exc: BaseException) -> str:
     return f"{exc.__class__.__name__}: {text}" if not isinstance(exc, ValueError) else text
 
 
-def _add_timings(total: dict[str, float], more: dict[str, float]) -> dict[str, float]:
+def add_timings(total: dict[str, float], more: dict[str, float]) -> dict[str, float]:
     merged = dict(total)
     for stage, seconds in more.items():
         merged[stage] = merged.get(stage, 0.0) + float(seconds)
@@ -277,7 +277,7 @@ class JobWorker:
         loop.state.save(files.state_dir)
         self._publish(job_id, files, preview_layers(loop, record))
         io_seconds = {"io": time.perf_counter() - started}
-        timings = _add_timings(_add_timings(timings, record.timings), io_seconds)
+        timings = add_timings(add_timings(timings, record.timings), io_seconds)
         self.store.record_iteration(
             job_id, record.iteration + 1, record.spp_mean, record.predicted_error, timings, record.stop_reason
         )

@@ -118,11 +118,6 @@ class RenderLoop:
         """Allocate and render the new samples of the owned frames."""
         self._render(self._allocate(timings), timings, should_stop)
 
-    def denoise_step(self, timings: dict) -> None:
-        """Denoise the owned frames and predict their error (their temporal windows read the
-        neighbours' buffers of this iteration, adopted beforehand when not owned)."""
-        self._denoise_and_predict(timings)
-
     def finish_step(self, timings: dict, seconds: float, should_stop: Callable[[], bool] = lambda: False
                     ) -> IterationRecord:
         """Count the iteration and apply the stop rules; the record of what it produced."""
@@ -208,7 +203,9 @@ class RenderLoop:
                            seed=self.spec.seed * 7919 + f, prev_sensor=prev, progress=check)
         timings["render"] = time.perf_counter() - t0
 
-    def _denoise_and_predict(self, timings: dict) -> None:
+    def denoise_step(self, timings: dict) -> None:
+        """Denoise the owned frames and predict their error (their temporal windows read the
+        neighbours' buffers of this iteration, adopted beforehand when not owned)."""
         timings["denoise"] = timings["error"] = 0.0
         if self.session is None:
             with self.lock:
@@ -248,7 +245,7 @@ class RenderLoop:
             if self.session is None:
                 return list(self._denoised)
             if not self.session.has_features:
-                self._denoise_and_predict({})  # after a restart the features are rebuilt once
+                self.denoise_step({})  # after a restart the features are rebuilt once
             self._keep_converged(self.session.relambda(lam_map))
             return list(self._denoised)
 
@@ -265,7 +262,7 @@ class RenderLoop:
     def denoised(self) -> list[np.ndarray]:
         with self.lock:
             if self.state.iteration > 0 and any(d is None for d in self._denoised):
-                self._denoise_and_predict({})
+                self.denoise_step({})
             return list(self._denoised)
 
     def _record(self, timings: dict, images: bool = True) -> IterationRecord:

@@ -4,24 +4,37 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 # Vogels et al. train in stages, each starting from the previous one's weights: a single-frame
 # single-scale KPCN, then the scale compositor, then the temporal extractor, then the λ
 # specialisation; the error network last, on the frozen denoiser. `denoiser` trains the full
 # network end to end instead (λ = 1 for `symmetric_fraction` of the steps, then random λ).
-DENOISER_STAGES: dict[str, tuple[dict, str]] = {   # stage → (DenoiserConfig switches, λ schedule)
-    "single": ({"multiscale": False, "temporal": False}, "symmetric"),
-    "multiscale": ({"temporal": False}, "symmetric"),
-    "temporal": ({}, "symmetric"),
-    "lambda": ({}, "random"),
+class StagePlan(NamedTuple):
+    switches: dict  # DenoiserConfig fields the stage's network sets
+    schedule: str  # λ during training: "symmetric" (λ = 1) or "random"
+    # Parameter-name prefixes that learn when the stage starts from --init (None: all of them).
+    trainable: tuple[str, ...] | None = None
+
+
+DENOISER_STAGES: dict[str, StagePlan] = {
+    "single": StagePlan({"multiscale": False, "temporal": False}, "symmetric"),
+    "multiscale": StagePlan({"temporal": False}, "symmetric"),
+    "temporal": StagePlan({}, "symmetric"),
+    # Only the λ directions learn (the MLP s(λ) and ΔW); the trunk and the symmetric kernel head
+    # W₀ stay as the symmetric stages left them, so λ = 1 is exactly that network (the λ module is
+    # anchored at s(1)) and the service's cached features stay valid.
+    "lambda": StagePlan({}, "random", ("specialise.mix.", "specialise.delta")),
 }
-# Fine-tuning of one part of a trained denoiser (--init), everything else frozen. `gate`: only the
-# OIDN candidate's gate learns (models/candidate.py), at λ = 1 — end to end, the kernels' own
-# loss dominates and the gate stayed near its initial share (docs/oidn-candidate.md).
-FINE_TUNE_STAGES: dict[str, tuple[dict, str, tuple[str, ...]]] = {   # stage → (switches, λ schedule, trainable prefixes)
-    "gate": ({}, "symmetric", ("gate.",)),
+# Fine-tuning of one part of a trained denoiser (--init), everything else frozen; not part of
+# `staged`. `gate`: only the OIDN candidate's gate learns (models/candidate.py), at λ = 1 — end
+# to end, the kernels' own loss dominates and the gate stayed near its initial share
+# (docs/oidn-candidate.md).
+FINE_TUNE_STAGES: dict[str, StagePlan] = {
+    "gate": StagePlan({}, "symmetric", ("gate.",)),
 }
-STAGES = (*DENOISER_STAGES, *FINE_TUNE_STAGES, "staged", "denoiser", "error", "all")
+STAGE_PLANS = {**DENOISER_STAGES, **FINE_TUNE_STAGES}
+STAGES = (*STAGE_PLANS, "staged", "denoiser", "error", "all")
 
 
 class TrainConfigError(ValueError):

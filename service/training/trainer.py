@@ -26,7 +26,7 @@ from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, de
                              sample_lambda)
 from service.dataset.build import INPUT_ITEMS
 from service.dataset.loader import DenoiserDataset, collate_samples
-from service.training.config import DENOISER_STAGES, FINE_TUNE_STAGES, TrainConfig
+from service.training.config import DENOISER_STAGES, FINE_TUNE_STAGES, STAGE_PLANS, StagePlan, TrainConfig
 
 VALIDATION_EVERY_NTH_SCENE = 8  # scenes with index % 8 == 7 are held back for validation
 
@@ -120,22 +120,15 @@ def _denoiser_to_train(config, device, switches: dict):
     return model
 
 
-def train_denoiser(config, device, stage: str = "denoiser", switches: dict | None = None,
-                   schedule: str = "mixed") -> dict:
-    """schedule: "symmetric" (λ = 1), "random" (log λ ~ U(0, log 10)) or "mixed" (λ = 1 for
+def train_denoiser(config, device, stage: str = "denoiser", plan: StagePlan = StagePlan({}, "mixed")) -> dict:
+    """plan.schedule: "symmetric" (λ = 1), "random" (log λ ~ U(0, log 10)) or "mixed" (λ = 1 for
     --symmetric-fraction of the steps, then random)."""
     torch.manual_seed(config.seed)
-    model = _denoiser_to_train(config, device, switches or {})
-    if stage == "lambda" and config.init is not None:
-        # Only the λ directions learn (the MLP s(λ) and ΔW); the trunk and the symmetric kernel
-        # head W₀ stay as the symmetric stages left them, so λ = 1 is exactly that network
-        # (the λ module is anchored at s(1)) and the service's cached features stay valid.
+    model = _denoiser_to_train(config, device, plan.switches)
+    schedule = plan.schedule
+    if plan.trainable is not None and config.init is not None:
         for name, parameter in model.named_parameters():
-            parameter.requires_grad_(name.startswith(("specialise.mix.", "specialise.delta")))
-    if stage in FINE_TUNE_STAGES:
-        trainable = FINE_TUNE_STAGES[stage][2]
-        for name, parameter in model.named_parameters():
-            parameter.requires_grad_(name.startswith(trainable))
+            parameter.requires_grad_(name.startswith(plan.trainable))
     radius = model.config.temporal_radius if model.config.temporal else 0
     train, val = _datasets(config, radius, model.config.oidn_candidate)
     batches = _batches(train, config.batch, config.seed)
@@ -239,17 +232,13 @@ def run_training(config: TrainConfig, report: Callable[[str], None] = lambda lin
     if config.stage in ("denoiser", "all"):
         result = train_denoiser(config, device)
         lines.append(report_line(f"denoiser: best validation SMAPE {result['best_val']:.4f} → {result['checkpoint']}"))
-    stages = list(DENOISER_STAGES) if config.stage == "staged" else [config.stage] if config.stage in DENOISER_STAGES else []
+    stages = list(DENOISER_STAGES) if config.stage == "staged" else [config.stage] if config.stage in STAGE_PLANS else []
     for stage in stages:
-        switches, schedule = DENOISER_STAGES[stage]
-        result = train_denoiser(config, device, stage, switches, schedule)
-        metric = "eq. 6 loss at λ = 2, 4, 10" if schedule == "random" else "SMAPE"
+        plan = STAGE_PLANS[stage]
+        result = train_denoiser(config, device, stage, plan)
+        metric = "eq. 6 loss at λ = 2, 4, 10" if plan.schedule == "random" else "SMAPE"
         lines.append(report_line(f"stage {stage}: best validation {metric} {result['best_val']:.4f} → {result['checkpoint']}"))
         config = dataclasses.replace(config, init=Path(result["checkpoint"]), resume=False)  # the next stage starts here
-    if config.stage in FINE_TUNE_STAGES:
-        switches, schedule, _ = FINE_TUNE_STAGES[config.stage]
-        result = train_denoiser(config, device, config.stage, switches, schedule)
-        lines.append(report_line(f"stage {config.stage}: best validation SMAPE {result['best_val']:.4f} → {result['checkpoint']}"))
     if config.stage in ("error", "all", "staged"):
         result = train_error_predictor(config, device)
         lines.append(report_line(f"error predictor: best validation L1 {result['best_val']:.4f} → {result['checkpoint']}"))

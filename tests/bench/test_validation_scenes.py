@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from bench.dev_references import VAL_REFERENCE_DIR, VAL_SCENES, VAL_SPP, dev_scenes, load_reference
+from bench.calibration_report import run_calibration_report
 from bench.suite_quality_report import run_suite_quality_report
 
 
@@ -33,3 +34,12 @@ def test_validation_report_scores_noisy_ours_and_oidn(tmp_path: Path):
     for row in rows:
         smape, relmse, psnr, energy = (float(c) for c in row.strip("|").split("|")[2:])
         assert all(math.isfinite(v) for v in (smape, relmse, psnr, energy)) and 0.5 < energy < 1.5
+
+
+def test_calibration_report_runs_on_the_validation_scenes(tmp_path: Path):
+    report = run_calibration_report(tmp_path, suite="val", only=["kitchen_counter"])
+    assert report.name == "calibration-val.md"
+    text = report.read_text()
+    assert "scenes/val/" in text and "$" not in text
+    row = next(line for line in text.splitlines() if line.startswith("| kitchen_counter |"))
+    assert row.count("/") >= 5  # predicted / true per iteration

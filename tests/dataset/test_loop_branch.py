@@ -81,10 +81,12 @@ def test_error_network_trains_on_loop_levels_and_reads_their_sample_counts(loop_
     assert not torch.equal(predicted, fewer)  # the sample-count channel reaches the output
 
 
-def test_gate_stage_trains_only_the_candidate_gate_of_the_shipped_denoiser(loop_dataset, tmp_path):
-    out = tmp_path / "gate"
+@pytest.mark.parametrize("stage, trainable", [("gate", ("gate.",)),
+                                               ("lambda", ("specialise.mix.", "specialise.delta"))])
+def test_fine_tuning_stages_train_only_their_part_of_the_shipped_denoiser(loop_dataset, tmp_path, stage, trainable):
+    out = tmp_path / stage
     result = subprocess.run(
-        [sys.executable, "-m", "service.cli", "train", "--data", str(loop_dataset), "--stage", "gate", "-o", str(out),
+        [sys.executable, "-m", "service.cli", "train", "--data", str(loop_dataset), "--stage", stage, "-o", str(out),
          "--init", str(SHIPPED_WEIGHTS_DIR / "denoiser.pt"), "--oidn-candidate", "--single-frame",
          "--steps", "3", "--val-every", "3", "--batch", "2", "--crop", "16", "--lr", "0.05", "--quiet"],
         capture_output=True, text=True, timeout=600)
@@ -92,4 +94,4 @@ def test_gate_stage_trains_only_the_candidate_gate_of_the_shipped_denoiser(loop_
     before = load_checkpoint(SHIPPED_WEIGHTS_DIR / "denoiser.pt", expected_kind="denoiser").state_dict()
     after = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser").state_dict()
     changed = {name for name in before if not torch.equal(before[name], after[name])}
-    assert changed and all(name.startswith("gate.") for name in changed)
+    assert changed and all(name.startswith(trainable) for name in changed)
