@@ -14,6 +14,7 @@ from typing import Callable
 import drjit as dr
 import numpy as np
 
+from service.render.direct_shared_hit import DirectSettings, direct_settings, sample_direct
 from service.render.filters import PixelFilter
 from service.render.framebuffer import FrameBuffer
 from service.render.integrators import instance_refusal, sample_lane, to_rgb
@@ -65,6 +66,8 @@ class _Setup:
     pixel_count: int
     aov_count: int
     diff_scale: float
+    # Set when the integrator is a `direct` whose primary hit can also feed the features.
+    direct: DirectSettings | None = None
 
 
 def _first_hit_flags(mi):
@@ -100,17 +103,22 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.n
     ray, ray_weight = sensor.sample_ray_differential(time, wavelength_sample, position / crop, aperture_sample)
     ray.scale_differential(float(setup.diff_scale))
 
-    value, valid, aovs = sample_lane(mi, setup.integrator, scene, sampler, ray)
-    # `valid` only feeds the film's alpha in Mitsuba (a miss of `direct` or `prb` still carries
-    # the environment's radiance), so it must not mask the value here.
+    if setup.direct is not None:
+        value, si = sample_direct(mi, setup.direct, scene, sampler, ray)
+        aovs = []
+    else:
+        # `valid` only feeds the film's alpha in Mitsuba (a miss of `direct` or `prb` still
+        # carries the environment's radiance), so it must not mask the value here.
+        value, _valid, aovs = sample_lane(mi, setup.integrator, scene, sampler, ray)
+        # First-hit features from a separate primary intersection along the same
+        # (filter-offset) ray (~17-27 % extra, docs/fidelity.md).
+        si = scene.ray_intersect(mi.Ray3f(ray), _first_hit_flags(mi), True)
     radiance = to_rgb(mi, value * ray_weight, ray.wavelengths)
     if weight is not None:
         radiance = radiance * weight
         aovs = [a * weight for a in aovs]
 
-    # First-hit AOVs (~27% extra, DESIGN.md) from a separate primary intersection along the
-    # same (filter-offset) ray; they are features, averaged unweighted so they stay in range.
-    si = scene.ray_intersect(mi.Ray3f(ray), _first_hit_flags(mi), True)
+    # The features are averaged unweighted, so they stay in range.
     hit = si.is_valid()
     bsdf = si.bsdf()
     # Albedo is what the denoiser divides out and multiplies back, so it must be a smooth,
@@ -232,6 +240,7 @@ def render_samples(
         # Ray differentials describe the footprint of one sample: shrink them with the mean
         # per-pixel rate as mi.render does with 1/sqrt(spp).
         diff_scale=1.0 / np.sqrt(max(buffer.spp.mean() + counts.mean(), 1.0)),
+        direct=direct_settings(mi, integrator),
     )
     chunks = max(1, -(-total // max_wavefront))
     for chunk in range(chunks if total else 0):

@@ -25,10 +25,10 @@ AOV_SMAPE_FACTOR = 1.35
 REPO = Path(__file__).resolve().parents[2]
 
 BOX_SCENES = ["path_box.xml", "volpathmis_box.xml", "prb_box.xml", "prbvolpath_box.xml",
-              "direct_projective_box.xml", "depth_box.xml"]
+              "direct_projective_box.xml", "depth_box.xml", "direct_mis_box.xml"]
 FILTERED_SCENES = ["path_tent.xml", "path_gaussian.xml", "path_mitchell.xml", "direct_gaussian.xml",
                    "volpath_tent.xml", "hide_emitters_env.xml", "crop_gaussian.xml",
-                   "wide_orthographic.xml", "thinlens_tent.xml"]
+                   "wide_orthographic.xml", "thinlens_tent.xml", "direct_hidden_tent.xml"]
 
 
 @pytest.mark.parametrize("name", BOX_SCENES)
@@ -80,10 +80,11 @@ print(json.dumps({"mean": c.mean_ratio, "smape": c.smape_ratio()}))
 """
 
 
-def test_spectral_variant_matches_mi_render_in_linear_srgb():
+@pytest.mark.parametrize("name", ["path_box.xml", "direct_mis_box.xml"])
+def test_spectral_variant_matches_mi_render_in_linear_srgb(name):
     # Variants are chosen once per process (runtime.mitsuba), so this one runs in its own.
     env = {**os.environ, "RENDERLOOP_VARIANT": "llvm_ad_spectral", "PYTHONPATH": str(REPO)}
-    out = subprocess.run([sys.executable, "-c", SPECTRAL_SCRIPT, "path_box.xml", str(SPP)], env=env,
+    out = subprocess.run([sys.executable, "-c", SPECTRAL_SCRIPT, name, str(SPP)], env=env,
                          capture_output=True, text=True, timeout=300, cwd=REPO)
     assert out.returncode == 0, out.stderr[-2000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])

@@ -172,21 +172,22 @@ def test_albedo_is_one_on_conductors_and_glass_and_the_reflectance_on_diffuse_wa
     assert 0 < np.median(walls.max(-1)) < 0.9                           # diffuse walls keep their colour
 
 
-def unit_sky_scene(film: dict):
+def unit_sky_scene(film: dict, integrator: str = "path"):
     """Nothing but a constant emitter of radiance 1: every traced lane returns exactly 1.0."""
     mi = mitsuba()
     return mi.load_dict({
         "type": "scene",
-        "integrator": {"type": "path", "hide_emitters": False},
+        "integrator": {"type": integrator, "hide_emitters": False},
         "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
         "sensor": {"type": "perspective", "film": {"type": "hdrfilm", **film}},
     })
 
 
-def test_radiance_sum_counts_the_lanes_actually_traced_per_pixel():
+@pytest.mark.parametrize("integrator", ["path", "direct"])  # direct: its own shared-hit trace
+def test_radiance_sum_counts_the_lanes_actually_traced_per_pixel(integrator):
     # Independent of the spp bookkeeping: each traced lane adds exactly 1.0 to its pixel, so a
     # renderer that traced half the lanes (or put them in the wrong pixel) fails here.
-    scene = unit_sky_scene({"width": 12, "height": 8, "rfilter": {"type": "box"}})
+    scene = unit_sky_scene({"width": 12, "height": 8, "rfilter": {"type": "box"}}, integrator)
     counts = np.random.default_rng(5).integers(0, 7, size=(8, 12))
     buffer = FrameBuffer.empty(8, 12)
     render_samples(scene, counts, buffer, seed=5, max_wavefront=97)
