@@ -61,16 +61,21 @@ def is_ad_integrator(mi, integrator) -> bool:
     return isinstance(integrator, mi.ad.integrators.common.ADIntegrator)
 
 
-def sample_lane(mi, integrator, scene, sampler, ray):
-    """(radiance, valid, aovs) for one wavefront of rays, whichever signature `sample` has."""
+def sample_lane(mi, integrator, scene, sampler, ray, medium=None):
+    """(radiance, valid, aovs) for one wavefront of rays, whichever signature `sample` has.
+
+    `medium`: the sensor's medium (a camera inside fog), which Mitsuba's SamplingIntegrator
+    hands to `sample()` as the ray's starting medium; without it a volumetric integrator starts
+    the ray in vacuum until it crosses a medium boundary."""
     if is_ad_integrator(mi, integrator):
-        # Primal mode, no adjoint state: exactly what ADIntegrator.render() evaluates per ray.
+        # Primal mode, no adjoint state: exactly what ADIntegrator.render() evaluates per ray
+        # (it takes no starting medium: Mitsuba's own render() does not pass the sensor's).
         radiance, valid, aovs, _ = integrator.sample(
             mode=dr.ADMode.Primal, scene=scene, sampler=sampler, ray=ray, depth=mi.UInt32(0),
             δL=None, δaovs=None, state_in=None, active=mi.Bool(True),
         )
         return radiance, valid, list(aovs)
-    radiance, valid, aovs = integrator.sample(scene, sampler, ray, None, True)
+    radiance, valid, aovs = integrator.sample(scene, sampler, ray, medium, True)
     return radiance, valid, list(aovs)
 
 

@@ -109,7 +109,7 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.n
     else:
         # `valid` only feeds the film's alpha in Mitsuba (a miss of `direct` or `prb` still
         # carries the environment's radiance), so it must not mask the value here.
-        value, _valid, aovs = sample_lane(mi, setup.integrator, scene, sampler, ray)
+        value, _valid, aovs = sample_lane(mi, setup.integrator, scene, sampler, ray, sensor.get_medium())
         # First-hit features from a separate primary intersection along the same
         # (filter-offset) ray (~17-27 % extra, docs/fidelity.md).
         si = scene.ray_intersect(mi.Ray3f(ray), _first_hit_flags(mi), True)

@@ -45,6 +45,15 @@ def test_filtered_scene_matches_mi_render_within_the_noise_floor(name):
     assert c.noise_floor_ratio() <= SMAPE_FACTOR, c.noise_floor_ratio()
 
 
+def test_a_camera_inside_fog_starts_its_rays_in_the_fog():
+    # The sensor's medium is the rays' starting medium (Mitsuba passes sensor.medium() to
+    # sample()); started in vacuum the rays only meet fog beyond the volume's far wall: 0.44×.
+    # A point light in fog is heavy-tailed, so the mean needs more samples to settle within 1 %.
+    c = compare_file("volpath_camera_in_fog.xml", 512)
+    assert abs(c.mean_ratio - 1) < MEAN_TOLERANCE, c.mean_ratio
+    assert c.smape_ratio() <= SMAPE_FACTOR, c.smape_ratio()
+
+
 def test_hide_emitters_keeps_the_environment_out_of_the_background():
     c = compare_file("hide_emitters_env.xml", SPP)
     top_rows = c.ours[:4, :, :3]  # above the horizon: only the hidden sky
