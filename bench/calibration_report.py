@@ -11,6 +11,7 @@ far the true SMAPE is from E there.
 """
 from __future__ import annotations
 
+import math
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +19,8 @@ from pathlib import Path
 from bench.common import fill, fmt, image_metrics, load_bench_networks, pinned_torch_threads, provenance, true_error_map
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.quality_measures import spearman
+from models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from models.pretrained import ERROR_PREDICTOR_FILE
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
 from service.render.runtime import active_variant
@@ -58,8 +61,29 @@ def stop_for_target(scores: list[IterationScore], target: float) -> IterationSco
     return next((s for s in scores if s.predicted <= target), None)
 
 
+def fitted_output_scale(results: dict[str, list[IterationScore]]) -> float:
+    """The factor that makes the median predicted ÷ true ratio over every (scene, iteration) 1.
+    A median of ratios (not a ratio of sums) so one scene with a large error does not set it."""
+    ratios = [s.ratio for scores in results.values() for s in scores if math.isfinite(s.ratio) and s.ratio > 0]
+    if not ratios:
+        raise ValueError("no iteration with a positive true and predicted error to fit a scale on")
+    return 1.0 / statistics.median(ratios)
+
+
+def write_calibrated_error_network(source_dir: Path, target_dir: Path, scale: float, command: str) -> Path:
+    """Copy source_dir's error network to target_dir with its output scale multiplied by `scale`,
+    recording `command` in the checkpoint (the shipped weights say how they were made)."""
+    source = source_dir / ERROR_PREDICTOR_FILE
+    model = load_checkpoint(source, "error_predictor")
+    model.config.output_scale *= scale
+    extra = dict(read_checkpoint(source).get("extra") or {})
+    extra["calibration"] = f"output_scale {model.config.output_scale:.4f} by {command}"
+    return save_checkpoint(target_dir / ERROR_PREDICTOR_FILE, model, extra)
+
+
 def run_calibration_report(out_dir: Path, *, weights_dir: Path | None = None, only: list[str] | None = None,
-                           suite: str = "dev") -> Path:
+                           suite: str = "dev", fit_scale_to: Path | None = None) -> Path:
+    """Measure and write the report; with `fit_scale_to`, also write the calibrated error network there."""
     nets = load_bench_networks(weights_dir)
     results: dict[str, list[IterationScore]] = {}
     with pinned_torch_threads(TORCH_THREADS):
@@ -69,6 +93,12 @@ def run_calibration_report(out_dir: Path, *, weights_dir: Path | None = None, on
             last = results[scene.name][-1]
             print(f"bench --calibration: {scene.name}: predicted {last.predicted:.4f} true {last.true:.4f} "
                   f"spearman {last.spearman:.2f}", flush=True)
+    if fit_scale_to is not None:
+        scale = fitted_output_scale(results)
+        command = (f"renderloop bench --calibration --suite {suite} --weights {nets.folder} --fit-scale {fit_scale_to}"
+                   + (f" --only {' '.join(only)}" if only else ""))
+        written = write_calibrated_error_network(nets.folder, fit_scale_to, scale, command)
+        print(f"bench --calibration: output scale ×{scale:.4f} → {written}", flush=True)
     return write_calibration_report(results, out_dir, nets.description, suite)
 
 

@@ -51,6 +51,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--calibration", action="store_true",
                    help="predicted vs true error per iteration and where --target-error stops, on scenes/dev → "
                         "calibration.md (with --suite val: scenes/val → calibration-val.md)")
+    p.add_argument("--fit-scale", type=Path, default=None, metavar="DIR",
+                   help="with --calibration --suite val: also write the error network of --weights to DIR with "
+                        "the output scale that makes its median predicted ÷ true error 1 on those scenes")
     p.add_argument("--scale", action="store_true",
                    help="Ray workers: 8 jobs on 1 vs 2 workers, Ray vs in-process overhead per iteration, a 5-frame "
                         "sequence on 1 vs 2 workers → scale.md")
@@ -81,9 +84,15 @@ def run_bench(args: argparse.Namespace) -> int:
         written = write_references(folder, spp=args.reference_spp, only=args.only, root=suite.root)
         print(f"wrote {len(written)} reference(s) to {folder}")
         return 0
+    if args.fit_scale is not None and not (args.calibration and args.suite == "val"):
+        # Fitting on the suite the claims are measured on would make its calibration figure circular.
+        print("renderloop bench: error: --fit-scale needs --calibration --suite val", file=sys.stderr)
+        return 2
     if args.calibration:
         suite = "val" if args.suite == "val" else "dev"
-        print(f"wrote {run_calibration_report(args.out, weights_dir=args.weights, only=args.only, suite=suite)}")
+        report = run_calibration_report(args.out, weights_dir=args.weights, only=args.only, suite=suite,
+                                        fit_scale_to=args.fit_scale)
+        print(f"wrote {report}")
         return 0
     if args.dev_suite:
         print(f"wrote {run_dev_suite_report(args.out, weights_dir=args.weights, only=args.only)}")

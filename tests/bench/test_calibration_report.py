@@ -5,7 +5,14 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from bench.calibration_report import IterationScore, run_calibration_report, stop_for_target
+import pytest
+
+from bench.calibration_report import (IterationScore, fitted_output_scale, run_calibration_report, stop_for_target,
+                                      write_calibrated_error_network)
+from bench.cli import main as bench_main
+from models.checkpoint import read_checkpoint, save_checkpoint
+from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from models.pretrained import ERROR_PREDICTOR_FILE
 
 
 def test_target_error_stop_is_the_first_iteration_predicted_at_or_below_it():
@@ -26,3 +33,26 @@ def test_calibration_report_scores_every_iteration_against_the_reference(tmp_pat
         true, rho = rest.split("(")
         assert float(predicted) > 0 and float(true) > 0 and -1 <= float(rho.rstrip(") ")) <= 1
     assert "Command:" in text and math.isfinite(float(cells[-1].split("/")[0]))
+
+
+def test_fitted_output_scale_makes_the_median_ratio_one_and_skips_empty_iterations():
+    results = {"a": [IterationScore(16, 0.02, 0.04, 0.5), IterationScore(32, 0.01, 0.0, 0.5)],
+               "b": [IterationScore(16, 0.03, 0.03, 0.5)], "c": [IterationScore(16, 0.01, 0.04, 0.5)]}
+    # ratios 0.5, 1.0, 0.25 (the true-0 iteration has no ratio): median 0.5 → ×2
+    assert fitted_output_scale(results) == 2.0
+
+
+def test_calibrated_error_network_carries_the_scale_and_the_command(tmp_path: Path):
+    source, target = tmp_path / "src", tmp_path / "dst"
+    model = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, output_scale=1.2))
+    save_checkpoint(source / ERROR_PREDICTOR_FILE, model, {"command": "renderloop train …"})
+    write_calibrated_error_network(source, target, 1.5, "renderloop bench --calibration --suite val")
+    written = read_checkpoint(target / ERROR_PREDICTOR_FILE)
+    assert written["config"]["output_scale"] == pytest.approx(1.8)
+    assert written["extra"]["command"] == "renderloop train …"
+    assert "--suite val" in written["extra"]["calibration"]
+
+
+def test_fit_scale_is_refused_outside_the_validation_scenes(capsys):
+    assert bench_main(["--calibration", "--fit-scale", "somewhere"]) == 2
+    assert "--suite val" in capsys.readouterr().err

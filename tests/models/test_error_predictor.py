@@ -28,3 +28,12 @@ def test_sample_count_input_changes_the_prediction_and_is_required():
     many = ep(replace(f, spp=torch.full((1, 1, 6, 6), 4096.0)), denoised)
     assert not torch.allclose(few, many)
 
+
+
+def test_output_scale_multiplies_the_prediction_and_nothing_else():
+    torch.manual_seed(0)
+    plain = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1))
+    scaled = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, output_scale=1.5))
+    scaled.load_state_dict(plain.state_dict())
+    f, denoised = make_frame(6, 6), torch.rand(1, 3, 6, 6)
+    torch.testing.assert_close(scaled(f, denoised), 1.5 * plain(f, denoised))
