@@ -29,8 +29,9 @@ from bench.server import bench_http_lambda
 from service.render.runtime import active_variant
 
 DEFAULT_CACHE_DIR = Path("bench-cache")  # git-ignored (/bench-cache/)
-# Goals the product is measured against: time-to-SMAPE speed-ups of (d) and its SMAPE ratio at equal budget.
-GOAL_SPEEDUP_VS_A, GOAL_SPEEDUP_VS_B, GOAL_SMAPE_RATIO_D_B = 10.0, 1.3, 0.8
+# Goals the product is measured against: time-to-SMAPE speed-ups of (d) and its SMAPE ratio at
+# equal budget (issue 14: ≥ 1.3× vs (b), (d)/(b) ≤ 0.85; the 10× vs (a) is the first benchmark's).
+GOAL_SPEEDUP_VS_A, GOAL_SPEEDUP_VS_B, GOAL_SMAPE_RATIO_D_B = 10.0, 1.3, 0.85
 # torch intra-op threads for every timed network call (loop, model micro-benchmarks, server).
 # The report measures one against two threads in the same run (see its Notes) instead of
 # quoting an old figure.
