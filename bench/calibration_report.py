@@ -19,7 +19,7 @@ from pathlib import Path
 from bench.common import fill, fmt, image_metrics, load_bench_networks, pinned_torch_threads, provenance, true_error_map
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.quality_measures import spearman
-from models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from models.checkpoint import load_checkpoint, save_checkpoint
 from models.pretrained import ERROR_PREDICTOR_FILE
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
@@ -73,10 +73,9 @@ def fitted_output_scale(results: dict[str, list[IterationScore]]) -> float:
 def write_calibrated_error_network(source_dir: Path, target_dir: Path, scale: float, command: str) -> Path:
     """Copy source_dir's error network to target_dir with its output scale multiplied by `scale`,
     recording `command` in the checkpoint (the shipped weights say how they were made)."""
-    source = source_dir / ERROR_PREDICTOR_FILE
-    model = load_checkpoint(source, "error_predictor")
+    model = load_checkpoint(source_dir / ERROR_PREDICTOR_FILE, "error_predictor")
     model.config.output_scale *= scale
-    extra = dict(read_checkpoint(source).get("extra") or {})
+    extra = dict(model.checkpoint_extra)
     extra["calibration"] = f"output_scale {model.config.output_scale:.4f} by {command}"
     return save_checkpoint(target_dir / ERROR_PREDICTOR_FILE, model, extra)
 

@@ -82,7 +82,6 @@ def nanstats(values: Iterable[float]) -> tuple[float, float, float, int]:
     return float(v.mean()), float(v.min()), float(v.max()), int(v.size)
 
 
-
 def shadow_contrast_ratio(image: np.ndarray, reference: np.ndarray,
                           region: tuple[float, float, float, float]) -> float:
     """How much of the reference's shadow contrast `image` keeps inside `region` (top, bottom,

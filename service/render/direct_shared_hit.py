@@ -39,6 +39,15 @@ class DirectSettings:
     def frac_bsdf(self) -> float:
         return self.bsdf_samples / (self.emitter_samples + self.bsdf_samples)
 
+    @property
+    def weight_emitter(self) -> float:
+        """Each emitter sample's share of its strategy (used only when there is one)."""
+        return 1.0 / max(self.emitter_samples, 1)
+
+    @property
+    def weight_bsdf(self) -> float:
+        return 1.0 / max(self.bsdf_samples, 1)
+
 
 def direct_settings(mi, integrator) -> DirectSettings | None:
     """The settings when `integrator` is a `direct` this module reproduces exactly, else None.
@@ -81,7 +90,6 @@ def sample_direct(mi, settings: DirectSettings, scene, sampler, ray):
 
     # Emitter sampling: only where the BSDF has a smooth lobe to evaluate.
     sample_emitter = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-    weight_emitter = 1.0 / settings.emitter_samples if settings.emitter_samples else 0.0
     for _ in range(settings.emitter_samples):
         ds, emitter_value = scene.sample_emitter_direction(si, sampler.next_2d(sample_emitter), True, sample_emitter)
         active_e = sample_emitter & (ds.pdf != 0.0)
@@ -89,11 +97,10 @@ def sample_direct(mi, settings: DirectSettings, scene, sampler, ray):
         bsdf_value, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, active_e)
         mis = dr.select(ds.delta, 1.0,
                         _power_heuristic(ds.pdf * settings.frac_emitter, bsdf_pdf * settings.frac_bsdf)
-                        * weight_emitter)
+                        * settings.weight_emitter)
         result += dr.select(active_e, mis * bsdf_value * emitter_value, 0.0)
 
     # BSDF sampling: keep the directions that land on an emitter.
-    weight_bsdf = 1.0 / settings.bsdf_samples if settings.bsdf_samples else 0.0
     for _ in range(settings.bsdf_samples):
         bs, bsdf_value = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
         active_b = active & dr.any(bsdf_value != 0.0)
@@ -105,5 +112,5 @@ def sample_direct(mi, settings: DirectSettings, scene, sampler, ray):
         ds = mi.DirectionSample3f(scene, si_bsdf, si)
         emitter_pdf = dr.select(delta, 0.0, scene.pdf_emitter_direction(si, ds, active_b))
         mis = _power_heuristic(bs.pdf * settings.frac_bsdf, emitter_pdf * settings.frac_emitter)
-        result += dr.select(active_b, bsdf_value * emitter_value * mis * weight_bsdf, 0.0)
+        result += dr.select(active_b, bsdf_value * emitter_value * mis * settings.weight_bsdf, 0.0)
     return result, si
