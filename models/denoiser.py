@@ -26,7 +26,7 @@ from torch import Tensor
 from models.candidate import CandidateGate, blend
 from models.features import HDR_MAX, demodulate, feature_set, log_transform, remodulate, sanitize, sanitize_frame
 from models.frames import FrameTensors
-from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
+from models.kernels import TILE_PIXELS, filter_padded, pad_for_kernel, unnormalised_weights
 from models.layers import Pointwise, cat_channels_last, conv3x3, res_blocks
 from models.warp import flow_to_center, warp
 
@@ -314,17 +314,33 @@ class Denoiser(nn.Module):
                       kernel_only: list[Tensor] | None = None) -> list[Tensor]:
         """Each pyramid level's own filtered, demodulated result (finest first, padded sizes).
         kernel_only: a list to receive each level's result before the candidate joins (training)."""
-        k = self.config.kernel_size
         results = []
         for level, code in zip(cache.levels, self._level_codes(cache, lam)):
-            weights = unnormalised_weights(self.specialise(level.hidden, code))   # joint softmax, eq. 4
-            result = filter_padded(level.padded, weights, k)                      # eq. 3
+            result = self._kernel_result(level, code)
             if kernel_only is not None:
                 kernel_only.append(result)
             if level.candidate is not None:                                       # eq. 4 + one candidate
                 result = blend(result, level.candidate, self.gate.weight(level.gate_hidden, code))
             results.append(result)
         return results
+
+    def _kernel_result(self, level: LevelCache, code: Tensor) -> Tensor:
+        """λ-specialised logits → joint softmax (eq. 4) → filtered radiance (eq. 3) of one level.
+        Without autograd the three run together per band of rows: the level's F·k² weight planes
+        (79 MB at 512², 3 frames) then never leave the cache, which halves the λ tail
+        (docs/models-speed.md). With autograd the whole level at once."""
+        k = self.config.kernel_size
+        h, w = level.hidden.shape[-2:]
+        rows = h if torch.is_grad_enabled() else max(1, TILE_PIXELS // w)
+        if rows >= h:
+            return filter_padded(level.padded, unnormalised_weights(self.specialise(level.hidden, code)), k)
+        out = level.padded[0].new_empty(level.padded[0].shape[:2] + (h, w))
+        for y0 in range(0, h, rows):
+            y1 = min(h, y0 + rows)
+            band = code if code.shape[-2:] == (1, 1) else code[..., y0:y1, :]
+            weights = unnormalised_weights(self.specialise(level.hidden[..., y0:y1, :], band))
+            out[:, :, y0:y1] = filter_padded([p[:, :, y0:y1 + k - 1] for p in level.padded], weights, k, rows * w)
+        return out
 
     def candidate_weights(self, cache: DenoiserCache, lam: float | Tensor = 1.0) -> list[Tensor]:
         """The candidate's share σ(g) of each level's softmax (finest first), for diagnostics."""

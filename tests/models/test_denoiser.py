@@ -159,6 +159,22 @@ def test_filter_levels_then_merge_levels_is_apply():
         torch.testing.assert_close(den.merge_levels(cache, levels), den.apply(cache, 2.0))
 
 
+@pytest.mark.parametrize("lam", [4.0, "map"])
+def test_banded_lambda_tail_equals_the_whole_level_at_once(monkeypatch, lam):
+    den = Denoiser(replace(TINY, oidn_candidate=True)).eval()
+    torch.nn.init.normal_(den.specialise.delta)
+    win = window()
+    if lam == "map":
+        lam = torch.rand(1, 1, 12, 16) * 9 + 1
+    with torch.no_grad():
+        cache = den.prepare(win, 1, torch.rand(1, 3, 12, 16))
+    with torch.enable_grad():
+        whole = den.apply(cache, lam).detach()                 # autograd: one band per level
+    monkeypatch.setattr("models.denoiser.TILE_PIXELS", 3 * 16)  # 3-row bands, a short last band
+    with torch.no_grad():
+        torch.testing.assert_close(den.apply(cache, lam), whole, rtol=1e-5, atol=1e-6)
+
+
 def test_scale_compositor_takes_a_fireflys_excess_from_the_firefly_not_its_neighbours():
     # Fine level kept a firefly the coarse level removed: the band swap subtracts the block's
     # excess from all four pixels of the 2×2 block alike; the floor keeps the neighbours at
