@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from models.candidate import CandidateGate, blend
+from models.energy import conserve_energy, sample_energy
 from models.features import HDR_MAX, demodulate, feature_set, log_transform, remodulate, sanitize, sanitize_frame
 from models.frames import FrameTensors
 from models.kernels import TILE_PIXELS, filter_padded, pad_for_kernel, unnormalised_weights
@@ -49,6 +50,7 @@ class DenoiserConfig:
     multiscale: bool = True        # False: finest level only, no compositing
     oidn_candidate: bool = False   # an external denoiser's image joins every level's joint softmax (models.candidate)
     gate_width: int = 8            # hidden channels of the candidate gate
+    energy_tolerance: float = 0.0  # τ of models.energy: > 0 pulls the image's total towards the samples'; 0 = off
 
     @property
     def n_levels(self) -> int:
@@ -205,6 +207,7 @@ class DenoiserCache:
     albedo: Tensor                 # padded center albedo for remodulation
     size: tuple[int, int]          # original (H, W) to crop back to
     n_bad: int = 0                 # NaN/Inf values replaced while sanitising the window
+    energy: tuple[Tensor, Tensor] | None = None   # the center's sample mean radiance and its rse (models.energy)
 
 
 class Denoiser(nn.Module):
@@ -242,6 +245,7 @@ class Denoiser(nn.Module):
         cleaned = [sanitize_frame(f) for f in window]
         frames, n_bad = [f for f, _ in cleaned], sum(n for _, n in cleaned)
         size = frames[center].size
+        energy = sample_energy(frames[center].color, frames[center].variance) if self.config.energy_tolerance > 0 else None
         align = self.config.alignment
         frames = [f.map(lambda _, t: pad_to(t, align)) for f in frames]
         albedo = frames[center].albedo
@@ -265,7 +269,7 @@ class Denoiser(nn.Module):
                 cache.candidate = extra[0]
                 cache.gate_hidden = self.gate.prepare(cache.hidden[:, 0, :-1], images[center], extra[0], extra[1])
             levels.append(cache)
-        return DenoiserCache(levels, albedo, size, n_bad)
+        return DenoiserCache(levels, albedo, size, n_bad, energy)
 
     @staticmethod
     def _demodulated_candidate(candidate: Tensor, frame: FrameTensors, align: int) -> tuple[Tensor, Tensor, int]:
@@ -366,7 +370,10 @@ class Denoiser(nn.Module):
         for fine in reversed(results[:-1]):
             out = self.composite(fine, out, alphas)
         h, w = cache.size
-        return remodulate(out, cache.albedo)[..., :h, :w]
+        out = remodulate(out, cache.albedo)[..., :h, :w]
+        if cache.energy is not None:
+            out = conserve_energy(out, *cache.energy, self.config.energy_tolerance)
+        return out
 
     def _lambda_code(self, cache: DenoiserCache, lam: float | Tensor) -> Tensor:
         """λ (float, (H,W) or (N|1,1,H,W)) → log-code at the padded size, or (N,1,1,1) if global."""

@@ -31,3 +31,7 @@ def test_suite_quality_report_scores_noisy_ours_and_oidn_at_every_sample_count(t
         smape, relmse, psnr, energy = (float(c) for c in row.strip("|").split("|")[2:])
         assert all(math.isfinite(v) for v in (smape, relmse, psnr, energy)) and 0.5 < energy < 1.5
     assert (tmp_path / "suite-quality" / "point_object.png").stat().st_size > 0
+    static = next(line for line in text.splitlines() if line.startswith("| point_object | static"))
+    noisy, ours, oidn = (float(c) for c in static.strip("|").split("|")[2:5])
+    assert noisy > ours > 0 and noisy > oidn > 0   # a static sequence: every frame its own seed
+    assert "Static sequences: ours at most OIDN's flicker on" in text
