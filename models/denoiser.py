@@ -28,7 +28,7 @@ from models.energy import conserve_energy, sample_energy
 from models.features import HDR_MAX, demodulate, feature_set, log_transform, remodulate, sanitize, sanitize_frame
 from models.frames import FrameTensors
 from models.kernels import TILE_PIXELS, filter_padded, pad_for_kernel, unnormalised_weights
-from models.layers import Pointwise, cat_channels_last, conv3x3, res_blocks
+from models.layers import Pointwise, cat_channels_last, conv3x3, res_blocks, trunk_in_bfloat16
 from models.warp import flow_to_center, warp
 
 from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN  # noqa: F401  (re-exported: eq. 6 range)
@@ -282,7 +282,8 @@ class Denoiser(nn.Module):
         n = frames[0].color.shape[0]
         # all frames as one channels-last batch: one pass through the shared convs
         inputs = torch.cat([self.features.build(f).permute(0, 2, 3, 1) for f in frames], 0).permute(0, 3, 1, 2)
-        feats = self.spatial(self.encoder(inputs)).split(n, 0)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=trunk_in_bfloat16(inputs)):
+            feats = self.spatial(self.encoder(inputs)).float().split(n, 0)
         motions = [f.motion for f in frames]
         c_feat, c_img = feats[center], images[center]
         out_images, feats_to_center = [c_img], [c_feat]

@@ -23,7 +23,7 @@ from torch import Tensor
 from models.features import (HDR_MAX, demodulate, feature_set, log_transform, sample_count_feature, sanitize,
                              sanitize_frame)
 from models.frames import FrameTensors
-from models.layers import channels_last, conv3x3, res_blocks
+from models.layers import channels_last, conv3x3, res_blocks, trunk_in_bfloat16
 
 
 @dataclass
@@ -60,5 +60,7 @@ class ErrorPredictor(nn.Module):
                 raise ValueError("this error network reads the per-pixel sample count: the frame has no spp map")
             inputs.append(sample_count_feature(f.spp))
         x = channels_last(torch.cat(inputs, 1))
-        error = F.softplus(self.out(self.blocks(F.relu_(self.head(x)))))
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=trunk_in_bfloat16(x)):
+            raw = self.out(self.blocks(F.relu_(self.head(x)))).float()
+        error = F.softplus(raw)
         return (error * self.config.output_scale).contiguous()

@@ -5,6 +5,7 @@ import torch
 
 from models.denoiser import Denoiser, ScaleCompositor, down, up
 from models.frames import FrameTensors
+from models.layers import trunk_in_bfloat16
 from tests.models.conftest import TINY, make_frame
 
 
@@ -194,3 +195,22 @@ def test_scale_compositor_takes_a_fireflys_excess_from_the_firefly_not_its_neigh
     assert out[0, :, 4, 4].max() < 900.0                     # ≈ 1000 − 0.56 × 250 (bilinear U)
     unfloored = torch.addcmul(fine, up(compositor.blend_weight(down(fine), coarse)), up(coarse - down(fine)))
     assert unfloored[0, :, neighbours].min() < 0.0             # what the floor prevents
+
+
+@torch.no_grad()
+def test_bfloat16_trunk_changes_the_denoised_image_by_under_a_percent(monkeypatch):
+    if not torch.ops.mkldnn._is_mkldnn_bf16_supported():
+        pytest.skip("this CPU has no native bfloat16: the trunk stays float32")
+    den = Denoiser(replace(TINY, width=16, temporal=False)).eval()
+    win = [make_frame(32, 32)]
+    assert trunk_in_bfloat16(torch.zeros(1))
+    fast = den(win, 0, 2.0)
+    monkeypatch.setattr("models.denoiser.trunk_in_bfloat16", lambda x: False)
+    exact = den(win, 0, 2.0)
+    assert fast.dtype == exact.dtype == torch.float32
+    assert 0 < ((fast - exact).abs().mean() / exact.abs().mean()) < 0.01
+
+
+def test_training_keeps_the_trunk_in_float32():
+    with torch.enable_grad():
+        assert not trunk_in_bfloat16(torch.zeros(1))

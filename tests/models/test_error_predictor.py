@@ -37,3 +37,17 @@ def test_output_scale_multiplies_the_prediction_and_nothing_else():
     scaled.load_state_dict(plain.state_dict())
     f, denoised = make_frame(6, 6), torch.rand(1, 3, 6, 6)
     torch.testing.assert_close(scaled(f, denoised), 1.5 * plain(f, denoised))
+
+
+@torch.no_grad()
+def test_bfloat16_trunk_keeps_the_predicted_error_within_a_percent(monkeypatch):
+    if not torch.ops.mkldnn._is_mkldnn_bf16_supported():
+        pytest.skip("this CPU has no native bfloat16: the trunk stays float32")
+    ep = ErrorPredictor(ErrorPredictorConfig(width=16, blocks=6)).eval()
+    f = make_frame(32, 32)
+    denoised = torch.rand(1, 3, 32, 32)
+    fast = ep(f, denoised)
+    monkeypatch.setattr("models.error_predictor.trunk_in_bfloat16", lambda x: False)
+    exact = ep(f, denoised)
+    assert fast.dtype == exact.dtype == torch.float32
+    assert 0 < ((fast - exact).abs().mean() / exact.mean()) < 0.01
