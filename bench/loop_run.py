@@ -3,6 +3,7 @@ iteration scored against a cached high-spp reference, and the time-to-target hea
 
     (a) uniform, no denoiser   (b) uniform + KPCN   (c) variance-adaptive + KPCN
     (d) error-predicted adaptive + KPCN (the product)   (e) uniform + OIDN (when pyoidn imports)
+    (o) error-adaptive + KPCN allocating by the true error map (a bound on (d), not a product)
 
 The machine is shared, so each loop runs `timing_repeats` times with identical seeds (identical
 images) and each stage keeps its fastest repeat: the least disturbed measurement. A method's
@@ -15,7 +16,7 @@ import math
 import statistics
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,7 @@ from service.dataset.procedural import generate_scene
 from service.dataset.splits import scene_seeds
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
+from service.loop.tensors import to_image
 from service.render.runtime import mitsuba
 
 STAGES = ("render", "denoise", "error", "allocate")
@@ -80,6 +82,7 @@ class LoopMethod:
     allocator: str  # service.loop.spec.ALLOCATORS
     denoiser: str  # "none" | "kpcn" | "oidn"
     predicts_error: bool  # only the product pays for the error network
+    oracle: bool = False  # allocates by the reference's true error map: a bound, not a product
 
 
 METHODS: tuple[LoopMethod, ...] = (
@@ -88,6 +91,9 @@ METHODS: tuple[LoopMethod, ...] = (
     LoopMethod("c", "variance-adaptive + KPCN", "variance", "kpcn", False),
     LoopMethod("d", "error-predicted adaptive + KPCN", "error", "kpcn", True),
     LoopMethod("e", "uniform + OIDN", "uniform", "oidn", False),
+    # What (d) would reach with a perfect error network: it separates "the predictor is not good
+    # enough" from "error-driven allocation gains little on this scene" (issue 14).
+    LoopMethod("o", "true-error adaptive + KPCN (bound: the reference's error map)", "error", "kpcn", False, oracle=True),
 )
 PRODUCT = "d"
 
@@ -220,9 +226,26 @@ def _loop_spec(scene: BenchScene, method: LoopMethod, settings: BenchSettings, i
                     allocator=method.allocator, denoise=method.denoiser == "kpcn", seed=LOOP_SEED)
 
 
+class TrueErrorMap(torch.nn.Module):
+    """Stand-in error network for (o): the denoised image's true per-pixel SMAPE against the
+    reference, what a perfect error network would predict."""
+
+    def __init__(self, reference: np.ndarray):
+        super().__init__()
+        self.reference = reference
+
+    def forward(self, frame: FrameTensors, denoised: torch.Tensor) -> torch.Tensor:
+        return torch.from_numpy(true_error_map(to_image(denoised), self.reference))[None, None]
+
+
 def _make_loop(scene: BenchScene, method: LoopMethod, settings: BenchSettings, nets: BenchNetworks,
-               iterations: int) -> RenderLoop:
-    error_predictor = nets.networks.error_predictor if method.predicts_error else NoErrorPrediction()
+               iterations: int, reference: np.ndarray | None = None) -> RenderLoop:
+    if method.oracle:
+        if reference is None:
+            raise ValueError(f"method ({method.key}) allocates by the true error: it needs the reference")
+        error_predictor = TrueErrorMap(reference)
+    else:
+        error_predictor = nets.networks.error_predictor if method.predicts_error else NoErrorPrediction()
     return RenderLoop(_loop_spec(scene, method, settings, iterations), Networks(nets.networks.denoiser, error_predictor))
 
 
@@ -241,7 +264,7 @@ def run_method(scene: BenchScene, method: LoopMethod, settings: BenchSettings, n
     final = None
     for repeat in range(settings.timing_repeats):
         timings = []
-        for record in _make_loop(scene, method, settings, nets, settings.iterations).run():
+        for record in _make_loop(scene, method, settings, nets, settings.iterations, reference).run():
             stage = {name: float(record.timings.get(name, 0.0)) for name in STAGES}
             image = record.denoised[0]
             if method.denoiser == "oidn":
@@ -286,10 +309,12 @@ class Headline:
     median_speedup: dict[str, float]
     smape_ratio: dict[str, float]  # scene → SMAPE(d) / SMAPE(b) at the last iteration
     median_smape_ratio: float
+    oracle_ratio: dict[str, float] = field(default_factory=dict)  # scene → SMAPE(o) / SMAPE(b), same samples
+    median_oracle_ratio: float = math.nan
 
 
 def headline(results: list[SceneResult]) -> Headline:
-    target, times, speedup, ratio = {}, {}, {}, {}
+    target, times, speedup, ratio, oracle = {}, {}, {}, {}, {}
     for result in results:
         label, runs = result.scene.label, result.runs
         product = runs[PRODUCT].rows
@@ -302,10 +327,13 @@ def headline(results: list[SceneResult]) -> Headline:
         speedup[label] = {key: t / t_product for key, (t, _) in times[label].items() if key != PRODUCT}
         if "b" in runs:
             ratio[label] = product[-1].metrics["smape"] / runs["b"].rows[-1].metrics["smape"]
+            if "o" in runs:
+                oracle[label] = runs["o"].rows[-1].metrics["smape"] / runs["b"].rows[-1].metrics["smape"]
     keys = sorted({k for s in speedup.values() for k in s})
     median_speedup = {k: statistics.median(s[k] for s in speedup.values() if k in s) for k in keys}
     return Headline(target, times, speedup, median_speedup, ratio,
-                    statistics.median(ratio.values()) if ratio else math.nan)
+                    statistics.median(ratio.values()) if ratio else math.nan,
+                    oracle, statistics.median(oracle.values()) if oracle else math.nan)
 
 
 # --- what the last iteration says about the samples and the error map ----------------------------

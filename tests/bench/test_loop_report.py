@@ -7,11 +7,14 @@ import importlib.util
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 
 from bench.common import METRIC_NAMES as METRICS
 from bench.loop_report import run_loop_benchmark
-from bench.loop_run import STAGES, time_to_reach
+from bench.common import true_error_map
+from bench.loop_run import STAGES, TrueErrorMap, time_to_reach
 
 
 def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, tiny_weights_dir: Path) -> None:
@@ -27,7 +30,8 @@ def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, tiny_weight
     assert "Failed:" not in text  # every micro-benchmark ran, the HTTP one against a real server included
     rows = list(csv.DictReader(open(tmp_path / "docs" / "benchmarks" / "loop-quick.csv")))
     methods = {r["method"] for r in rows}
-    assert {"a", "b", "c", "d"} <= methods
+    assert {"a", "b", "c", "d", "o"} <= methods
+    assert "with a perfect error map (o) the same allocation would reach a median SMAPE (o)/(b)" in text
     assert len({r["scene"] for r in rows}) == 2
     for r in rows:
         for column in (*METRICS, *(f"{s}_s" for s in STAGES), "cumulative_s"):
@@ -53,6 +57,16 @@ def test_development_suite_loop_benchmark_scores_against_the_committed_reference
     assert sorted({float(r["spp_mean"]) for r in rows}) == [16, 32, 64, 128]
     assert all(math.isfinite(float(r["smape"])) for r in rows)
     assert not (tmp_path / "cache" / "references").exists()  # the committed reference, nothing rendered
+
+
+def test_the_bound_method_allocates_by_the_denoised_images_true_error() -> None:
+    rng = np.random.default_rng(0)
+    reference = rng.random((6, 8, 3)).astype(np.float32)
+    denoised = rng.random((6, 8, 3)).astype(np.float32)
+    tensor = torch.from_numpy(denoised).permute(2, 0, 1)[None]
+    error = TrueErrorMap(reference)(None, tensor)
+    assert error.shape == (1, 1, 6, 8)
+    np.testing.assert_allclose(error[0, 0].numpy(), true_error_map(denoised, reference), rtol=1e-6)
 
 
 def test_time_to_reach_interpolates_in_log_log() -> None:
