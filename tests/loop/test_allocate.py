@@ -138,7 +138,7 @@ def test_clamp_limits_an_outlier_to_the_percentile():
     weights[3, 3] = 1e9  # a firefly in the error map
     counts = allocate_samples(weights, 400 * 16, dilate_radius=0)
     others = np.delete(counts.ravel(), 3 * 20 + 3)
-    assert counts[3, 3] <= others.max() + 1  # no more than the 95th-percentile pixels get
+    assert counts[3, 3] <= others.max() + 1  # no more than the clamp-percentile pixels get
 
 
 def test_clamp_uses_positive_weights_so_sparse_maps_survive():
