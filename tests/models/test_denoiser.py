@@ -5,7 +5,7 @@ import torch
 
 from models.denoiser import Denoiser, ScaleCompositor, down, up
 from models.frames import FrameTensors
-from models.layers import trunk_in_bfloat16
+from models.layers import cpu_has_native_bfloat16, trunk_in_bfloat16
 from tests.models.conftest import TINY, make_frame
 
 
@@ -199,7 +199,7 @@ def test_scale_compositor_takes_a_fireflys_excess_from_the_firefly_not_its_neigh
 
 @torch.no_grad()
 def test_bfloat16_trunk_changes_the_denoised_image_by_under_a_percent(monkeypatch):
-    if not torch.ops.mkldnn._is_mkldnn_bf16_supported():
+    if not cpu_has_native_bfloat16():
         pytest.skip("this CPU has no native bfloat16: the trunk stays float32")
     den = Denoiser(replace(TINY, width=16, temporal=False)).eval()
     win = [make_frame(32, 32)]

@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from models.layers import cpu_has_native_bfloat16
 from tests.models.conftest import make_frame
 
 
@@ -41,7 +42,7 @@ def test_output_scale_multiplies_the_prediction_and_nothing_else():
 
 @torch.no_grad()
 def test_bfloat16_trunk_keeps_the_predicted_error_within_a_percent(monkeypatch):
-    if not torch.ops.mkldnn._is_mkldnn_bf16_supported():
+    if not cpu_has_native_bfloat16():
         pytest.skip("this CPU has no native bfloat16: the trunk stays float32")
     ep = ErrorPredictor(ErrorPredictorConfig(width=16, blocks=6)).eval()
     f = make_frame(32, 32)
