@@ -74,7 +74,8 @@ REPORT_NAMES = {"dev": REPORT_NAME, "val": "val-quality.md"}  # --suite → the 
 
 
 def write_suite_quality_report(results: list[SceneQuality], flicker: dict[str, dict[str, float]], out_dir: Path,
-                               oidn_note: str, weights: str, suite: str = "dev", animated: frozenset[str] = frozenset()) -> Path:
+                               oidn_note: str, weights: str, suite: str = "dev",
+                               animated: frozenset[str] = frozenset()) -> Path:
     path = out_dir / REPORT_NAMES[suite]
     out_dir.mkdir(parents=True, exist_ok=True)
     path.write_text(fill(

@@ -245,7 +245,8 @@ class Denoiser(nn.Module):
         cleaned = [sanitize_frame(f) for f in window]
         frames, n_bad = [f for f, _ in cleaned], sum(n for _, n in cleaned)
         size = frames[center].size
-        energy = sample_energy(frames[center].color, frames[center].variance) if self.config.energy_tolerance > 0 else None
+        energy = (sample_energy(frames[center].color, frames[center].variance)
+                  if self.config.energy_tolerance > 0 else None)
         align = self.config.alignment
         frames = [f.map(lambda _, t: pad_to(t, align)) for f in frames]
         albedo = frames[center].albedo

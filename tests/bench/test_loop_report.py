@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from bench.common import METRIC_NAMES as METRICS
-from bench.loop_report import run_loop_benchmark
 from bench.common import true_error_map
+from bench.loop_report import run_loop_benchmark
 from bench.loop_run import STAGES, TrueErrorMap, time_to_reach
 
 
