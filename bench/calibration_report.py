@@ -18,7 +18,7 @@ from pathlib import Path
 
 from bench.common import fill, fmt, image_metrics, load_bench_networks, pinned_torch_threads, provenance, true_error_map
 from bench.dev_references import SUITES, dev_scenes, load_reference
-from bench.quality_measures import spearman
+from bench.quality_measures import block_means, spearman
 from models.checkpoint import load_checkpoint, save_checkpoint
 from models.pretrained import ERROR_PREDICTOR_FILE
 from service.loop.loop import RenderLoop
@@ -33,12 +33,18 @@ MEAN_TOLERANCE = 0.20  # issue 14: predicted mean within 20 % of the true mean
 TORCH_THREADS = 1
 
 
+# The allocator dilates and clamps the map, so what it acts on is the error of neighbourhoods;
+# a single pixel's true SMAPE is mostly that pixel's leftover noise, which no network can predict.
+RANKING_BLOCK = 8
+
+
 @dataclass(frozen=True)
 class IterationScore:
     spp: float
     predicted: float
     true: float
-    spearman: float
+    spearman: float  # per pixel: the figure issue 14 asks ≥ 0.7 of
+    block_spearman: float = float("nan")  # of RANKING_BLOCK² tile means
 
     @property
     def ratio(self) -> float:
@@ -50,9 +56,10 @@ def score_scene(path: Path, reference, networks) -> list[IterationScore]:
     scores = []
     for record in RenderLoop(spec, networks).run():
         denoised, predicted = record.denoised[0], record.error[0]
+        true = true_error_map(denoised, reference)
         scores.append(IterationScore(record.spp_mean, float(predicted.mean()),
-                                     image_metrics(denoised, reference)["smape"],
-                                     spearman(predicted, true_error_map(denoised, reference))))
+                                     image_metrics(denoised, reference)["smape"], spearman(predicted, true),
+                                     spearman(block_means(predicted, RANKING_BLOCK), block_means(true, RANKING_BLOCK))))
     return scores
 
 
@@ -131,8 +138,9 @@ def write_calibration_report(results: dict[str, list[IterationScore]], out_dir: 
         ratios = [scores[i].ratio for scores in results.values()]
         within = sum(abs(r - 1) <= MEAN_TOLERANCE for r in ratios)
         rho = statistics.median(scores[i].spearman for scores in results.values())
+        rho_block = statistics.median(scores[i].block_spearman for scores in results.values())
         medians.append(f"| {results[next(iter(results))][i].spp:g} | {statistics.median(ratios):.2f} | "
-                       f"{within} of {len(ratios)} | {rho:.2f} |")
+                       f"{within} of {len(ratios)} | {rho:.2f} | {rho_block:.2f} |")
     target_table = _target_table(results)
     path = out_dir / REPORT_NAMES[suite]
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -53,6 +53,12 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
         return float(spearmanr(a.ravel(), b.ravel())[0])
 
 
+def block_means(x: np.ndarray, block: int) -> np.ndarray:
+    """(H, W) → the means of its block×block tiles (the ragged right and bottom edges dropped)."""
+    h, w = (x.shape[0] // block) * block, (x.shape[1] // block) * block
+    return x[:h, :w].reshape(h // block, block, w // block, block).mean(axis=(1, 3))
+
+
 def lambda_measures(d: Tensor, r: Tensor) -> dict[str, float]:
     """Residual noise and kept detail of a result d against the reference r (see the report text)."""
     ld, lr = log_luminance(d), log_luminance(r)

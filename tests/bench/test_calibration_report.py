@@ -5,11 +5,13 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bench.calibration_report import (IterationScore, fitted_output_scale, run_calibration_report, stop_for_target,
                                       write_calibrated_error_network)
 from bench.cli import main as bench_main
+from bench.quality_measures import block_means
 from models.checkpoint import read_checkpoint, save_checkpoint
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.pretrained import ERROR_PREDICTOR_FILE
@@ -33,6 +35,9 @@ def test_calibration_report_scores_every_iteration_against_the_reference(tmp_pat
         true, rho = rest.split("(")
         assert float(predicted) > 0 and float(true) > 0 and -1 <= float(rho.rstrip(") ")) <= 1
     assert "Command:" in text and math.isfinite(float(cells[-1].split("/")[0]))
+    median_row = next(line for line in text.splitlines() if line.startswith("| 256 |"))
+    tiles = float(median_row.strip("|").split("|")[-1])
+    assert -1 <= tiles <= 1
 
 
 def test_fitted_output_scale_makes_the_median_ratio_one_and_skips_empty_iterations():
@@ -56,3 +61,10 @@ def test_calibrated_error_network_carries_the_scale_and_the_command(tmp_path: Pa
 def test_fit_scale_is_refused_outside_the_validation_scenes(capsys):
     assert bench_main(["--calibration", "--fit-scale", "somewhere"]) == 2
     assert "--suite val" in capsys.readouterr().err
+
+
+def test_block_means_average_each_tile_and_drop_the_ragged_edge():
+    x = np.arange(6 * 9, dtype=float).reshape(6, 9)
+    means = block_means(x, 3)
+    assert means.shape == (2, 3)
+    assert means[1, 2] == x[3:6, 6:9].mean()
