@@ -93,7 +93,7 @@ def run_suite_quality_report(out_dir: Path, *, weights_dir: Path | None = None, 
     oidn, oidn_note = oidn_denoiser()
     nets = load_bench_networks(weights_dir)
     figures = out_dir / Path(REPORT_NAMES[suite]).stem
-    results, flicker = [], {}
+    results, flicker, animated = [], {}, set()
     with pinned_torch_threads(TORCH_THREADS):
         for scene in dev_scenes(only, SUITES[suite].root):
             reference, _ = load_reference(reference_dir, scene, None if scene.frames == 1 else 0)
@@ -104,8 +104,9 @@ def run_suite_quality_report(out_dir: Path, *, weights_dir: Path | None = None, 
                   f"KPCN {low['kpcn'].smape:.4f} OIDN {low['oidn'].smape:.4f}", flush=True)
             if scene.frames > 1:
                 references = [load_reference(reference_dir, scene, f)[0] for f in range(scene.frames)]
+                animated.add(scene.name)
             else:                                              # a static sequence of the still scene
                 references = [reference] * STATIC_FRAMES
             flicker[scene.name] = temporal_flicker(scene, references, nets.networks, oidn)
-    animated = frozenset(s.name for s in dev_scenes(only, SUITES[suite].root) if s.frames > 1)
-    return write_suite_quality_report(results, flicker, out_dir, oidn_note, nets.description, suite, animated)
+    return write_suite_quality_report(results, flicker, out_dir, oidn_note, nets.description, suite,
+                                      frozenset(animated))

@@ -27,7 +27,7 @@ from models.candidate import CandidateGate, blend
 from models.energy import conserve_energy, sample_energy
 from models.features import HDR_MAX, demodulate, feature_set, log_transform, remodulate, sanitize, sanitize_frame
 from models.frames import FrameTensors
-from models.kernels import TILE_PIXELS, filter_padded, pad_for_kernel, unnormalised_weights
+from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
 from models.layers import Pointwise, cat_channels_last, conv3x3, res_blocks, trunk_in_bfloat16
 from models.warp import flow_to_center, warp
 
@@ -61,6 +61,10 @@ class DenoiserConfig:
         """Sizes must divide by 2^(levels-1) for the 2×2 pyramid; inputs are padded to it."""
         return 2 ** (self.n_levels - 1)
 
+
+# Inference bands of rows for the λ tail: a band's F·k² weight planes and its 3-channel output
+# stay in cache from the GEMM through exp to the last tap.
+TILE_PIXELS = 32768
 
 # --- tiny verbs ---------------------------------------------------------------------------
 
@@ -345,7 +349,7 @@ class Denoiser(nn.Module):
             y1 = min(h, y0 + rows)
             band = code if code.shape[-2:] == (1, 1) else code[..., y0:y1, :]
             weights = unnormalised_weights(self.specialise(level.hidden[..., y0:y1, :], band))
-            out[:, :, y0:y1] = filter_padded([p[:, :, y0:y1 + k - 1] for p in level.padded], weights, k, rows * w)
+            out[:, :, y0:y1] = filter_padded([p[:, :, y0:y1 + k - 1] for p in level.padded], weights, k)
         return out
 
     def candidate_weights(self, cache: DenoiserCache, lam: float | Tensor = 1.0) -> list[Tensor]:

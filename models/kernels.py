@@ -32,25 +32,16 @@ def unnormalised_weights(logits: Tensor) -> Tensor:
     return logits.clamp_(-LOGIT_CLAMP, LOGIT_CLAMP).exp_()
 
 
-TILE_PIXELS = 32768   # inference row tiles: a 3-channel output tile (≈ 400 KB) stays in L2 for all taps
-
-
-def filter_padded(padded: Sequence[Tensor], weights: Tensor, k: int, tile_pixels: int = TILE_PIXELS) -> Tensor:
+def filter_padded(padded: Sequence[Tensor], weights: Tensor, k: int) -> Tensor:
     """Σ_frames Σ_taps w·x / Σ w: eq. 3 with the joint normalisation of eq. 4.
-    padded[f] is frame f's image after pad_for_kernel; weights (N, F·k², H, W) ≥ 0.
-
-    Without autograd the loop runs over row tiles so the accumulator stays in cache across
-    the F·k² taps (measured 62 vs 80 ms at 512², 3 frames, one thread). With autograd one
-    tile: in-place updates of slices would make backward copy the whole output per tap."""
+    padded[f] is frame f's image after pad_for_kernel (rows y…y+h+k−1 for output rows y…y+h);
+    weights (N, F·k², H, W) ≥ 0. At inference the denoiser calls this per band of rows, so the
+    accumulator and the weight planes stay in cache across the F·k² taps (Denoiser._kernel_result)."""
     h, w = weights.shape[-2:]
     out = torch.zeros(padded[0].shape[:2] + (h, w), dtype=weights.dtype, device=weights.device)
-    rows = h if torch.is_grad_enabled() else max(1, tile_pixels // w)
-    for y0 in range(0, h, rows):
-        y1 = min(h, y0 + rows)
-        acc = out if rows >= h else out[:, :, y0:y1]     # no view under autograd
-        for f, image in enumerate(padded):
-            for dy in range(k):
-                for dx in range(k):
-                    tap = (f * k + dy) * k + dx
-                    acc.addcmul_(weights[:, tap:tap + 1, y0:y1], image[:, :, y0 + dy:y1 + dy, dx:dx + w])
+    for f, image in enumerate(padded):
+        for dy in range(k):
+            for dx in range(k):
+                tap = (f * k + dy) * k + dx
+                out.addcmul_(weights[:, tap:tap + 1], image[:, :, dy:dy + h, dx:dx + w])
     return out / weights.sum(dim=1, keepdim=True)

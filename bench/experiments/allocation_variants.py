@@ -11,7 +11,6 @@ the duration of one loop: an experiment, not a product setting.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
 from contextlib import contextmanager
 
 import numpy as np
@@ -69,9 +68,8 @@ def main() -> None:
                 continue
             reference, _ = load_reference(SUITES[args.suite].references, scene, None)
             uniform = final_smape(str(scene.path), nets.networks, "uniform", reference)
-            error_map: Callable = (lambda: TrueErrorMap(reference)) if args.map == "true" else (
-                lambda: nets.networks.error_predictor)
-            networks = Networks(nets.networks.denoiser, error_map())
+            error_map = TrueErrorMap(reference) if args.map == "true" else nets.networks.error_predictor
+            networks = Networks(nets.networks.denoiser, error_map)
             ratios = []
             for exponent, overrides in VARIANTS.values():
                 with allocator_variant(exponent, overrides):

@@ -30,7 +30,6 @@ def test_sample_count_input_changes_the_prediction_and_is_required():
     assert not torch.allclose(few, many)
 
 
-
 def test_output_scale_multiplies_the_prediction_and_nothing_else():
     torch.manual_seed(0)
     plain = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1))

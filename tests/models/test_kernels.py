@@ -87,14 +87,3 @@ def test_apply_kernels_gradient_matches_explicit_softmax_filtering():
     ref.sum().backward()
     for a, l in zip(fast, logits):
         torch.testing.assert_close(a, l.grad)
-
-
-def test_inference_row_tiling_gives_the_same_result_as_one_pass():
-    images = [torch.rand(1, 3, 10, 6) for _ in range(2)]
-    logits = [torch.randn(1, 9, 10, 6) for _ in range(2)]
-    padded = [pad_for_kernel(i, 3) for i in images]
-    with torch.no_grad():
-        whole = filter_padded(padded, unnormalised_weights(torch.cat(logits, dim=1)), 3, tile_pixels=10**9)
-        # 3-row tiles of 6 pixels, the last one shorter
-        tiled = filter_padded(padded, unnormalised_weights(torch.cat(logits, dim=1)), 3, tile_pixels=18)
-    torch.testing.assert_close(tiled, whole)
