@@ -72,9 +72,10 @@ class CandidateGate(nn.Module):
         h = F.relu_(self.hidden(x))
         return torch.cat([h, torch.ones_like(h[:, :1])], 1).unsqueeze(1)
 
-    def weight(self, hidden: Tensor, code: Tensor) -> Tensor:
-        """σ(g) ∈ [0, 1]: the candidate's share of the joint softmax, (N,1,H,W)."""
-        raw = self.specialise(hidden, code)
+    def weight(self, hidden: Tensor, code: Tensor, offset: float = 0.0) -> Tensor:
+        """σ(g) ∈ [0, 1]: the candidate's share of the joint softmax, (N,1,H,W). offset: a logit
+        added before the bound (DenoiserConfig.gate_offset), chosen after training."""
+        raw = self.specialise(hidden, code) + offset
         return torch.sigmoid(torch.tanh(raw / GATE_LOGIT_BOUND) * GATE_LOGIT_BOUND)
 
 

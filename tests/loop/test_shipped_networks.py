@@ -20,12 +20,14 @@ from service.loop.spec import LoopSpec
 from service.loop.tensors import frame_tensors, to_image
 
 # Measured with the shipped weights (the loop's first iteration, 16 spp; docs/oidn-candidate.md):
-# SMAPE 0.0931 noisy → 0.0164 denoised (5.67×; OIDN alone 0.0158, 5.89×); the error network's
-# per-pixel Spearman correlation with the true error of that image is 0.238 (weak: issue 14).
-# The shipped denoiser mixes OIDN's image in (oidn_candidate) and a fresh gate already leans to
-# it, so an untrained network of the shipped architecture scores 4.78×: the bar sits between,
-# not far below the measured figure. Margins allow for seeds and platforms.
-MIN_SMAPE_CUT = 5.1
+# SMAPE 0.0931 noisy → 0.0158 denoised (5.89×; OIDN alone 5.89×); the error network's per-pixel
+# Spearman correlation with the true error of that image is 0.238 (weak: issue 14).
+# The shipped denoiser mixes OIDN's image in (oidn_candidate) and its gate leans to it
+# (gate_offset 2), so an untrained network of the shipped architecture also scores 5.82× on the
+# whole image: what the trained weights carry is the kernels, guarded on their own (the
+# candidate's share held at 0): 3.02× shipped, 2.23× untrained. Margins allow for seeds and platforms.
+MIN_SMAPE_CUT = 5.5
+MIN_KERNEL_SMAPE_CUT = 2.7
 MIN_ERROR_RANK_CORRELATION = 0.18
 # Issue 13: the lattice's hard shadows keep ≥ 90 % of the reference's contrast at λ = 1
 # (bench.quality_measures.shadow_contrast_ratio on SHADOW_REGIONS). Measured 0.918 (OIDN 0.963;
@@ -54,9 +56,23 @@ def smape_cut(record, reference) -> float:
     return noisy / image_metrics(record.denoised[0], reference)["smape"]
 
 
+def kernel_smape_cut(denoiser: Denoiser, record, reference) -> float:
+    """The SMAPE cut of the kernels alone: every level's result before the candidate joins."""
+    frame = frame_tensors(record.buffers[0])
+    with torch.inference_mode():
+        cache = denoiser.prepare([frame], 0, candidate_for(denoiser, frame))
+        kernel_levels: list[torch.Tensor] = []
+        denoiser.filter_levels(cache, 1.0, kernel_levels)
+        kernels = to_image(denoiser.merge_levels(cache, kernel_levels))
+    return image_metrics(record.buffers[0].mean, reference)["smape"] / image_metrics(kernels, reference)["smape"]
+
+
 def test_shipped_denoiser_keeps_its_smape_cut_on_an_unseen_scene(hard_shadows):
     scene, reference = hard_shadows
-    assert smape_cut(first_iteration(scene, load_networks()), reference) >= MIN_SMAPE_CUT
+    networks = load_networks()
+    record = first_iteration(scene, networks)
+    assert smape_cut(record, reference) >= MIN_SMAPE_CUT
+    assert kernel_smape_cut(networks.denoiser, record, reference) >= MIN_KERNEL_SMAPE_CUT
 
 
 def test_shipped_denoiser_keeps_the_hard_shadows_contrast(hard_shadows):
@@ -75,7 +91,9 @@ def untrained_shipped_architecture() -> Networks:
 def test_an_untrained_denoiser_does_not_pass_the_guard(hard_shadows, tiny_networks, untrained):
     scene, reference = hard_shadows
     networks = tiny_networks if untrained == "tiny" else untrained_shipped_architecture()
-    assert smape_cut(first_iteration(scene, networks), reference) < MIN_SMAPE_CUT
+    record = first_iteration(scene, networks)
+    # the whole image of a candidate-leaning architecture is mostly OIDN's: the kernels tell
+    assert kernel_smape_cut(networks.denoiser, record, reference) < MIN_KERNEL_SMAPE_CUT
 
 
 def test_shipped_error_network_ranks_pixels_by_their_true_error(hard_shadows):

@@ -129,3 +129,17 @@ def test_the_training_loss_keeps_the_kernels_learning_when_the_gate_trusts_the_c
     frame = make_frame(16, 16)
     denoiser_loss(model, [frame], 0, frame.color * 0.9, torch.ones(1, 1, 16, 16), torch.rand(1, 3, 16, 16)).backward()
     assert model.specialise.base.grad.abs().sum() > 1e-4
+
+
+@torch.no_grad()
+def test_gate_offset_moves_every_levels_weight_towards_the_candidate_and_zero_changes_nothing():
+    model = Denoiser(CANDIDATE).eval()
+    cache = model.prepare([make_frame(H, W)], 0, candidate_image())
+    before = model.candidate_weights(cache, 2.0)
+    image = model.apply(cache, 2.0)
+    model.config = dataclasses.replace(CANDIDATE, gate_offset=0.0)
+    torch.testing.assert_close(model.apply(cache, 2.0), image, rtol=0, atol=0)
+    model.config = dataclasses.replace(CANDIDATE, gate_offset=2.0)
+    after = model.candidate_weights(cache, 2.0)
+    assert all((a > b).all() for a, b in zip(after, before))
+    assert all((a < 1).all() for a in after)                     # a lean, not a switch

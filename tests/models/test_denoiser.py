@@ -197,6 +197,26 @@ def test_scale_compositor_takes_a_fireflys_excess_from_the_firefly_not_its_neigh
     assert unfloored[0, :, neighbours].min() < 0.0             # what the floor prevents
 
 
+def test_scale_compositor_keeps_a_bright_emitters_coarse_band_off_its_dark_neighbours():
+    # A bright emitter fills rows 0-3 (blocks 0-1 of the coarse level), a dark wall rows 4-7.
+    # The coarse level is the fine one pooled, except that it holds 10 % more of the emitter
+    # (the levels disagree there); the bilinear U spreads that excess onto row 4 of the wall.
+    # The cap keeps each wall pixel at most at its own fine or its own coarse block's value.
+    compositor = ScaleCompositor(4)
+    with torch.no_grad():
+        compositor.alpha[2].bias.fill_(20.0)       # α ≈ 1: take the coarse band everywhere
+    fine = torch.full((1, 3, 8, 8), 0.1)
+    fine[..., :4, :] = 800.0
+    coarse = down(fine)
+    coarse[..., :2, :] *= 1.1
+    with torch.no_grad():
+        out = compositor(fine, coarse)
+    assert out[..., 4:, :].max() <= 0.1 + 1e-5
+    assert out[..., :4, :].min() > 800.0                        # the emitter still gets its band
+    uncapped = torch.addcmul(fine, up(compositor.blend_weight(down(fine), coarse)), up(coarse - down(fine)))
+    assert uncapped[..., 4, :].min() > 1.0                      # what the cap prevents
+
+
 @torch.no_grad()
 def test_bfloat16_trunk_changes_the_denoised_image_by_under_a_percent(monkeypatch):
     if not cpu_has_native_bfloat16():
