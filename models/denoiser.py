@@ -14,6 +14,7 @@ cheap tail a user's λ edit re-runs.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import ClassVar
@@ -51,7 +52,17 @@ class DenoiserConfig:
     oidn_candidate: bool = False   # an external denoiser's image joins every level's joint softmax (models.candidate)
     gate_width: int = 8            # hidden channels of the candidate gate
     energy_tolerance: float = 0.0  # τ of models.energy: > 0 pulls the image's total towards the samples'; 0 = off
-    gate_offset: float = 0.0       # b added to every candidate-gate logit: > 0 leans to the candidate (models.candidate)
+    gate_offset: float = 0.0       # b added to the finest level's candidate-gate logit: > 0 leans to the candidate
+    coarse_gate_offset: float | None = None   # b of the coarser levels; None: gate_offset (models.candidate)
+
+    def without_post_training_settings(self) -> "DenoiserConfig":
+        """This config with the settings chosen after training (on validation scenes, for given
+        weights) back at their defaults: what a fine-tuning run starts from and trains through."""
+        return dataclasses.replace(self, energy_tolerance=0.0, gate_offset=0.0, coarse_gate_offset=None)
+
+    def level_gate_offset(self, level: int) -> float:
+        """The logit offset of pyramid level `level` (0 = finest)."""
+        return self.gate_offset if level == 0 or self.coarse_gate_offset is None else self.coarse_gate_offset
 
     @property
     def n_levels(self) -> int:
@@ -340,13 +351,13 @@ class Denoiser(nn.Module):
         """Each pyramid level's own filtered, demodulated result (finest first, padded sizes).
         kernel_only: a list to receive each level's result before the candidate joins (training)."""
         results = []
-        for level, code in zip(cache.levels, self._level_codes(cache, lam)):
+        for i, (level, code) in enumerate(zip(cache.levels, self._level_codes(cache, lam))):
             result = self._kernel_result(level, code)
             if kernel_only is not None:
                 kernel_only.append(result)
             if level.candidate is not None:                                       # eq. 4 + one candidate
                 result = blend(result, level.candidate,
-                               self.gate.weight(level.gate_hidden, code, self.config.gate_offset))
+                               self.gate.weight(level.gate_hidden, code, self.config.level_gate_offset(i)))
             results.append(result)
         return results
 
@@ -372,8 +383,8 @@ class Denoiser(nn.Module):
         """The candidate's share σ(g) of each level's softmax (finest first), for diagnostics."""
         if self.gate is None:
             return []
-        return [self.gate.weight(level.gate_hidden, code, self.config.gate_offset)
-                for level, code in zip(cache.levels, self._level_codes(cache, lam))]
+        return [self.gate.weight(level.gate_hidden, code, self.config.level_gate_offset(i))
+                for i, (level, code) in enumerate(zip(cache.levels, self._level_codes(cache, lam)))]
 
     def _level_codes(self, cache: DenoiserCache, lam: float | Tensor) -> list[Tensor]:
         """The λ code of each level, finest first: a per-pixel λ map follows the pyramid."""

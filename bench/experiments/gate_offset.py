@@ -4,11 +4,14 @@
 The gate was trained on procedural scenes, where the kernels hold their own against OIDN; on
 hand-written scenes they are 1.1–5× worse at 16 spp (bench.experiments.gate_bound), so a gate
 that trusts them as much as in training mixes in too much of them. One logit offset b added to
-every level's gate logit (DenoiserConfig.gate_offset) moves the whole gate towards the candidate
-(b > 0) without retraining. Per scene, sample count and offset: SMAPE and relMSE of ours and of
-OIDN, the renders and the network's preparation shared by every offset.
+the finest level's gate logit (DenoiserConfig.gate_offset), and one bc to the coarser levels'
+(coarse_gate_offset), move the gate towards the candidate (> 0) without retraining. Per scene,
+sample count and pair (b, bc): SMAPE and relMSE of ours and of OIDN, the renders and the
+network's preparation shared by every pair.
 
-    python -m bench.experiments.gate_offset [--suite val|dev] [--spp 16 64 256] [--offsets 0 1 2]
+    python -m bench.experiments.gate_offset [--suite val|dev] [--spp 16 64 256] [--offsets 0 1 2] [--coarse 2 10]
+
+Without --coarse, bc = b (one offset for every level).
 """
 from __future__ import annotations
 
@@ -32,14 +35,17 @@ def main() -> None:
     parser.add_argument("--suite", choices=sorted(SUITES), default="val")
     parser.add_argument("--spp", type=int, nargs="+", default=[16, 64, 256])
     parser.add_argument("--offsets", type=float, nargs="+", default=list(DEFAULT_OFFSETS))
+    parser.add_argument("--coarse", type=float, nargs="+", default=None,
+                        help="offsets of the coarser levels, each paired with every --offsets value")
     args = parser.parse_args()
+    pairs = [(b, b if args.coarse is None else bc) for b in args.offsets for bc in (args.coarse or [None])]
     nets = load_bench_networks(None)
     denoiser = nets.networks.denoiser
     base_config = denoiser.config
-    head = " | ".join(f"b={b:g}" for b in args.offsets)
+    head = " | ".join(f"b={b:g}, bc={bc:g}" for b, bc in pairs)
     print(f"SMAPE / relMSE ÷ OIDN's (< 1: ours better)\n\n| scene | spp | OIDN SMAPE | {head} |\n"
-          "|---|---:|---:|" + "---:|" * len(args.offsets))
-    ratios: dict[tuple[int, float], list[tuple[float, float]]] = {}
+          "|---|---:|---:|" + "---:|" * len(pairs))
+    ratios: dict[tuple[int, float, float], list[tuple[float, float]]] = {}
     with pinned_torch_threads(2), torch.no_grad():
         for scene in dev_scenes(None, SUITES[args.suite].root):
             reference, _ = load_reference(SUITES[args.suite].references, scene, None if scene.frames == 1 else 0)
@@ -48,20 +54,21 @@ def main() -> None:
                 candidate = candidate_for(denoiser, frame)
                 oidn = image_metrics(to_image(candidate), reference)
                 cells = []
-                for offset in args.offsets:
-                    denoiser.config = dataclasses.replace(base_config, gate_offset=offset)
-                    ours = image_metrics(to_image(denoiser.apply(denoiser.prepare([frame], 0, candidate))), reference)
-                    pair = (ours["smape"] / oidn["smape"], ours["relmse"] / oidn["relmse"])
-                    ratios.setdefault((spp, offset), []).append(pair)
-                    cells.append(f"{pair[0]:.3f} / {pair[1]:.3f}")
+                cache = denoiser.prepare([frame], 0, candidate)
+                for b, bc in pairs:
+                    denoiser.config = dataclasses.replace(base_config, gate_offset=b, coarse_gate_offset=bc)
+                    ours = image_metrics(to_image(denoiser.apply(cache)), reference)
+                    ratio = (ours["smape"] / oidn["smape"], ours["relmse"] / oidn["relmse"])
+                    ratios.setdefault((spp, b, bc), []).append(ratio)
+                    cells.append(f"{ratio[0]:.3f} / {ratio[1]:.3f}")
                 denoiser.config = base_config
                 print(f"| {scene.name} | {spp} | {oidn['smape']:.4f} | " + " | ".join(cells) + " |", flush=True)
-    print(f"\n| spp | offset | median SMAPE ÷ OIDN | ≤ OIDN SMAPE | median relMSE ÷ OIDN | ≤ OIDN relMSE |\n"
-          "|---:|---:|---:|---:|---:|---:|")
-    for (spp, offset), pairs in sorted(ratios.items()):
-        s, r = np.array(pairs).T
-        print(f"| {spp} | {offset:g} | {np.median(s):.3f} | {(s <= 1).sum()} of {len(s)} "
-              f"| {np.median(r):.3f} | {(r <= 1).sum()} of {len(r)} |")
+    print("\n| spp | b | bc | median SMAPE ÷ OIDN | ≤ OIDN SMAPE | median / mean relMSE ÷ OIDN | ≤ OIDN relMSE |\n"
+          "|---:|---:|---:|---:|---:|---:|---:|")
+    for (spp, b, bc), values in sorted(ratios.items()):
+        s, r = np.array(values).T
+        print(f"| {spp} | {b:g} | {bc:g} | {np.median(s):.3f} | {(s <= 1).sum()} of {len(s)} "
+              f"| {np.median(r):.3f} / {r.mean():.3f} | {(r <= 1).sum()} of {len(r)} |")
 
 
 if __name__ == "__main__":

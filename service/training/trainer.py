@@ -113,8 +113,9 @@ def _denoiser_to_train(config, device, switches: dict):
         base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None}, **wanted)
         return Denoiser(dataclasses.replace(base, **switches)).to(device)
     trained = load_checkpoint(config.init, expected_kind="denoiser", device=device)
-    # a candidate gate the earlier weights lack starts fresh (near "copy the candidate")
-    full = dataclasses.replace(trained.config, multiscale=True, **wanted)
+    # a candidate gate the earlier weights lack starts fresh (near "copy the candidate"); the
+    # checkpoint's post-training settings (gate offsets, energy factor) are not trained through
+    full = dataclasses.replace(trained.config.without_post_training_settings(), multiscale=True, **wanted)
     model = Denoiser(dataclasses.replace(full, **switches)).to(device)
     model.load_state_dict(trained.state_dict(), strict=False)
     return model

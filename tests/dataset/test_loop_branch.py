@@ -95,3 +95,5 @@ def test_fine_tuning_stages_train_only_their_part_of_the_shipped_denoiser(loop_d
     after = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser").state_dict()
     changed = {name for name in before if not torch.equal(before[name], after[name])}
     assert changed and all(name.startswith(trainable) for name in changed)
+    config = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser").config   # chosen after training: reset
+    assert (config.gate_offset, config.coarse_gate_offset, config.energy_tolerance) == (0.0, None, 0.0)

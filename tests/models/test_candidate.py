@@ -143,3 +143,14 @@ def test_gate_offset_moves_every_levels_weight_towards_the_candidate_and_zero_ch
     after = model.candidate_weights(cache, 2.0)
     assert all((a > b).all() for a, b in zip(after, before))
     assert all((a < 1).all() for a in after)                     # a lean, not a switch
+
+
+@torch.no_grad()
+def test_coarse_gate_offset_moves_only_the_coarser_levels():
+    model = Denoiser(dataclasses.replace(CANDIDATE, gate_offset=1.0)).eval()
+    cache = model.prepare([make_frame(H, W)], 0, candidate_image())
+    same = model.candidate_weights(cache, 2.0)
+    model.config = dataclasses.replace(model.config, coarse_gate_offset=6.0)
+    split = model.candidate_weights(cache, 2.0)
+    torch.testing.assert_close(split[0], same[0], rtol=0, atol=0)
+    assert all((s > w).all() for s, w in zip(split[1:], same[1:]))
