@@ -154,3 +154,20 @@ def test_coarse_gate_offset_moves_only_the_coarser_levels():
     split = model.candidate_weights(cache, 2.0)
     torch.testing.assert_close(split[0], same[0], rtol=0, atol=0)
     assert all((s > w).all() for s, w in zip(split[1:], same[1:]))
+
+
+@torch.no_grad()
+def test_gate_offsets_act_fully_at_lambda_1_and_not_at_all_at_lambda_10():
+    model = Denoiser(CANDIDATE).eval()
+    cache = model.prepare([make_frame(H, W)], 0, candidate_image())
+    plain = {lam: model.candidate_weights(cache, lam) for lam in (1.0, 10.0)}
+    model.config = dataclasses.replace(CANDIDATE, gate_offset=2.0, coarse_gate_offset=10.0)
+    leaning = {lam: model.candidate_weights(cache, lam) for lam in (1.0, 10.0)}
+    assert all((a > b).all() for a, b in zip(leaning[1.0], plain[1.0]))
+    for a, b in zip(leaning[10.0], plain[10.0]):
+        torch.testing.assert_close(a, b)
+    lam_map = torch.full((H, W), 10.0)
+    lam_map[:, : W // 2] = 1.0        # a painted λ map: each pixel follows its own λ
+    finest = model.candidate_weights(cache, lam_map)[0][0, 0]
+    torch.testing.assert_close(finest[:, W // 2:], leaning[10.0][0][0, 0, :, W // 2:])
+    assert (finest[:, : W // 2] > plain[10.0][0][0, 0, :, : W // 2]).all()
