@@ -52,8 +52,10 @@ class DenoiserConfig:
     oidn_candidate: bool = False   # an external denoiser's image joins every level's joint softmax (models.candidate)
     gate_width: int = 8            # hidden channels of the candidate gate
     energy_tolerance: float = 0.0  # τ of models.energy: > 0 pulls the image's total towards the samples'; 0 = off
-    gate_offset: float = 0.0       # b added to the finest level's candidate-gate logit at λ = 1 (> 0 leans to the
-    coarse_gate_offset: float | None = None   # candidate; 0 at λ = 10); of the coarser levels, None: gate_offset
+    # Logits added to the candidate gate after training (models.candidate.CandidateGate.weight):
+    # > 0 leans to the candidate, in full at λ = 1 and not at all at λ = 10.
+    gate_offset: float = 0.0                  # the finest level's
+    coarse_gate_offset: float | None = None   # every coarser level's; None: gate_offset
 
     def without_post_training_settings(self) -> "DenoiserConfig":
         """This config with the settings chosen after training (on validation scenes, for given

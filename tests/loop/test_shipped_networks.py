@@ -22,9 +22,9 @@ from service.loop.tensors import frame_tensors, to_image
 # Measured with the shipped weights (the loop's first iteration, 16 spp; docs/oidn-candidate.md):
 # SMAPE 0.0931 noisy → 0.0158 denoised (5.89×; OIDN alone 5.89×); the error network's per-pixel
 # Spearman correlation with the true error of that image is 0.238 (weak: issue 14).
-# The shipped denoiser mixes OIDN's image in (oidn_candidate) and its gate leans to it
-# (gate_offset 2), so an untrained network of the shipped architecture also scores 5.82× on the
-# whole image: what the trained weights carry is the kernels, guarded on their own (the
+# The shipped denoiser mixes OIDN's image in (oidn_candidate) and its gate leans to it at λ = 1
+# (gate offsets 2 and 10), so an untrained network of the shipped architecture also scores 5.81×
+# on the whole image: what the trained weights carry is the kernels, guarded on their own (the
 # candidate's share held at 0): 3.02× shipped, 2.23× untrained. Margins allow for seeds and platforms.
 MIN_SMAPE_CUT = 5.5
 MIN_KERNEL_SMAPE_CUT = 2.7
