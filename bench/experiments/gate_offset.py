@@ -10,6 +10,7 @@ sample count and pair (b, bc): SMAPE and relMSE of ours and of OIDN, the renders
 network's preparation shared by every pair.
 
     python -m bench.experiments.gate_offset [--suite val|dev] [--spp 16 64 256] [--offsets 0 1 2] [--coarse 2 10]
+                                            [--weights DIR]
 
 Without --coarse, bc = b (one offset for every level).
 """
@@ -37,9 +38,10 @@ def main() -> None:
     parser.add_argument("--offsets", type=float, nargs="+", default=list(DEFAULT_OFFSETS))
     parser.add_argument("--coarse", type=float, nargs="+", default=None,
                         help="offsets of the coarser levels, each paired with every --offsets value")
+    parser.add_argument("--weights", default=None, help="folder of denoiser.pt and error_predictor.pt (default: shipped)")
     args = parser.parse_args()
     pairs = [(b, b if args.coarse is None else bc) for b in args.offsets for bc in (args.coarse or [None])]
-    nets = load_bench_networks(None)
+    nets = load_bench_networks(args.weights)
     denoiser = nets.networks.denoiser
     base_config = denoiser.config
     head = " | ".join(f"b={b:g}, bc={bc:g}" for b, bc in pairs)
