@@ -25,10 +25,28 @@ import torch
 from bench.common import image_metrics, load_bench_networks, pinned_torch_threads
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.suite_quality import uniform_render
+from models.denoiser import Denoiser
+from models.frames import FrameTensors
 from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, to_image
 
 DEFAULT_OFFSETS = (0.0, 1.0, 2.0, 3.0, 4.0)
+
+
+def offset_ratios(denoiser: Denoiser, frame: FrameTensors, candidate: torch.Tensor, reference: np.ndarray,
+                  oidn: dict[str, float], pairs: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """(ours ÷ OIDN SMAPE, ours ÷ OIDN relMSE) per (b, bc) at λ = 1, from one preparation (oidn:
+    the candidate's own scores); the denoiser's config is back in place afterwards, whatever happens."""
+    cache = denoiser.prepare([frame], 0, candidate)
+    base_config, ratios = denoiser.config, []
+    try:
+        for b, bc in pairs:
+            denoiser.config = dataclasses.replace(base_config, gate_offset=b, coarse_gate_offset=bc)
+            ours = image_metrics(to_image(denoiser.apply(cache)), reference)
+            ratios.append((ours["smape"] / oidn["smape"], ours["relmse"] / oidn["relmse"]))
+    finally:
+        denoiser.config = base_config
+    return ratios
 
 
 def main() -> None:
@@ -43,7 +61,6 @@ def main() -> None:
     pairs = [(b, b if args.coarse is None else bc) for b in args.offsets for bc in (args.coarse or [None])]
     nets = load_bench_networks(args.weights)
     denoiser = nets.networks.denoiser
-    base_config = denoiser.config
     head = " | ".join(f"b={b:g}, bc={bc:g}" for b, bc in pairs)
     print(f"SMAPE / relMSE ÷ OIDN's (< 1: ours better)\n\n| scene | spp | OIDN SMAPE | {head} |\n"
           "|---|---:|---:|" + "---:|" * len(pairs))
@@ -56,14 +73,9 @@ def main() -> None:
                 candidate = candidate_for(denoiser, frame)
                 oidn = image_metrics(to_image(candidate), reference)
                 cells = []
-                cache = denoiser.prepare([frame], 0, candidate)
-                for b, bc in pairs:
-                    denoiser.config = dataclasses.replace(base_config, gate_offset=b, coarse_gate_offset=bc)
-                    ours = image_metrics(to_image(denoiser.apply(cache)), reference)
-                    ratio = (ours["smape"] / oidn["smape"], ours["relmse"] / oidn["relmse"])
-                    ratios.setdefault((spp, b, bc), []).append(ratio)
+                for pair, ratio in zip(pairs, offset_ratios(denoiser, frame, candidate, reference, oidn, pairs)):
+                    ratios.setdefault((spp, *pair), []).append(ratio)
                     cells.append(f"{ratio[0]:.3f} / {ratio[1]:.3f}")
-                denoiser.config = base_config
                 print(f"| {scene.name} | {spp} | {oidn['smape']:.4f} | " + " | ".join(cells) + " |", flush=True)
     print("\n| spp | b | bc | median SMAPE ÷ OIDN | ≤ OIDN SMAPE | median / mean relMSE ÷ OIDN | ≤ OIDN relMSE |\n"
           "|---:|---:|---:|---:|---:|---:|---:|")

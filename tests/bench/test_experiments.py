@@ -1,12 +1,18 @@
-"""bench/experiments: the allocator-variant switch must act only inside its context, or one
-variant's setting would leak into the next measurement (and into the product's loop)."""
+"""bench/experiments: a variant's setting (the allocator's, the gate offsets) must act only
+where it is measured, or it would leak into the next measurement (and into the product)."""
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 import service.loop.allocate as allocate
 import service.loop.loop as loop
+from bench.common import image_metrics
 from bench.experiments.allocation_variants import allocator_variant
+from bench.experiments.gate_offset import offset_ratios
+from models.denoiser import Denoiser, DenoiserConfig
+from models.frames import FrameTensors
+from service.loop.tensors import to_image
 
 
 def test_allocator_variant_applies_its_settings_inside_and_restores_the_product_after():
@@ -21,3 +27,21 @@ def test_allocator_variant_applies_its_settings_inside_and_restores_the_product_
         assert not np.array_equal(varied, default)
     assert (allocate.error_weights, loop.allocate_samples) == product
     np.testing.assert_array_equal(loop.allocate_samples(weights, 1000, seed=0), default)
+
+
+@torch.no_grad()
+def test_gate_offset_sweep_scores_each_pair_and_leaves_the_denoisers_config_as_it_was():
+    config = DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True)
+    denoiser = Denoiser(config).eval()
+    g = torch.Generator().manual_seed(0)
+    frame = FrameTensors(color=torch.rand(1, 3, 16, 16, generator=g), variance=torch.rand(1, 3, 16, 16, generator=g) * 0.1,
+                         albedo=torch.full((1, 3, 16, 16), 0.5), normal=torch.rand(1, 3, 16, 16, generator=g),
+                         depth=torch.ones(1, 1, 16, 16), motion=None)
+    candidate = torch.rand(1, 3, 16, 16, generator=g)
+    reference = to_image(candidate) * 1.1
+    oidn = image_metrics(to_image(candidate), reference)
+    pairs = [(0.0, 0.0), (10.0, 10.0)]
+    ratios = offset_ratios(denoiser, frame, candidate, reference, oidn, pairs)
+    assert denoiser.config == config
+    assert len(ratios) == 2 and ratios[0] != ratios[1]
+    np.testing.assert_allclose(ratios[1], (1.0, 1.0), rtol=0.05)   # b = 10 everywhere: OIDN's image back
