@@ -132,13 +132,10 @@ def test_the_training_loss_keeps_the_kernels_learning_when_the_gate_trusts_the_c
 
 
 @torch.no_grad()
-def test_gate_offset_moves_every_levels_weight_towards_the_candidate_and_zero_changes_nothing():
+def test_gate_offset_moves_every_levels_weight_towards_the_candidate():
     model = Denoiser(CANDIDATE).eval()
     cache = model.prepare([make_frame(H, W)], 0, candidate_image())
     before = model.candidate_weights(cache, 2.0)
-    image = model.apply(cache, 2.0)
-    model.config = dataclasses.replace(CANDIDATE, gate_offset=0.0)
-    torch.testing.assert_close(model.apply(cache, 2.0), image, rtol=0, atol=0)
     model.config = dataclasses.replace(CANDIDATE, gate_offset=2.0)
     after = model.candidate_weights(cache, 2.0)
     assert all((a > b).all() for a, b in zip(after, before))
