@@ -77,16 +77,21 @@ def three_images(record, frame: int, oidn: OidnDenoise) -> dict[str, np.ndarray]
     return {"noisy": buffer.mean, "kpcn": record.denoised[frame], "oidn": oidn(buffer.mean, buffer.albedo, buffer.normal)}
 
 
-def score_scene(scene: DevScene, reference: np.ndarray, networks: Networks, oidn: OidnDenoise,
-                figures: Path | None, spp_levels: tuple[int, ...] = SPP_LEVELS) -> SceneQuality:
-    scores, shown, contrast = {}, {}, {}
+def render_levels(scene: DevScene, networks: Networks, oidn: OidnDenoise,
+                  spp_levels: tuple[int, ...] = SPP_LEVELS) -> dict[int, dict[str, np.ndarray]]:
+    """spp → noisy / ours / OIDN images of one uniform render (seed SEED) per level."""
+    return {spp: three_images(uniform_render(scene, spp, networks), 0, oidn) for spp in spp_levels}
+
+
+def score_scene(scene: DevScene, reference: np.ndarray, shown: dict[int, dict[str, np.ndarray]],
+                figures: Path | None) -> SceneQuality:
+    """Scores (and the hard-shadow contrast, the crops figure) of `render_levels`' images."""
+    scores, contrast = {}, {}
     region = SHADOW_REGIONS.get(scene.name)
-    for spp in spp_levels:
-        images = three_images(uniform_render(scene, spp, networks), 0, oidn)
+    for spp, images in shown.items():
         scores[spp] = {method: score(image, reference) for method, image in images.items()}
         if region is not None:
             contrast[spp] = {method: shadow_contrast_ratio(image, reference, region) for method, image in images.items()}
-        shown[spp] = images
     quality = SceneQuality(scene.name, scores, shadow_contrast=contrast or None)
     if figures is not None and plt is not None:
         quality.figure = write_crops(scene.name, shown, reference, figures)
@@ -94,16 +99,18 @@ def score_scene(scene: DevScene, reference: np.ndarray, networks: Networks, oidn
 
 
 def temporal_flicker(scene: DevScene, references: list[np.ndarray], networks: Networks, oidn: OidnDenoise,
-                     spp: int = SPP_LEVELS[0]) -> dict[str, float]:
+                     spp: int = SPP_LEVELS[0], first: dict[str, np.ndarray] | None = None) -> dict[str, float]:
     """Mean |Δ residual| between consecutive frames, linear radiance: 0 = the error does not
     change from frame to frame, whatever the scene's own motion. One reference per frame; a
     still scene given copies of its one reference is a static sequence (every frame its own
-    seed), where all the change is the denoisers' own."""
+    seed), where all the change is the denoisers' own. `first`: a still scene's images of the
+    seed-SEED render at `spp` when already made (`render_levels`), so frame 0 is not rendered twice."""
     if scene.frames > 1:
         record = uniform_render(scene, spp, networks, frames=len(references))
         per_frame = [three_images(record, f, oidn) for f in range(len(references))]
     else:   # the service refuses frames > 1 without $frame: one render per seed, each denoised alone
-        per_frame = [three_images(uniform_render(scene, spp, networks, seed=SEED + f), 0, oidn)
+        per_frame = [first if f == 0 and first is not None
+                     else three_images(uniform_render(scene, spp, networks, seed=SEED + f), 0, oidn)
                      for f in range(len(references))]
     out = {}
     for method in METHODS:

@@ -9,7 +9,7 @@ from pathlib import Path
 from bench.common import fill, fmt, load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.suite_quality import (ENERGY_TOLERANCE, METHODS, REPORT_NAME, SPP_LEVELS, STATIC_FRAMES, SceneQuality,
-                                 score_scene, temporal_flicker)
+                                 render_levels, score_scene, temporal_flicker)
 from service.render.runtime import active_variant
 
 TORCH_THREADS = 1  # see bench/loop_report.py: more threads measure the neighbours on a shared host
@@ -97,7 +97,8 @@ def run_suite_quality_report(out_dir: Path, *, weights_dir: Path | None = None, 
     with pinned_torch_threads(TORCH_THREADS):
         for scene in dev_scenes(only, SUITES[suite].root):
             reference, _ = load_reference(reference_dir, scene, None if scene.frames == 1 else 0)
-            quality = score_scene(scene, reference, nets.networks, oidn, figures, spp_levels)
+            shown = render_levels(scene, nets.networks, oidn, spp_levels)
+            quality = score_scene(scene, reference, shown, figures)
             results.append(quality)
             low = quality.scores[spp_levels[0]]
             print(f"bench --denoiser --suite {suite}: {scene.name}: 16 spp SMAPE noisy {low['noisy'].smape:.4f} "
@@ -107,6 +108,7 @@ def run_suite_quality_report(out_dir: Path, *, weights_dir: Path | None = None, 
                 animated.add(scene.name)
             else:                                              # a static sequence of the still scene
                 references = [reference] * STATIC_FRAMES
-            flicker[scene.name] = temporal_flicker(scene, references, nets.networks, oidn)
+            flicker[scene.name] = temporal_flicker(scene, references, nets.networks, oidn,
+                                                   first=shown.get(SPP_LEVELS[0]))
     return write_suite_quality_report(results, flicker, out_dir, oidn_note, nets.description, suite,
                                       frozenset(animated))

@@ -8,7 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.suite_quality import CROP, _hardest_crop
+import bench.suite_quality as suite_quality
+from bench.common import load_bench_networks, oidn_denoiser
+from bench.dev_references import DEFAULT_REFERENCE_DIR, dev_scenes, load_reference
+from bench.suite_quality import CROP, STATIC_FRAMES, _hardest_crop, render_levels, temporal_flicker
 from bench.suite_quality_report import run_suite_quality_report
 
 
@@ -35,3 +38,22 @@ def test_suite_quality_report_scores_noisy_ours_and_oidn_at_every_sample_count(t
     noisy, ours, oidn = (float(c) for c in static.strip("|").split("|")[2:5])
     assert noisy > ours > 0 and noisy > oidn > 0   # a static sequence: every frame its own seed
     assert "Static sequences: ours at most OIDN's flicker on" in text
+
+
+def test_static_flicker_takes_the_quality_renders_first_frame_instead_of_rendering_it_again(monkeypatch):
+    pytest.importorskip("pyoidn")
+    scene = dev_scenes(["point_object"])[0]
+    reference, _ = load_reference(DEFAULT_REFERENCE_DIR, scene)
+    networks, (oidn, _) = load_bench_networks(None).networks, oidn_denoiser()
+    first = render_levels(scene, networks, oidn, (16,))[16]
+    seeds: list[int] = []
+    render = suite_quality.uniform_render
+    monkeypatch.setattr(suite_quality, "uniform_render",
+                        lambda *a, **k: seeds.append(k.get("seed", suite_quality.SEED)) or render(*a, **k))
+    given = temporal_flicker(scene, [reference] * STATIC_FRAMES, networks, oidn, first=first)
+    assert seeds == [suite_quality.SEED + f for f in range(1, STATIC_FRAMES)]
+    seeds.clear()
+    again = temporal_flicker(scene, [reference] * STATIC_FRAMES, networks, oidn)
+    assert seeds == [suite_quality.SEED + f for f in range(STATIC_FRAMES)]
+    for method in ("noisy", "kpcn", "oidn"):   # the same seeds, so the same sequence within render noise
+        assert given[method] == pytest.approx(again[method], rel=0.05)
