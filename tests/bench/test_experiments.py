@@ -3,12 +3,15 @@ where it is measured, or it would leak into the next measurement (and into the p
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 import service.loop.allocate as allocate
 import service.loop.loop as loop
 from bench.common import image_metrics
 from bench.experiments.allocation_variants import allocator_variant
+from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
+                                             ranking_row)
 from bench.experiments.gate_offset import offset_ratios
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
@@ -45,3 +48,31 @@ def test_gate_offset_sweep_scores_each_pair_and_leaves_the_denoisers_config_as_i
     assert denoiser.config == config
     assert len(ratios) == 2 and ratios[0] != ratios[1]
     np.testing.assert_allclose(ratios[1], (1.0, 1.0), rtol=0.05)   # b = 10 everywhere: OIDN's image back
+
+
+def test_error_ceiling_is_one_for_a_repeatable_map_and_near_zero_for_pure_noise():
+    rng = np.random.default_rng(0)
+    same = np.repeat(rng.random((1, 32, 32)), 4, axis=0)
+    assert leave_one_out_spearman(same) == pytest.approx(1.0)
+    assert pairwise_spearman(same, block=8) == pytest.approx(1.0)
+    noise = rng.random((4, 32, 32))
+    assert abs(leave_one_out_spearman(noise)) < 0.1 and abs(pairwise_spearman(noise)) < 0.1
+
+
+def test_error_ceilings_many_render_estimate_agrees_with_averaging_many_renders():
+    """map = expected + noise of equal variance: two maps correlate ≈ 0.5, the expected map with
+    one ≈ 0.71; the mean of 59 others reaches nearly that, and √(two) estimates it from two."""
+    rng = np.random.default_rng(1)
+    maps = rng.normal(size=(1, 64, 64)) + rng.normal(size=(60, 64, 64))
+    two = pairwise_spearman(maps)
+    assert 0.44 < two < 0.54
+    assert infinite_render_estimate(two) == pytest.approx(leave_one_out_spearman(maps), abs=0.03)
+
+
+def test_error_ceiling_scores_a_predictor_against_its_own_render_and_the_repeatable_part():
+    rng = np.random.default_rng(2)
+    expected = rng.random((1, 32, 32))
+    true = expected + 0.3 * rng.random((6, 32, 32))
+    row = ranking_row(true, np.repeat(expected, 6, axis=0))
+    assert row["network_vs_repeatable"] > row["network"] > 0.5   # the oracle ranks the repeatable part best
+    assert row["repeatable"] == pytest.approx(leave_one_out_spearman(true))
