@@ -14,7 +14,8 @@ DEFAULTS = TrainConfig(data=Path("."))
 def add_parser(sub) -> None:
     d = DEFAULTS
     p = sub.add_parser("train", help="train the denoiser and/or the error predictor on a built data set")
-    p.add_argument("--data", type=Path, required=True, help="data set folder (renderloop dataset -o ...)")
+    p.add_argument("--data", type=Path, required=True, action="append",
+                   help="data set folder (renderloop dataset -o ...); repeat it to train on several together")
     p.add_argument("--stage", choices=STAGES, default=d.stage,
                    help="single|multiscale|temporal|lambda: one paper stage (from --init or the previous "
                         "stage's file); staged: all four then the error network; denoiser: end to end; "
@@ -53,7 +54,7 @@ def _levels(text: str) -> tuple[str, ...]:
 
 def train_config(args) -> TrainConfig:
     return TrainConfig(
-        data=args.data, out=args.out, stage=args.stage, steps=args.steps, batch=args.batch, crop=args.crop,
+        data=tuple(args.data), out=args.out, stage=args.stage, steps=args.steps, batch=args.batch, crop=args.crop,
         lr=args.lr, val_every=args.val_every, seed=args.seed, width=args.width, spatial_blocks=args.spatial_blocks,
         symmetric_fraction=args.symmetric_fraction, oidn_candidate=args.oidn_candidate,
         temporal=not args.single_frame, init=args.init, resume=args.resume, device=args.device,

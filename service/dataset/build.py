@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from models.pretrained import Networks
 from service.atomic import atomic_write, atomic_write_text
-from service.dataset.procedural import SceneSpec, sample_spec, scene_dict, sensor_dict
+from service.dataset.procedural import DATASET_LAYOUTS, SceneSpec, sample_spec, scene_dict, sensor_dict
 from service.dataset.splits import SPLITS, scene_seeds
 from service.exr import ExrError, ExrFrame, read_exr, write_exr
 from service.loop.allocate import allocate_samples, iteration_budget, variance_weights
@@ -54,7 +54,9 @@ FORMAT = "renderloop-dataset"
 FORMAT_VERSION = 1
 # Settings that decide what a finished item contains: resuming with other values would mix
 # incompatible files under the same names.
-FIXED_SETTINGS = ("size", "frames", "seed", "reference_spp")
+FIXED_SETTINGS = ("size", "frames", "seed", "reference_spp", "layout")
+# What a manifest written before a setting existed was built with.
+_SETTING_BEFORE_RECORDED = {"layout": "mixed"}
 # Seed streams per frame, so inputs, the adaptive branch and the reference never share samples.
 _STREAM_UNIFORM, _STREAM_ADAPTIVE, _STREAM_REFERENCE, _STREAM_LOOP = 0, 1, 2, 3
 # The loop branch's allocation rounding draws from its own seeds, apart from the adaptive branch's.
@@ -74,6 +76,7 @@ class DatasetSettings:
     split: str
     reference_spp: int
     loop_branch: bool = False
+    layout: str = "mixed"  # "mixed": each seed draws its layout; or one of procedural's layouts for all
 
     @property
     def items(self) -> tuple[str, ...]:
@@ -88,6 +91,7 @@ class DatasetSettings:
             (self.seed >= 0, f"--seed must be >= 0, got {self.seed}"),
             (self.split in SPLITS, f"--split must be one of {', '.join(SPLITS)}, got {self.split!r}"),
             (self.reference_spp >= 1, f"--reference-spp must be >= 1, got {self.reference_spp}"),
+            (self.layout in DATASET_LAYOUTS, f"--layout must be one of {', '.join(DATASET_LAYOUTS)}, got {self.layout!r}"),
         )
         for ok, message in checks:
             if not ok:
@@ -97,7 +101,13 @@ class DatasetSettings:
         """The CLI command that (re)builds exactly this data set."""
         return (f"renderloop dataset -o {out_dir} --scenes {self.scenes} --size {self.size} "
                 f"--frames {self.frames} --seed {self.seed} --split {self.split} "
-                f"--reference-spp {self.reference_spp}" + (" --loop-branch" if self.loop_branch else ""))
+                f"--reference-spp {self.reference_spp}" + (" --loop-branch" if self.loop_branch else "")
+                + (f" --layout {self.layout}" if self.layout != "mixed" else ""))
+
+    @property
+    def spec_layout(self) -> str | None:
+        """sample_spec's `layout`: None lets each seed draw its own."""
+        return None if self.layout == "mixed" else self.layout
 
 
 def frame_dir(root: Path, split: str, scene_seed: int, frame: int) -> Path:
@@ -271,9 +281,10 @@ def _check_compatible(root: Path, manifest: dict, settings: DatasetSettings) -> 
     if previous is None:
         return
     for key in FIXED_SETTINGS:
-        if previous.get(key) != getattr(settings, key):
+        built = previous.get(key, _SETTING_BEFORE_RECORDED.get(key))
+        if built != getattr(settings, key):
             raise DatasetError(
-                f"{root}/{settings.split} was built with {key}={previous.get(key)}, not "
+                f"{root}/{settings.split} was built with {key}={built}, not "
                 f"{getattr(settings, key)}; use another --out folder or the same settings"
             )
 
@@ -302,6 +313,7 @@ def build_dataset(
     reference_spp: int = 1024,
     progress: bool = True,
     loop_networks: Networks | None = None,
+    layout: str = "mixed",
 ) -> Path:
     """Render `scenes` procedural scenes × `frames` frames into `out_dir`; returns the manifest path.
 
@@ -309,7 +321,8 @@ def build_dataset(
     `scenes` with the same seed extends the data set (scene seeds are prefix-stable).
     """
     settings = DatasetSettings(scenes=scenes, size=size, frames=frames, seed=seed, split=split,
-                               reference_spp=reference_spp, loop_branch=loop_networks is not None)
+                               reference_spp=reference_spp, loop_branch=loop_networks is not None,
+                               layout=layout)
     settings.validate()
     if settings.loop_branch and frames != 1:
         raise DatasetError("--loop-branch renders single frames (the error network sees one frame); use --frames 1")
@@ -325,7 +338,7 @@ def build_dataset(
     _write_manifest(root, manifest)
     with tqdm(total=scenes * frames, unit="frame", desc=f"dataset {split}", disable=not progress) as bar:
         for scene_seed in seeds:
-            spec = sample_spec(scene_seed)
+            spec = sample_spec(scene_seed, settings.spec_layout)
             for frame in range(frames):
                 bar.set_postfix(scene=scene_seed, frame=frame)
                 render_frame(root, settings, spec, frame, loop_networks)

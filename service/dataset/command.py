@@ -5,6 +5,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from service.dataset.procedural import DATASET_LAYOUTS
 from service.dataset.splits import SPLITS
 
 DEFAULT_REFERENCE_SPP = 1024
@@ -34,6 +35,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "error, allocate by it) into loop32/loop64/loop128: what the error network is trained on")
     p.add_argument("--weights", type=Path, metavar="DIR",
                    help="networks that drive --loop-branch (default: the shipped ones)")
+    p.add_argument("--layout", choices=DATASET_LAYOUTS, default="mixed",
+                   help="scene layout: mixed (each seed draws room or ground, the default), or one for every "
+                        "scene; window: closed rooms lit only by sun and sky through an opening")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
     return p
@@ -51,6 +55,7 @@ def run(args: argparse.Namespace) -> int:
         manifest = build_dataset(
             args.out, scenes=args.scenes, size=args.size, frames=args.frames, seed=args.seed,
             split=args.split, reference_spp=args.reference_spp, progress=not args.quiet, loop_networks=networks,
+            layout=args.layout,
         )
     except (DatasetError, CheckpointError) as exc:
         print(f"renderloop dataset: error: {exc}", file=sys.stderr)

@@ -7,6 +7,7 @@ run sees the same crops whatever the number of DataLoader workers.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -101,20 +102,21 @@ def _crop(array: np.ndarray, corner: tuple[int, int], crop: tuple[int, int]) -> 
 
 
 class DenoiserDataset(Dataset):
-    """Items of `window_items`, read from EXR (decoded files cached in memory) and cropped.
+    """Items of `window_items` (of one data set or several together), read from EXR (decoded files cached in memory) and cropped.
 
     crop: side of the square crop, or None for whole frames. radius: M of the 2M+1 window
     (0 = single frame). levels: which noisy inputs to use (default all of them).
     """
 
-    def __init__(self, root: str | Path, *, split: str = "train", levels: tuple[str, ...] = INPUT_ITEMS,
-                 radius: int = 0, crop: int | None = 64, seed: int = 0, cache: bool = True,
-                 candidate: bool = False) -> None:
+    def __init__(self, root: str | Path | Sequence[str | Path], *, split: str = "train",
+                 levels: tuple[str, ...] = INPUT_ITEMS, radius: int = 0, crop: int | None = 64, seed: int = 0,
+                 cache: bool = True, candidate: bool = False) -> None:
         if radius < 0:
             raise DatasetError(f"window radius must be >= 0, got {radius}")
-        self.items = window_items(root, split, radius, tuple(levels))
+        roots = [root] if isinstance(root, (str, Path)) else list(root)
+        self.items = [item for r in roots for item in window_items(r, split, radius, tuple(levels))]
         if not self.items:
-            raise DatasetError(f"{root}/{split} has no finished items for levels {list(levels)}")
+            raise DatasetError(f"{', '.join(map(str, roots))}/{split} has no finished items for levels {list(levels)}")
         self.crop, self.seed, self.radius, self.epoch = crop, seed, radius, 0
         self.candidate = candidate  # serve OIDN on the centre frame (the denoiser's oidn_candidate)
         self._cache: dict[Path, dict[str, np.ndarray | None]] | None = {} if cache else None

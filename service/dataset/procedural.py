@@ -7,22 +7,30 @@ frames of a sequence share geometry, materials and lights and the renderer can p
 motion vectors between them (frame −1 exists too: it is the previous camera of frame 0).
 
 Scenes are kept cheap for a CPU: a handful of analytic shapes, no media (so the plain `path`
-integrator suffices), max depth 8, small textures.
+integrator suffices), max depth 8, small textures. Layouts: a room lit from inside and open at
+the front, open ground under a sky, and (only when asked for: it is not in the default mix, so
+the scenes of every existing seed stay what they were) a closed room lit through a window
+(service.dataset.window_room).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from service.dataset.textures import TEXTURE_KINDS, SkySpec, TextureSpec, sky_image, texture_image
+from service.dataset.window_room import WindowSpec, closed_room_bounds, sample_window, sun_through, wall_panels
 from service.render.runtime import mitsuba
 
 Color = tuple[float, float, float]
 Vec3 = tuple[float, float, float]
 
-LAYOUTS = ("room", "ground")
+LAYOUTS = ("room", "ground")   # the default mix, drawn per seed
+WINDOW_LAYOUT = "window"        # only on request (sample_spec's `layout`)
+# What a data set may ask for (`renderloop dataset --layout`): "mixed" is the seeds' own draw.
+DATASET_LAYOUTS = ("mixed", *LAYOUTS, WINDOW_LAYOUT)
 SHAPES = ("sphere", "cube", "cylinder", "rectangle", "disk")
 MATERIALS = ("diffuse", "textured", "roughplastic", "roughconductor", "conductor", "dielectric")
 LIGHTS = ("area_rect", "area_sphere", "point", "spot", "constant", "sky", "firefly")
@@ -95,6 +103,7 @@ class SceneSpec:
     objects: tuple[ObjectSpec, ...]
     lights: tuple[LightSpec, ...]
     camera: CameraSpec
+    window: WindowSpec | None = None  # the window layout's opening
 
 
 # --- sampling the spec ---------------------------------------------------------------------
@@ -252,25 +261,39 @@ def _camera(rng: np.random.Generator, layout: str, room: Vec3) -> CameraSpec:
                       height=float(rng.uniform(0.3, 2.5)), fov=fov, aperture=aperture, bounds=None, **steps)
 
 
-def sample_spec(seed: int) -> SceneSpec:
-    """All random choices of scene `seed`, in a fixed order (so one seed, one scene)."""
+def sample_spec(seed: int, layout: str | None = None) -> SceneSpec:
+    """All random choices of scene `seed`, in a fixed order (so one seed, one scene). `layout`:
+    one of LAYOUTS or WINDOW_LAYOUT instead of the seed's own draw (which is still made, so the
+    rest of the scene comes from the same random stream)."""
+    if layout not in (None, *LAYOUTS, WINDOW_LAYOUT):
+        raise ValueError(f"unknown layout {layout!r}; known: {', '.join((*LAYOUTS, WINDOW_LAYOUT))}")
     rng = np.random.default_rng(seed)
-    layout = LAYOUTS[int(rng.integers(len(LAYOUTS)))]
+    drawn = LAYOUTS[int(rng.integers(len(LAYOUTS)))]
+    layout = layout or drawn
     room = (float(rng.uniform(3, 5)), float(rng.uniform(2.5, 3.5)), float(rng.uniform(3, 5)))
     floor, walls = _surface_material(rng), _surface_material(rng)
+    window = None
     if layout == "room":
         w, _, d = room
         objects = _objects(rng, (-w / 2 + 0.5, w / 2 - 0.5, -d / 2 + 0.5, d / 2 - 1.5))
         lights = [_room_light(rng, room)]
         if rng.random() < 0.3:
             lights.append(_room_light(rng, room))
+    elif layout == WINDOW_LAYOUT:   # lit only by the sun and sky through the opening
+        w, _, d = room
+        objects = _objects(rng, (-w / 2 + 0.5, w / 2 - 0.5, -d / 2 + 0.5, d / 2 - 1.5))
+        window = sample_window(rng, room)
+        lights = [LightSpec("sky", sky=sun_through(rng, window, _sky(rng)))]
     else:
         objects = _objects(rng, (-2.0, 2.0, -2.0, 2.0))
         lights = _ground_lights(rng)
     if rng.random() < FIREFLY_PROBABILITY:
         lights.append(_firefly(rng, (0.0, 0.0, 0.0), 1.5))
+    camera = _camera(rng, "room" if layout == WINDOW_LAYOUT else layout, room)
+    if window is not None:
+        camera = dataclasses.replace(camera, bounds=closed_room_bounds(room))
     return SceneSpec(seed=seed, layout=layout, room=room, floor=floor, walls=walls, objects=objects,
-                     lights=tuple(lights), camera=_camera(rng, layout, room))
+                     lights=tuple(lights), camera=camera, window=window)
 
 
 # --- spec → Mitsuba dict -------------------------------------------------------------------
@@ -336,14 +359,15 @@ def _object_shapes(mi, index: int, o: ObjectSpec) -> dict[str, dict]:
 
 
 def _surfaces(mi, spec: SceneSpec) -> dict[str, dict]:
-    """Floor, plus ceiling and three walls for a room (the front stays open for the camera)."""
+    """Floor, plus ceiling and three walls for a room (the front stays open for the camera); the
+    window layout's room is closed, its window wall cut around the opening."""
     down = ((1.0, 0.0, 0.0), -90.0)  # rectangle normal +Z → +Y
     if spec.layout == "ground":
         return {"floor": {"type": "rectangle", "to_world": _rect(mi, (0, 0, 0), [down], (20, 20, 1)),
                           "bsdf": _bsdf(mi, spec.floor)}}
     w, h, d = spec.room
     walls = _bsdf(mi, spec.walls)
-    return {
+    surfaces = {
         "floor": {"type": "rectangle", "to_world": _rect(mi, (0, 0, 0), [down], (w / 2, d / 2, 1)),
                   "bsdf": _bsdf(mi, spec.floor)},
         "ceiling": {"type": "rectangle", "to_world": _rect(mi, (0, h, 0), [((1.0, 0.0, 0.0), 90.0)],
@@ -355,6 +379,10 @@ def _surfaces(mi, spec: SceneSpec) -> dict[str, dict]:
         "wall_right": {"type": "rectangle", "to_world": _rect(mi, (w / 2, h / 2, 0), [((0.0, 1.0, 0.0), -90.0)],
                                                               (d / 2, h / 2, 1)), "bsdf": walls},
     }
+    if spec.window is not None:
+        del surfaces[f"wall_{spec.window.wall}"]
+        surfaces.update(wall_panels(mi, spec.room, spec.window, walls))
+    return surfaces
 
 
 def _look_at(mi, origin: Vec3, target: Vec3):
@@ -435,7 +463,7 @@ def scene_dict(spec: SceneSpec, *, size: int, frame: int = 0) -> dict:
     return scene
 
 
-def generate_scene(seed: int, *, size: int, frame: int = 0) -> dict:
+def generate_scene(seed: int, *, size: int, frame: int = 0, layout: str | None = None) -> dict:
     """Scene `seed` at `size`×`size`, camera at `frame` of its path. A single-frame scene is
     frame 0; `frame` may be −1, the previous camera that motion vectors of frame 0 refer to."""
-    return scene_dict(sample_spec(seed), size=size, frame=frame)
+    return scene_dict(sample_spec(seed, layout), size=size, frame=frame)

@@ -43,7 +43,7 @@ class TrainConfigError(ValueError):
 
 @dataclass(frozen=True)
 class TrainConfig:
-    data: Path
+    data: Path | tuple[Path, ...]   # one data set folder, or several trained on together
     out: Path = Path("models/weights")
     stage: str = "all"
     steps: int = 1500  # optimiser steps per stage
@@ -66,7 +66,13 @@ class TrainConfig:
     # own inputs are ("spp16", "loop32", "loop64", "loop128"): `renderloop dataset --loop-branch`.
     error_levels: tuple[str, ...] | None = None
 
+    @property
+    def data_roots(self) -> tuple[Path, ...]:
+        return tuple(self.data) if isinstance(self.data, (tuple, list)) else (self.data,)
+
     def validate(self) -> None:
+        if not self.data_roots:
+            raise TrainConfigError("--data names no data set")
         if self.stage not in STAGES:
             raise TrainConfigError(f"unknown stage {self.stage!r}; choose one of {', '.join(STAGES)}")
         for name, least in (("steps", 1), ("batch", 1), ("crop", 1), ("val_every", 1), ("width", 1),

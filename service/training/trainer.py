@@ -41,7 +41,7 @@ def _split_items(dataset):
 
 
 def _datasets(config, radius: int, candidate: bool = False, levels: tuple[str, ...] = INPUT_ITEMS):
-    train = DenoiserDataset(config.data, split="train", levels=levels, radius=radius, crop=config.crop,
+    train = DenoiserDataset(config.data_roots, split="train", levels=levels, radius=radius, crop=config.crop,
                             seed=config.seed, candidate=candidate)
     train_items, val_items = _split_items(train)
     val = copy.copy(train)

@@ -4,7 +4,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.dataset.build import ITEMS, DatasetError, build_dataset, item_path, read_manifest
+from service.dataset.build import ITEMS, MANIFEST, DatasetError, build_dataset, item_path, read_manifest
+from service.dataset.procedural import sample_spec
 from service.dataset.splits import scene_seeds
 from service.exr import read_exr
 
@@ -84,3 +85,22 @@ def test_bad_settings_raise_before_rendering(tmp_path, tiny, change, message):
     with pytest.raises(DatasetError, match=message):
         build_dataset(tmp_path / "out", **settings)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_window_data_set_records_its_layout_and_refuses_to_resume_as_another(tmp_path, tiny):
+    root = tmp_path / "windows"
+    build_dataset(root, scenes=1, frames=1, split="train", layout="window", **tiny)
+    entry = read_manifest(root)["splits"]["train"]
+    assert entry["layout"] == "window" and "--layout window" in entry["command"]
+    assert sample_spec(entry["scene_seeds"][0], "window").window is not None
+    with pytest.raises(DatasetError, match="layout=window"):
+        build_dataset(root, scenes=1, frames=1, split="train", **tiny)
+
+
+def test_a_manifest_from_before_layouts_were_recorded_resumes_as_the_default_mix(still_dataset, tiny):
+    manifest = read_manifest(still_dataset)
+    del manifest["splits"]["heldout"]["layout"]
+    (still_dataset / MANIFEST).write_text(json.dumps(manifest))
+    build_dataset(still_dataset, scenes=2, frames=1, split="heldout", **tiny)   # no DatasetError
+    with pytest.raises(DatasetError, match="layout=mixed"):
+        build_dataset(still_dataset, scenes=2, frames=1, split="heldout", layout="room", **tiny)

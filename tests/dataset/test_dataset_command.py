@@ -1,8 +1,12 @@
 import argparse
+from pathlib import Path
 
 import pytest
 
 from service.dataset.command import add_parser, run
+from service.train_command import add_parser as add_train_parser
+from service.train_command import train_config
+from service.training.config import TrainConfig
 
 
 def parse(argv: list[str]) -> argparse.Namespace:
@@ -15,7 +19,16 @@ def test_parser_reads_every_option(tmp_path):
     args = parse(["dataset", "-o", str(tmp_path), "--scenes", "3", "--size", "32", "--frames", "5",
                   "--seed", "7", "--split", "heldout", "--reference-spp", "256"])
     assert (args.scenes, args.size, args.frames, args.seed, args.split, args.reference_spp) == (3, 32, 5, 7, "heldout", 256)
-    assert args.handler is run
+    assert args.handler is run and args.layout == "mixed"
+    assert parse(["dataset", "-o", str(tmp_path), "--layout", "window"]).layout == "window"
+
+
+def test_train_reads_several_data_sets_and_trains_on_all_of_them():
+    parser = argparse.ArgumentParser(prog="renderloop")
+    add_train_parser(parser.add_subparsers(dest="command", required=True))
+    config = train_config(parser.parse_args(["train", "--data", "a", "--data", "b", "--stage", "error"]))
+    assert config.data_roots == (Path("a"), Path("b"))
+    assert TrainConfig(data=Path("a")).data_roots == (Path("a"),)
 
 
 @pytest.mark.parametrize("option, value", [("--scenes", "0"), ("--size", "2"), ("--frames", "-1"),

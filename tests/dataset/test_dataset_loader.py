@@ -48,3 +48,11 @@ def test_single_frames_have_no_motion_and_full_frames_work(still_dataset):
 def test_bad_requests_say_what_is_wrong(still_dataset, kwargs, message):
     with pytest.raises(DatasetError, match=message):
         DenoiserDataset(still_dataset, **kwargs)
+
+
+def test_a_data_set_over_several_folders_serves_the_items_of_all_of_them(still_dataset, sequence_dataset):
+    one = DenoiserDataset(still_dataset, split="heldout", crop=None)
+    both = DenoiserDataset([still_dataset, still_dataset], split="heldout", crop=None)
+    assert len(both) == 2 * len(one) and both.items[: len(one)] == one.items
+    with pytest.raises(DatasetError, match="no 'heldout' split"):
+        DenoiserDataset([still_dataset, sequence_dataset], split="heldout")

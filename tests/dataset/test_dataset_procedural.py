@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from service.dataset.procedural import generate_scene, sample_spec
+from service.dataset.window_room import WINDOW_WALLS
 from service.dataset.textures import TEXTURE_KINDS, TextureSpec, texture_image
 from service.render.runtime import mitsuba
 
@@ -81,3 +82,39 @@ def test_generated_scenes_load_and_render_finite(seed):
     scene = mi.load_dict(generate_scene(seed, size=8, frame=1))
     image = np.asarray(mi.render(scene, spp=2))
     assert image.shape == (8, 8, 3) and np.isfinite(image).all()
+
+
+def test_window_rooms_are_closed_and_lit_only_by_a_sun_shining_in_through_the_opening():
+    mi = mitsuba()
+    walls = set()
+    for seed in range(12):
+        spec = sample_spec(seed, "window")
+        walls.add(spec.window.wall)
+        assert [light.kind for light in spec.lights if light.kind != "firefly"] == ["sky"]
+        sky = spec.lights[0].sky
+        # the direction to the sun points out through the window wall and down into the room
+        sun = np.array([np.cos(sky.sun_elevation) * np.sin(sky.sun_azimuth), np.sin(sky.sun_elevation),
+                        -np.cos(sky.sun_elevation) * np.cos(sky.sun_azimuth)])
+        outward = {"back": (0, 0, -1), "left": (-1, 0, 0), "right": (1, 0, 0)}[spec.window.wall]
+        assert sun @ np.array(outward) > 0 and sun[1] > 0
+        (low, high), (w, h, d) = spec.camera.bounds, spec.room
+        assert high[2] < d / 2 and low[0] > -w / 2 and high[0] < w / 2   # the camera stays inside
+        (u, v), (hw, hh) = spec.window.centre, spec.window.half
+        span = w if spec.window.wall == "back" else d
+        assert -span / 2 < u - hw and u + hw < span / 2 and 0 < v - hh and v + hh < h
+        shapes = generate_scene(seed, size=8, layout="window")
+        assert "wall_front" in shapes and f"wall_{spec.window.wall}" not in shapes
+        assert any(k.startswith(f"wall_{spec.window.wall}_") for k in shapes)
+    assert walls == set(WINDOW_WALLS)
+    image = np.asarray(mi.render(mi.load_dict(generate_scene(12, size=32, layout="window")), spp=64))
+    assert np.isfinite(image).all() and image.mean() > 0.01   # light gets in
+
+
+def test_asking_for_a_layout_keeps_the_rest_of_the_seeds_scene_and_the_default_mix_unchanged():
+    for seed in range(6):
+        own = sample_spec(seed)
+        assert sample_spec(seed, own.layout) == own
+        window = sample_spec(seed, "window")
+        assert (window.room, window.floor, window.walls) == (own.room, own.floor, own.walls)
+    with pytest.raises(ValueError, match="unknown layout"):
+        sample_spec(0, "attic")
