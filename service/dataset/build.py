@@ -318,7 +318,8 @@ def build_dataset(
     """Render `scenes` procedural scenes × `frames` frames into `out_dir`; returns the manifest path.
 
     Safe to re-run: finished items are skipped, so an interrupted build resumes, and a larger
-    `scenes` with the same seed extends the data set (scene seeds are prefix-stable).
+    `scenes` with the same seed extends the data set (scene seeds are prefix-stable). `layout`:
+    "mixed" lets each seed draw its own; a layout name gives every scene that one.
     """
     settings = DatasetSettings(scenes=scenes, size=size, frames=frames, seed=seed, split=split,
                                reference_spp=reference_spp, loop_branch=loop_networks is not None,
