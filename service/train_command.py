@@ -38,7 +38,9 @@ def add_parser(sub) -> None:
                    help="OIDN's image on the same inputs joins the joint softmax (models/candidate.py)")
     p.add_argument("--single-frame", action="store_true",
                    help="no temporal extractor: a one-frame network (data sets of single frames)")
-    p.add_argument("--init", type=Path, default=d.init, help="start the denoiser from this checkpoint's weights")
+    p.add_argument("--init", type=Path, default=d.init,
+                   help="start the denoiser from this checkpoint's weights (--stage error: an error network's, "
+                        "its calibration scale reset to 1)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/.train_<stage>.pt")
     p.add_argument("--device", default=d.device, help="cpu | cuda (default: cuda when available)")
     p.add_argument("--error-levels", type=_levels, default=d.error_levels, metavar="L1,L2,…",

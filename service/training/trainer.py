@@ -186,17 +186,30 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
         model.out.bias.fill_(median + torch.log(-torch.expm1(torch.tensor(-median))).item())
 
 
+def _error_network_to_train(config, device) -> ErrorPredictor:
+    """A fresh error network, or (`--stage error --init FILE`) that error network's weights with
+    its calibration scale back at 1: the scale is fitted after training, on validation scenes
+    (`renderloop bench --calibration --fit-scale`), so a fine-tuning run must not train through it."""
+    if config.stage != "error" or config.init is None:
+        # The sample count tells the network how converged each pixel is under the loop's
+        # non-uniform counts (every data set's EXRs carry their spp layer).
+        return ErrorPredictor(ErrorPredictorConfig(sample_count_input=True)).to(device)
+    trained = load_checkpoint(config.init, expected_kind="error_predictor", device=device)
+    model = ErrorPredictor(dataclasses.replace(trained.config, output_scale=1.0)).to(device)
+    model.load_state_dict(trained.state_dict())
+    return model
+
+
 def train_error_predictor(config, device) -> dict:
     torch.manual_seed(config.seed)
     denoiser = load_checkpoint(config.out / "denoiser.pt", expected_kind="denoiser", device=device).eval()
     for p in denoiser.parameters():
         p.requires_grad_(False)
-    # The sample count tells the network how converged each pixel is under the loop's
-    # non-uniform counts (every data set's EXRs carry their spp layer).
-    model = ErrorPredictor(ErrorPredictorConfig(sample_count_input=True)).to(device)
+    model = _error_network_to_train(config, device)
     train, val = _datasets(config, 0, denoiser.config.oidn_candidate, config.error_levels or INPUT_ITEMS)
     batches = _batches(train, config.batch, config.seed + 1)
-    start_at_typical_error(model, denoiser, next(_batches(train, config.batch, config.seed + 2)), device)
+    if config.stage != "error" or config.init is None:
+        start_at_typical_error(model, denoiser, next(_batches(train, config.batch, config.seed + 2)), device)
 
     def loss_fn(step: int):
         b = next(batches)

@@ -81,6 +81,24 @@ def test_error_network_trains_on_loop_levels_and_reads_their_sample_counts(loop_
     assert not torch.equal(predicted, fewer)  # the sample-count channel reaches the output
 
 
+def test_error_stage_from_init_starts_from_that_network_with_its_calibration_scale_reset(loop_dataset, tmp_path):
+    shipped = load_checkpoint(SHIPPED_WEIGHTS_DIR / "error_predictor.pt", expected_kind="error_predictor")
+    out = tmp_path / "weights"
+    out.mkdir()
+    shutil.copy(SHIPPED_WEIGHTS_DIR / "denoiser.pt", out / "denoiser.pt")
+    result = subprocess.run(
+        [sys.executable, "-m", "service.cli", "train", "--data", str(loop_dataset), "--stage", "error", "-o", str(out),
+         "--init", str(SHIPPED_WEIGHTS_DIR / "error_predictor.pt"), "--steps", "2", "--val-every", "1",
+         "--batch", "2", "--crop", "8", "--lr", "1e-12", "--quiet", "--error-levels", ",".join(LOOP_LEVELS)],
+        capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    tuned = load_checkpoint(out / "error_predictor.pt", expected_kind="error_predictor")
+    assert shipped.config.output_scale != 1.0 and tuned.config.output_scale == 1.0
+    assert tuned.config.sample_count_input == shipped.config.sample_count_input
+    for name, value in shipped.state_dict().items():
+        torch.testing.assert_close(tuned.state_dict()[name], value, atol=1e-6, rtol=0)
+
+
 @pytest.mark.parametrize("stage, trainable", [("gate", ("gate.",)),
                                                ("lambda", ("specialise.mix.", "specialise.delta"))])
 def test_fine_tuning_stages_train_only_their_part_of_the_shipped_denoiser(loop_dataset, tmp_path, stage, trainable):
