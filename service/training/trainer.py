@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import sys
 import time
 from pathlib import Path
@@ -18,7 +19,7 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from models.checkpoint import load_checkpoint, save_checkpoint
+from models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.losses import smape_map
@@ -48,6 +49,18 @@ def _datasets(config, radius: int, candidate: bool = False, levels: tuple[str, .
     val.crop = None
     train.items, val.items = train_items, val_items or train_items[:4]
     return train, val
+
+
+def _provenance(config: TrainConfig, stage: str) -> dict:
+    """What a checkpoint records about how it was made. A run from --init also records which
+    file it started from by content (a path such as models/weights/… is overwritten when the
+    result ships) and that file's own command."""
+    extra = {"command": config.command_line, "stage": stage}
+    if config.init is not None and Path(config.init).is_file():
+        digest = hashlib.sha1(Path(config.init).read_bytes()).hexdigest()[:10]
+        started = read_checkpoint(config.init).get("extra", {}).get("command", "unknown")
+        extra["init"] = f"{config.init} sha1 {digest} (command={started})"
+    return extra
 
 
 def _batches(dataset, batch: int, seed: int):
@@ -166,8 +179,7 @@ def train_denoiser(config, device, stage: str = "denoiser", plan: StagePlan = St
     # a λ phase follows, the kept one must come from it.
     keep_from = symmetric_steps if symmetric_steps < config.steps else 0
     out_name = "denoiser.pt" if stage in ("denoiser", "lambda", *FINE_TUNE_STAGES) else f"stage_{stage}.pt"
-    return _fit(stage, model, loss_fn, val_fn, config, device, {"command": config.command_line, "stage": stage},
-                keep_from, out_name)
+    return _fit(stage, model, loss_fn, val_fn, config, device, _provenance(config, stage), keep_from, out_name)
 
 
 def start_at_typical_error(model, denoiser, batch, device) -> None:
@@ -227,7 +239,7 @@ def train_error_predictor(config, device) -> dict:
                                                      candidate)))
         return sum(losses) / len(losses)
 
-    return _fit("error", model, loss_fn, val_fn, config, device, {"command": config.command_line, "stage": "error"})
+    return _fit("error", model, loss_fn, val_fn, config, device, _provenance(config, "error"))
 
 
 def run_training(config: TrainConfig, report: Callable[[str], None] = lambda line: None) -> list[str]:

@@ -2,6 +2,7 @@
 trained on it: what the loop feeds the error network, at every iteration's budget."""
 from __future__ import annotations
 
+import hashlib
 import shutil
 from dataclasses import replace
 import subprocess
@@ -94,6 +95,8 @@ def test_error_stage_from_init_starts_from_that_network_with_its_calibration_sca
     assert result.returncode == 0, result.stderr
     tuned = load_checkpoint(out / "error_predictor.pt", expected_kind="error_predictor")
     assert shipped.config.output_scale != 1.0 and tuned.config.output_scale == 1.0
+    digest = hashlib.sha1((SHIPPED_WEIGHTS_DIR / "error_predictor.pt").read_bytes()).hexdigest()[:10]
+    assert digest in tuned.checkpoint_extra["init"] and shipped.checkpoint_extra["command"] in tuned.checkpoint_extra["init"]
     assert tuned.config.sample_count_input == shipped.config.sample_count_input
     for name, value in shipped.state_dict().items():
         torch.testing.assert_close(tuned.state_dict()[name], value, atol=1e-6, rtol=0)
