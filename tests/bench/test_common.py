@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from bench.common import (METRIC_NAMES, REFERENCE_SEED, cached_reference, fill, image_metrics,
+from bench.common import (METRIC_NAMES, REFERENCE_SEED, cached_reference, fill, image_metrics, load_bench_networks,
                           pinned_torch_threads, provenance)
+from models.checkpoint import read_checkpoint
+from models.pretrained import SHIPPED_WEIGHTS_DIR
 
 
 def test_identical_images_score_perfectly_under_every_metric_name():
@@ -62,3 +64,12 @@ def test_provenance_names_command_variant_and_commit():
 def test_every_template_field_is_filled_or_the_fill_fails():
     with pytest.raises(KeyError):
         fill("memory.md", provenance="p")
+
+
+def test_bench_networks_describe_each_checkpoint_by_its_whole_command():
+    description = load_bench_networks(None).description
+    for name in ("denoiser.pt", "error_predictor.pt"):
+        extra = read_checkpoint(SHIPPED_WEIGHTS_DIR / name)["extra"]
+        assert f"command={extra['command']}" in description
+        if "calibration" in extra:
+            assert f"calibration={extra['calibration']}" in description
