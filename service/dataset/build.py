@@ -91,7 +91,8 @@ class DatasetSettings:
             (self.seed >= 0, f"--seed must be >= 0, got {self.seed}"),
             (self.split in SPLITS, f"--split must be one of {', '.join(SPLITS)}, got {self.split!r}"),
             (self.reference_spp >= 1, f"--reference-spp must be >= 1, got {self.reference_spp}"),
-            (self.layout in DATASET_LAYOUTS, f"--layout must be one of {', '.join(DATASET_LAYOUTS)}, got {self.layout!r}"),
+            (self.layout in DATASET_LAYOUTS,
+             f"--layout must be one of {', '.join(DATASET_LAYOUTS)}, got {self.layout!r}"),
         )
         for ok, message in checks:
             if not ok:

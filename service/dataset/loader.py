@@ -102,7 +102,8 @@ def _crop(array: np.ndarray, corner: tuple[int, int], crop: tuple[int, int]) -> 
 
 
 class DenoiserDataset(Dataset):
-    """Items of `window_items` (of one data set or several together), read from EXR (decoded files cached in memory) and cropped.
+    """Items of `window_items` (of one data set or several together), read from EXR (decoded
+    files cached in memory) and cropped.
 
     crop: side of the square crop, or None for whole frames. radius: M of the 2M+1 window
     (0 = single frame). levels: which noisy inputs to use (default all of them).

@@ -57,7 +57,7 @@ class TrainConfig:
     symmetric_fraction: float = 0.5  # end to end: first fraction of steps at λ = 1
     oidn_candidate: bool = False  # OIDN's image as one more candidate of the joint softmax
     temporal: bool = True  # False: a single-frame denoiser (no temporal extractor, one-frame windows)
-    init: Path | None = None  # start from this checkpoint's weights: the denoiser's (--stage error: the error network's)
+    init: Path | None = None  # start from this checkpoint: the denoiser's (--stage error: the error network's)
     resume: bool = False  # continue from OUT/.train_<stage>.pt
     device: str | None = None  # cpu | cuda (None: cuda when available)
     quiet: bool = False
