@@ -11,7 +11,8 @@ in their seed are denoised by the shipped denoiser; for each render k:
   little low) would score against this one render;
 - two renders: Spearman of two single true maps (k, k + 1); under additive noise, ρ(∞) =
   √ρ(two) estimates the first figure with infinitely many renders;
-- the shipped error network's prediction for render k against map k (what the calibration report
+- the shipped error network's prediction for render k, zeroed where every sample agreed as the
+  loop does (service.loop.loop.converged_error), against map k (what the calibration report
   measures), and against the mean of the others (how well it ranks the repeatable part).
 
 A predictor reads the render's own inputs, so it can see part of that render's noise (a firefly
@@ -32,6 +33,7 @@ from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.quality_measures import block_means, spearman
 from bench.suite_quality import uniform_render
 from models.pretrained import Networks
+from service.loop.loop import converged_error
 from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, to_image
 
@@ -64,20 +66,22 @@ def infinite_render_estimate(two_render: float) -> float:
 
 def scene_maps(scene, reference: np.ndarray, networks: Networks, spp: int, renders: int
                ) -> tuple[np.ndarray, np.ndarray]:
-    """(true SMAPE maps, predicted maps), each (renders, H, W), of `renders` seeds at `spp`."""
+    """(true SMAPE maps, predicted maps as the loop uses them), each (renders, H, W), of `renders`
+    seeds at `spp`."""
     denoiser, error_network = networks.denoiser, networks.error_predictor
     true, predicted = [], []
     for k in range(renders):
-        frame = frame_tensors(uniform_render(scene, spp, networks, seed=FIRST_SEED + k).buffers[0])
+        buffer = uniform_render(scene, spp, networks, seed=FIRST_SEED + k).buffers[0]
+        frame = frame_tensors(buffer)
         candidate = candidate_for(denoiser, frame) if denoiser.config.oidn_candidate else None
         denoised = denoiser([frame], 0, 1.0, candidate)
         true.append(true_error_map(to_image(denoised), reference))
-        predicted.append(to_image(error_network(frame, denoised)))
+        predicted.append(converged_error(buffer.converged(), to_image(error_network(frame, denoised))))
     return np.stack(true), np.stack(predicted)
 
 
 def ranking_row(true: np.ndarray, predicted: np.ndarray, block: int = 1) -> dict[str, float]:
-    """The four figures of one scene (see the module text), per pixel or on tiles."""
+    """One scene's figures (see the module text), per pixel or on tiles."""
     tiled = (lambda x: block_means(x, block)) if block > 1 else (lambda x: x)
     k = len(true)
     others = [(true.sum(0) - true[i]) / (k - 1) for i in range(k)]

@@ -51,15 +51,15 @@ def _datasets(config, radius: int, candidate: bool = False, levels: tuple[str, .
     return train, val
 
 
-def _provenance(config: TrainConfig, stage: str) -> dict:
-    """What a checkpoint records about how it was made. A run from --init also records which
-    file it started from by content (a path such as models/weights/… is overwritten when the
-    result ships) and that file's own command."""
-    extra = {"command": config.command_line, "stage": stage}
-    if config.init is not None and Path(config.init).is_file():
-        digest = hashlib.sha1(Path(config.init).read_bytes()).hexdigest()[:10]
-        started = read_checkpoint(config.init).get("extra", {}).get("command", "unknown")
-        extra["init"] = f"{config.init} sha1 {digest} (command={started})"
+def _provenance(command: str, stage: str, init: Path | None) -> dict:
+    """What a checkpoint records about how it was made. A network started from `init` also
+    records that file by content (a path such as models/weights/… is overwritten when the result
+    ships) and that file's own command."""
+    extra = {"command": command, "stage": stage}
+    if init is not None:
+        digest = hashlib.sha1(Path(init).read_bytes()).hexdigest()[:10]
+        started = read_checkpoint(init).get("extra", {}).get("command", "unknown")
+        extra["init"] = f"{init} sha1 {digest} (command={started})"
     return extra
 
 
@@ -179,7 +179,8 @@ def train_denoiser(config, device, stage: str = "denoiser", plan: StagePlan = St
     # a λ phase follows, the kept one must come from it.
     keep_from = symmetric_steps if symmetric_steps < config.steps else 0
     out_name = "denoiser.pt" if stage in ("denoiser", "lambda", *FINE_TUNE_STAGES) else f"stage_{stage}.pt"
-    return _fit(stage, model, loss_fn, val_fn, config, device, _provenance(config, stage), keep_from, out_name)
+    return _fit(stage, model, loss_fn, val_fn, config, device, _provenance(config.command_line, stage, config.init),
+                keep_from, out_name)
 
 
 def start_at_typical_error(model, denoiser, batch, device) -> None:
@@ -198,15 +199,15 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
         model.out.bias.fill_(median + torch.log(-torch.expm1(torch.tensor(-median))).item())
 
 
-def _error_network_to_train(config, device) -> ErrorPredictor:
-    """A fresh error network, or (`--stage error --init FILE`) that error network's weights with
-    its calibration scale back at 1: the scale is fitted after training, on validation scenes
-    (`renderloop bench --calibration --fit-scale`), so a fine-tuning run must not train through it."""
-    if config.stage != "error" or config.init is None:
+def _error_network_to_train(init: Path | None, device) -> ErrorPredictor:
+    """A fresh error network, or `init`'s weights with its calibration scale back at 1: the scale
+    is fitted after training, on validation scenes (`renderloop bench --calibration
+    --fit-scale`), so a fine-tuning run must not train through it."""
+    if init is None:
         # The sample count tells the network how converged each pixel is under the loop's
         # non-uniform counts (every data set's EXRs carry their spp layer).
         return ErrorPredictor(ErrorPredictorConfig(sample_count_input=True)).to(device)
-    trained = load_checkpoint(config.init, expected_kind="error_predictor", device=device)
+    trained = load_checkpoint(init, expected_kind="error_predictor", device=device)
     model = ErrorPredictor(dataclasses.replace(trained.config, output_scale=1.0)).to(device)
     model.load_state_dict(trained.state_dict())
     return model
@@ -217,10 +218,12 @@ def train_error_predictor(config, device) -> dict:
     denoiser = load_checkpoint(config.out / "denoiser.pt", expected_kind="denoiser", device=device).eval()
     for p in denoiser.parameters():
         p.requires_grad_(False)
-    model = _error_network_to_train(config, device)
+    # --init names an error network only with --stage error (staged and all runs: the denoiser's)
+    init = config.init if config.stage == "error" else None
+    model = _error_network_to_train(init, device)
     train, val = _datasets(config, 0, denoiser.config.oidn_candidate, config.error_levels or INPUT_ITEMS)
     batches = _batches(train, config.batch, config.seed + 1)
-    if config.stage != "error" or config.init is None:
+    if init is None:
         start_at_typical_error(model, denoiser, next(_batches(train, config.batch, config.seed + 2)), device)
 
     def loss_fn(step: int):
@@ -239,7 +242,7 @@ def train_error_predictor(config, device) -> dict:
                                                      candidate)))
         return sum(losses) / len(losses)
 
-    return _fit("error", model, loss_fn, val_fn, config, device, _provenance(config, "error"))
+    return _fit("error", model, loss_fn, val_fn, config, device, _provenance(config.command_line, "error", init))
 
 
 def run_training(config: TrainConfig, report: Callable[[str], None] = lambda line: None) -> list[str]:
