@@ -30,6 +30,7 @@ from models.features import HDR_MAX, demodulate, feature_set, log_transform, rem
 from models.frames import FrameTensors
 from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
 from models.layers import Pointwise, cat_channels_last, conv3x3, res_blocks, trunk_in_bfloat16
+from models.unet import UNetTrunk
 from models.warp import flow_to_center, warp
 
 from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN  # noqa: F401  (re-exported: eq. 6 range)
@@ -56,6 +57,9 @@ class DenoiserConfig:
     # > 0 leans to the candidate, in full at λ = 1 and not at all at λ = 10.
     gate_offset: float = 0.0                  # the finest level's
     coarse_gate_offset: float | None = None   # every coarser level's; None: gate_offset
+    # Feature extractor: "levels" runs the paper's encoder + residual blocks on each level's
+    # pooled inputs; "unet" one U-Net over the finest inputs feeds every level (models.unet).
+    trunk: str = "levels"
 
     def without_post_training_settings(self) -> "DenoiserConfig":
         """This config with the settings chosen after training (on validation scenes, for given
@@ -72,9 +76,12 @@ class DenoiserConfig:
 
     @property
     def alignment(self) -> int:
-        """Sizes must divide by 2^(levels-1) for the 2×2 pyramid; inputs are padded to it."""
-        return 2 ** (self.n_levels - 1)
+        """Sizes must divide by 2^(levels-1) for the 2×2 pyramid (2^levels under the U-Net,
+        whose bottleneck sits one octave below the coarsest level); inputs are padded to it."""
+        return 2 ** (self.n_levels - (self.trunk == "levels"))
 
+
+TRUNKS = ("levels", "unet")
 
 # Inference bands of rows for the λ tail: a band's F·k² weight planes and its 3-channel output
 # stay in cache from the GEMM through exp to the last tap.
@@ -249,8 +256,13 @@ class Denoiser(nn.Module):
         super().__init__()
         self.config = cfg = config or DenoiserConfig()
         self.features = feature_set(cfg.source)              # unknown source fails here
-        self.encoder = Encoder(self.features.channels, cfg.width)
-        self.spatial = res_blocks(cfg.width, cfg.spatial_blocks)
+        if cfg.trunk not in TRUNKS:
+            raise ValueError(f"unknown trunk {cfg.trunk!r}; known: {', '.join(TRUNKS)}")
+        if cfg.trunk == "unet":
+            self.unet = UNetTrunk(self.features.channels, cfg.width, cfg.n_levels)
+        else:
+            self.encoder = Encoder(self.features.channels, cfg.width)
+            self.spatial = res_blocks(cfg.width, cfg.spatial_blocks)
         self.temporal = TemporalExtractor(cfg.width, cfg.temporal_blocks) if cfg.temporal else None
         self.kernel_head = Pointwise(cfg.width, cfg.lambda_width)
         self.specialise = LambdaModule(cfg.lambda_width, cfg.lambda_width, cfg.kernel_size, cfg.lambda_rank)
@@ -289,6 +301,7 @@ class Denoiser(nn.Module):
         images = [demodulate(f.color, f.albedo) for f in frames]
         extra = self._demodulated_candidate(candidate, frames[center], align) if candidate is not None else None
         n_bad += extra[2] if extra is not None else 0
+        trunk_features = self._unet_features(frames) if self.config.trunk == "unet" else None
         levels = []
         for level in range(self.config.n_levels):
             if level:
@@ -297,7 +310,7 @@ class Denoiser(nn.Module):
                 # pooled like the images (variance of a 4-pixel mean ÷ 4), so a level whose
                 # gate is saturated returns exactly D(candidate) and eq. 5 then changes nothing
                 extra = None if extra is None else (down(extra[0]), down(extra[1]) * 0.25, 0)
-            cache = self._prepare_level(frames, images, center)
+            cache = self._prepare_level(frames, images, center, None if trunk_features is None else trunk_features[level])
             if extra is not None:
                 cache.candidate = extra[0]
                 cache.gate_hidden = self.gate.prepare(cache.hidden[:, 0, :-1], images[center], extra[0], extra[1])
@@ -311,12 +324,24 @@ class Denoiser(nn.Module):
         scale = demodulate(torch.ones_like(frame.albedo), frame.albedo)
         return demodulate(pad_to(clean, align), frame.albedo), frame.variance * scale * scale, n_bad
 
-    def _prepare_level(self, frames: list[FrameTensors], images: list[Tensor], center: int) -> LevelCache:
-        n = frames[0].color.shape[0]
-        # all frames as one channels-last batch: one pass through the shared convs
-        inputs = torch.cat([self.features.build(f).permute(0, 2, 3, 1) for f in frames], 0).permute(0, 3, 1, 2)
+    def _trunk_inputs(self, frames: list[FrameTensors]) -> Tensor:
+        """All frames as one channels-last batch: one pass through the shared convs."""
+        return torch.cat([self.features.build(f).permute(0, 2, 3, 1) for f in frames], 0).permute(0, 3, 1, 2)
+
+    def _unet_features(self, frames: list[FrameTensors]) -> list[tuple[Tensor, ...]]:
+        """Per pyramid level, each frame's U-Net features (finest first), from the finest inputs."""
+        inputs = self._trunk_inputs(frames)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=trunk_in_bfloat16(inputs)):
-            feats = self.spatial(self.encoder(inputs)).float().split(n, 0)
+            return [f.float().split(frames[0].color.shape[0], 0) for f in self.unet(inputs)]
+
+    def _prepare_level(self, frames: list[FrameTensors], images: list[Tensor], center: int,
+                       feats: tuple[Tensor, ...] | None = None) -> LevelCache:
+        """feats: this level's per-frame features from the U-Net; None: the level's own trunk."""
+        n = frames[0].color.shape[0]
+        if feats is None:
+            inputs = self._trunk_inputs(frames)
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=trunk_in_bfloat16(inputs)):
+                feats = self.spatial(self.encoder(inputs)).float().split(n, 0)
         motions = [f.motion for f in frames]
         c_feat, c_img = feats[center], images[center]
         out_images, feats_to_center = [c_img], [c_feat]

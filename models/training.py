@@ -17,7 +17,7 @@ from models.denoiser import LAMBDA_MAX, Denoiser, DenoiserCache, down, pad_to
 from models.error_predictor import ErrorPredictor
 from models.features import demodulate
 from models.frames import FrameTensors
-from models.losses import asymmetric_loss, l1, smape, smape_map
+from models.losses import asymmetric_loss, l1, noisy_target_loss, smape, smape_map
 
 LAMBDA_BLOCK = 8  # per-pixel λ maps are drawn on a coarse grid: painted maps are piecewise smooth
 VALIDATION_LAMBDAS = (2.0, 4.0, 10.0)  # λ-stage validation: spread over log λ ∈ (0, log 10]
@@ -40,10 +40,23 @@ def cut_window(frames: list[FrameTensors], centre: int, single: bool) -> tuple[l
     return ([frames[centre]], 0) if single else (frames, centre)
 
 
+def result_loss(d: Tensor, reference: Tensor, noisy: Tensor, lam: Tensor, noisy_target: bool = False) -> Tensor:
+    """Eq. 6 against a clean reference; against a noisy target (an independent render of the
+    reference: Noise2Noise data), the loss whose expectation over the target's noise is
+    unchanged (models.losses.noisy_target_loss). Eq. 6 weighs each pixel by the side of the
+    reference the result lies on, which a noisy target misreports: noisy targets train at λ = 1."""
+    if not noisy_target:
+        return asymmetric_loss(d, reference, noisy, lam)
+    if bool((lam != 1).any()):
+        raise ValueError("noisy targets train at λ = 1 only: eq. 6's weighting needs a clean reference")
+    return noisy_target_loss(d, reference)
+
+
 def denoiser_loss(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor,
-                  lam: Tensor, candidate: Tensor | None = None) -> Tensor:
+                  lam: Tensor, candidate: Tensor | None = None, noisy_target: bool = False) -> Tensor:
     """Eq. 6 on the composited result, plus COARSE_LEVEL_WEIGHT × eq. 6 on each coarse level's
-    own result against the pooled reference.
+    own result against the pooled reference (noisy_target: `result_loss`'s noisy-target loss in
+    place of eq. 6 everywhere; pooling keeps a target's mean, so the coarse terms stay unbiased).
 
     Why the per-level term: a coarse result reaches the output only through the compositor's α
     (eq. 5), so its gradient is scaled by α. Without this term α falls to ~0 within the first few
@@ -55,23 +68,24 @@ def denoiser_loss(model: Denoiser, frames: list[FrameTensors], centre: int, refe
     cache = model.prepare(frames, centre, candidate)
     kernel_only: list[Tensor] = []
     levels = model.filter_levels(cache, lam, kernel_only)
-    loss = asymmetric_loss(model.merge_levels(cache, levels), reference, frames[centre].color, lam)
+    noisy = frames[centre].color
+    loss = result_loss(model.merge_levels(cache, levels), reference, noisy, lam, noisy_target)
     if candidate is not None:
         # Why: the kernels reach the output only through (1 − σ(g)); where the gate trusts the
         # candidate their gradient vanishes, and from random init the gate learned to trust it
         # everywhere (the kernels never got good enough to be chosen). Their own loss keeps
         # them learning, so the gate has a real second candidate to weigh.
-        loss = loss + KERNEL_PATH_WEIGHT * asymmetric_loss(model.merge_levels(cache, kernel_only), reference,
-                                                           frames[centre].color, lam)
+        loss = loss + KERNEL_PATH_WEIGHT * result_loss(model.merge_levels(cache, kernel_only), reference, noisy,
+                                                       lam, noisy_target)
         levels = kernel_only
     if len(levels) > 1:
-        loss = loss + COARSE_LEVEL_WEIGHT * coarse_levels_loss(model, cache, levels, frames[centre].color,
-                                                               reference, lam)
+        loss = loss + COARSE_LEVEL_WEIGHT * coarse_levels_loss(model, cache, levels, noisy, reference, lam,
+                                                               noisy_target)
     return loss
 
 
 def coarse_levels_loss(model: Denoiser, cache: DenoiserCache, levels: list[Tensor], noisy: Tensor, reference: Tensor,
-                       lam: Tensor) -> Tensor:
+                       lam: Tensor, noisy_target: bool = False) -> Tensor:
     """Mean of eq. 6 over the coarse levels, in the demodulated space the levels filter, with
     reference, noisy input and λ pooled like the pyramid pools its inputs."""
     align = model.config.alignment
@@ -81,7 +95,7 @@ def coarse_levels_loss(model: Denoiser, cache: DenoiserCache, levels: list[Tenso
     terms = []
     for result in levels[1:]:
         target, noisy, lam = down(target), down(noisy), down(lam)
-        terms.append(asymmetric_loss(result, target, noisy, lam))
+        terms.append(result_loss(result, target, noisy, lam, noisy_target))
     return torch.stack(terms).mean()
 
 

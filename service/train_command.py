@@ -6,7 +6,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from service.training.config import STAGES, TrainConfig, TrainConfigError
+from service.training.config import STAGES, TRUNK_NAMES, TrainConfig, TrainConfigError
 
 DEFAULTS = TrainConfig(data=Path("."))
 
@@ -31,6 +31,9 @@ def add_parser(sub) -> None:
     p.add_argument("--width", type=int, default=d.width, help="denoiser feature width (default: model default)")
     p.add_argument("--spatial-blocks", type=int, default=d.spatial_blocks,
                    help="residual blocks of the denoiser's spatial extractor (default: model default)")
+    p.add_argument("--trunk", choices=TRUNK_NAMES, default=d.trunk,
+                   help="denoiser feature extractor: levels (the paper's, per pyramid level) or unet (one U-Net "
+                        "feeding every level, models/unet.py); default: the model's (levels)")
     p.add_argument("--symmetric-fraction", type=float, default=d.symmetric_fraction,
                    help=f"first fraction of denoiser steps trained at λ = 1 before λ is randomised "
                         f"(default {d.symmetric_fraction:g})")
@@ -46,6 +49,12 @@ def add_parser(sub) -> None:
     p.add_argument("--error-levels", type=_levels, default=d.error_levels, metavar="L1,L2,…",
                    help="input levels the error network trains on (default: every uniform/adaptive level); "
                         "the loop's own: spp16,loop32,loop64,loop128 (renderloop dataset --loop-branch)")
+    p.add_argument("--noisy-targets", action="store_true",
+                   help="the data's references are independent noisy renders (e.g. renderloop dataset "
+                        "--reference-spp 64): train the denoiser at λ = 1 with a loss whose expectation the "
+                        "targets' noise leaves unchanged (Noise2Noise); needs --val-data")
+    p.add_argument("--val-data", type=Path, default=d.val_data,
+                   help="validate on this data set's held-back scenes (clean references), left out of training")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=run_train)
 
@@ -58,9 +67,9 @@ def train_config(args) -> TrainConfig:
     return TrainConfig(
         data=tuple(args.data), out=args.out, stage=args.stage, steps=args.steps, batch=args.batch, crop=args.crop,
         lr=args.lr, val_every=args.val_every, seed=args.seed, width=args.width, spatial_blocks=args.spatial_blocks,
-        symmetric_fraction=args.symmetric_fraction, oidn_candidate=args.oidn_candidate,
+        trunk=args.trunk, symmetric_fraction=args.symmetric_fraction, oidn_candidate=args.oidn_candidate,
         temporal=not args.single_frame, init=args.init, resume=args.resume, device=args.device,
-        quiet=args.quiet, error_levels=args.error_levels,
+        quiet=args.quiet, error_levels=args.error_levels, noisy_targets=args.noisy_targets, val_data=args.val_data,
         command_line="renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
     )
 

@@ -35,6 +35,11 @@ FINE_TUNE_STAGES: dict[str, StagePlan] = {
 }
 STAGE_PLANS = {**DENOISER_STAGES, **FINE_TUNE_STAGES}
 STAGES = (*STAGE_PLANS, "staged", "denoiser", "error", "all")
+# models.denoiser.TRUNKS, restated: this module imports no torch (the CLI checks a config before
+# loading the trainer); a test keeps the two equal.
+TRUNK_NAMES = ("levels", "unet")
+# Stages whose loss reads which side of the reference a pixel lies on, or its exact error.
+NEEDS_CLEAN_REFERENCES = ("lambda", "staged", "error", "all")
 
 
 class TrainConfigError(ValueError):
@@ -54,6 +59,7 @@ class TrainConfig:
     seed: int = 0
     width: int | None = None  # denoiser feature width (None: the model's default)
     spatial_blocks: int | None = None  # residual blocks of the spatial extractor (None: default)
+    trunk: str | None = None  # denoiser feature extractor: levels | unet (None: the model's default)
     symmetric_fraction: float = 0.5  # end to end: first fraction of steps at λ = 1
     oidn_candidate: bool = False  # OIDN's image as one more candidate of the joint softmax
     temporal: bool = True  # False: a single-frame denoiser (no temporal extractor, one-frame windows)
@@ -65,6 +71,13 @@ class TrainConfig:
     # Input levels the error network trains on (None: every uniform/adaptive level). The loop's
     # own inputs are ("spp16", "loop32", "loop64", "loop128"): `renderloop dataset --loop-branch`.
     error_levels: tuple[str, ...] | None = None
+    # The data's references are independent noisy renders (Noise2Noise targets, e.g. `renderloop
+    # dataset --reference-spp 64`): the denoiser trains with models.losses.noisy_target_loss at
+    # λ = 1, and validates on `val_data`'s clean references.
+    noisy_targets: bool = False
+    # Validate on this data set's held-back scenes (every 8th) instead of `data`'s own; those
+    # scenes are then left out of training wherever `data` holds them too.
+    val_data: Path | None = None
 
     @property
     def data_roots(self) -> tuple[Path, ...]:
@@ -80,9 +93,17 @@ class TrainConfig:
             value = getattr(self, name)
             if value is not None and value < least:
                 raise TrainConfigError(f"--{name.replace('_', '-')} must be >= {least}")
+        if self.trunk is not None and self.trunk not in TRUNK_NAMES:
+            raise TrainConfigError(f"--trunk must be one of {', '.join(TRUNK_NAMES)}, got {self.trunk!r}")
         if not 0.0 <= self.symmetric_fraction <= 1.0:
             raise TrainConfigError("--symmetric-fraction must lie in [0, 1]")
         if self.stage in FINE_TUNE_STAGES and self.init is None:
             raise TrainConfigError(f"--stage {self.stage} fine-tunes a trained denoiser: name it with --init")
+        if self.noisy_targets and self.val_data is None:
+            raise TrainConfigError("--noisy-targets needs --val-data: a data set with clean references to validate "
+                                   "on (checkpoints ranked against noisy targets are ranked by their noise)")
+        if self.noisy_targets and self.stage in NEEDS_CLEAN_REFERENCES:
+            raise TrainConfigError(f"--noisy-targets trains the denoiser at λ = 1; --stage {self.stage} needs clean "
+                                   "references (eq. 6's λ weighting and the error network's SMAPE target)")
         if self.stage == "gate" and not self.oidn_candidate:
             raise TrainConfigError("--stage gate trains the OIDN candidate's gate: add --oidn-candidate")

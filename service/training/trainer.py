@@ -25,7 +25,7 @@ from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.losses import smape_map
 from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, denoiser_smape, error_predictor_loss,
                              sample_lambda)
-from service.dataset.build import INPUT_ITEMS
+from service.dataset.build import INPUT_ITEMS, DatasetError
 from service.dataset.loader import DenoiserDataset, collate_samples
 from service.training.config import DENOISER_STAGES, FINE_TUNE_STAGES, STAGE_PLANS, StagePlan, TrainConfig
 
@@ -42,10 +42,22 @@ def _split_items(dataset):
 
 
 def _datasets(config, radius: int, candidate: bool = False, levels: tuple[str, ...] = INPUT_ITEMS):
+    """Training and validation items. With config.val_data, validation is that data set's
+    held-back scenes, and training leaves those scene seeds out (Noise2Noise data holds the same
+    scenes as the clean set it is validated on)."""
     train = DenoiserDataset(config.data_roots, split="train", levels=levels, radius=radius, crop=config.crop,
                             seed=config.seed, candidate=candidate)
-    train_items, val_items = _split_items(train)
-    val = copy.copy(train)
+    if config.val_data is None:
+        train_items, val_items = _split_items(train)
+        val = copy.copy(train)
+    else:
+        val = DenoiserDataset(config.val_data, split="train", levels=levels, radius=radius, crop=None,
+                              seed=config.seed, candidate=candidate)
+        _, val_items = _split_items(val)
+        held = {item.scene for item in val_items}
+        train_items = [item for item in train.items if item.scene not in held]
+        if not train_items:
+            raise DatasetError(f"every training scene is one of {config.val_data}'s validation scenes")
     val.crop = None
     train.items, val.items = train_items, val_items or train_items[:4]
     return train, val
@@ -122,7 +134,7 @@ def _denoiser_to_train(config, device, switches: dict):
     earlier stage lacked — compositor, temporal extractor — start fresh)."""
     wanted = {"oidn_candidate": config.oidn_candidate, "temporal": config.temporal}
     if config.init is None:
-        sizes = {"width": config.width, "spatial_blocks": config.spatial_blocks}
+        sizes = {"width": config.width, "spatial_blocks": config.spatial_blocks, "trunk": config.trunk}
         base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None}, **wanted)
         return Denoiser(dataclasses.replace(base, **switches)).to(device)
     trained = load_checkpoint(config.init, expected_kind="denoiser", device=device)
@@ -139,7 +151,7 @@ def train_denoiser(config, device, stage: str = "denoiser", plan: StagePlan = St
     --symmetric-fraction of the steps, then random)."""
     torch.manual_seed(config.seed)
     model = _denoiser_to_train(config, device, plan.switches)
-    schedule = plan.schedule
+    schedule = "symmetric" if config.noisy_targets else plan.schedule
     if plan.trainable is not None and config.init is not None:
         for name, parameter in model.named_parameters():
             parameter.requires_grad_(name.startswith(plan.trainable))
@@ -160,7 +172,7 @@ def train_denoiser(config, device, stage: str = "denoiser", plan: StagePlan = St
         # a random λ from step 0 rewards doing nothing (λ > 1 punishes every blur), so the
         # symmetric loss (λ = 1) comes first.
         lam = torch.ones(n, 1, h, w) if step < symmetric_steps else sample_lambda(n, h, w, gen)
-        return denoiser_loss(model, frames, centre, ref, lam.to(device), candidate)
+        return denoiser_loss(model, frames, centre, ref, lam.to(device), candidate, config.noisy_targets)
 
     def val_fn() -> float:
         scores = []

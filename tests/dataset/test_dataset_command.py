@@ -5,7 +5,7 @@ import pytest
 
 from service.dataset.command import add_parser, run
 from service.train_command import add_parser as add_train_parser
-from service.train_command import train_config
+from service.train_command import run_train, train_config
 from service.training.config import TrainConfig
 
 
@@ -29,6 +29,29 @@ def test_train_reads_several_data_sets_and_trains_on_all_of_them():
     config = train_config(parser.parse_args(["train", "--data", "a", "--data", "b", "--stage", "error"]))
     assert config.data_roots == (Path("a"), Path("b"))
     assert TrainConfig(data=Path("a")).data_roots == (Path("a"),)
+
+
+def parse_train(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="renderloop")
+    add_train_parser(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(["train", *argv])
+
+
+def test_train_reads_noisy_targets_and_a_clean_validation_set():
+    config = train_config(parse_train(["--data", "n2n", "--noisy-targets", "--val-data", "clean", "--stage", "denoiser"]))
+    assert config.noisy_targets and config.val_data == Path("clean")
+    config.validate()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--stage", "denoiser"], "--noisy-targets needs --val-data"),
+    (["--stage", "error", "--val-data", "clean"], "needs clean references"),
+    (["--stage", "staged", "--val-data", "clean"], "needs clean references"),
+])
+def test_noisy_targets_refuse_what_they_cannot_train_in_one_line(capsys, argv, message):
+    assert run_train(parse_train(["--data", "n2n", "--noisy-targets", *argv])) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("renderloop train: error:") and message in err and "\n" not in err
 
 
 @pytest.mark.parametrize("option, value", [("--scenes", "0"), ("--size", "2"), ("--frames", "-1"),

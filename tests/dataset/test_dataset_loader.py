@@ -4,6 +4,8 @@ from torch.utils.data import DataLoader
 
 from service.dataset.build import DatasetError
 from service.dataset.loader import DenoiserDataset, collate_samples
+from service.training.config import TrainConfig
+from service.training.trainer import _datasets
 
 
 def test_windows_are_finite_crops_with_motion(sequence_dataset):
@@ -56,3 +58,11 @@ def test_a_data_set_over_several_folders_serves_the_items_of_all_of_them(still_d
     assert len(both) == 2 * len(one) and both.items[: len(one)] == one.items
     with pytest.raises(DatasetError, match="no 'heldout' split"):
         DenoiserDataset([still_dataset, sequence_dataset], split="heldout")
+
+
+def test_validation_from_another_data_set_leaves_its_scenes_out_of_training(sequence_dataset):
+    config = TrainConfig(data=sequence_dataset, val_data=sequence_dataset, crop=16)
+    train, val = _datasets(config, radius=0)
+    train_scenes, val_scenes = {i.scene for i in train.items}, {i.scene for i in val.items}
+    assert train_scenes and val_scenes and not train_scenes & val_scenes
+    assert val.crop is None and train.crop == 16
