@@ -70,8 +70,10 @@ def _provenance(command: str, stage: str, init: Path | None) -> dict:
     extra = {"command": command, "stage": stage}
     if init is not None:
         digest = hashlib.sha1(Path(init).read_bytes()).hexdigest()[:10]
-        started = read_checkpoint(init).get("extra", {}).get("command", "unknown")
-        extra["init"] = f"{init} sha1 {digest} (command={started})"
+        earlier = read_checkpoint(init).get("extra", {})
+        # the whole chain: a file made from --init records that file's own start as well
+        chain = f"; init={earlier['init']}" if isinstance(earlier.get("init"), str) else ""
+        extra["init"] = f"{init} sha1 {digest} (command={earlier.get('command', 'unknown')}{chain})"
     return extra
 
 

@@ -97,6 +97,7 @@ def test_error_stage_from_init_starts_from_that_network_with_its_calibration_sca
     assert shipped.config.output_scale != 1.0 and tuned.config.output_scale == 1.0
     digest = hashlib.sha1((SHIPPED_WEIGHTS_DIR / "error_predictor.pt").read_bytes()).hexdigest()[:10]
     assert digest in tuned.checkpoint_extra["init"] and shipped.checkpoint_extra["command"] in tuned.checkpoint_extra["init"]
+    assert shipped.checkpoint_extra["init"] in tuned.checkpoint_extra["init"]   # and where that one started
     assert tuned.config.sample_count_input == shipped.config.sample_count_input
     for name, value in shipped.state_dict().items():
         torch.testing.assert_close(tuned.state_dict()[name], value, atol=1e-6, rtol=0)
