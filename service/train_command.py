@@ -19,7 +19,8 @@ def add_parser(sub) -> None:
     p.add_argument("--stage", choices=STAGES, default=d.stage,
                    help="single|multiscale|temporal|lambda: one paper stage (from --init or the previous "
                         "stage's file); staged: all four then the error network; denoiser: end to end; "
-                        "gate: only the OIDN candidate's gate of --init (--oidn-candidate); "
+                        "gate: only the OIDN candidate's gate of --init (--oidn-candidate); mixing: that gate and the "
+                        "scale compositor together; "
                         f"error: the error network; all: denoiser then error (default {d.stage})")
     p.add_argument("-o", "--out", type=Path, default=d.out)
     p.add_argument("--steps", type=int, default=d.steps, help=f"optimiser steps per stage (default {d.steps})")

@@ -30,8 +30,11 @@ DENOISER_STAGES: dict[str, StagePlan] = {
 # `staged`. `gate`: only the OIDN candidate's gate learns (models/candidate.py), at λ = 1 — end
 # to end, the kernels' own loss dominates and the gate stayed near its initial share
 # (docs/oidn-candidate.md).
+# `mixing`: the gate and the scale compositor's α together — kernels trained without the
+# candidate never taught α what to do when the coarse levels are OIDN's (docs/unet-trunk.md).
 FINE_TUNE_STAGES: dict[str, StagePlan] = {
     "gate": StagePlan({}, "symmetric", ("gate.",)),
+    "mixing": StagePlan({}, "symmetric", ("gate.", "composite.")),
 }
 STAGE_PLANS = {**DENOISER_STAGES, **FINE_TUNE_STAGES}
 STAGES = (*STAGE_PLANS, "staged", "denoiser", "error", "all")
@@ -105,5 +108,5 @@ class TrainConfig:
         if self.noisy_targets and self.stage in NEEDS_CLEAN_REFERENCES:
             raise TrainConfigError(f"--noisy-targets trains the denoiser at λ = 1; --stage {self.stage} needs clean "
                                    "references (eq. 6's λ weighting and the error network's SMAPE target)")
-        if self.stage == "gate" and not self.oidn_candidate:
-            raise TrainConfigError("--stage gate trains the OIDN candidate's gate: add --oidn-candidate")
+        if self.stage in ("gate", "mixing") and not self.oidn_candidate:
+            raise TrainConfigError(f"--stage {self.stage} trains the OIDN candidate's gate: add --oidn-candidate")

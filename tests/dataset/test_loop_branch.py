@@ -103,7 +103,7 @@ def test_error_stage_from_init_starts_from_that_network_with_its_calibration_sca
         torch.testing.assert_close(tuned.state_dict()[name], value, atol=1e-6, rtol=0)
 
 
-@pytest.mark.parametrize("stage, trainable", [("gate", ("gate.",)),
+@pytest.mark.parametrize("stage, trainable", [("gate", ("gate.",)), ("mixing", ("gate.", "composite.")),
                                                ("lambda", ("specialise.mix.", "specialise.delta"))])
 def test_fine_tuning_stages_train_only_their_part_of_the_shipped_denoiser(loop_dataset, tmp_path, stage, trainable):
     out = tmp_path / stage
