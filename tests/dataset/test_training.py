@@ -57,3 +57,16 @@ def test_train_command_writes_loadable_checkpoints_with_their_command(sequence_d
         assert not single.config.temporal and not single.config.multiscale
         assert denoiser.checkpoint_extra["stage"] == "lambda"
     load_checkpoint(out / "error_predictor.pt", expected_kind="error_predictor")
+
+
+def test_train_command_trains_on_noisy_targets_and_validates_on_clean_references(sequence_dataset, tmp_path):
+    out = tmp_path / "n2n"
+    result = subprocess.run(
+        [sys.executable, "-m", "service.cli", "train", "--data", str(sequence_dataset), "--noisy-targets",
+         "--val-data", str(sequence_dataset), "--stage", "denoiser", "-o", str(out), "--steps", "4", "--val-every", "2",
+         "--batch", "2", "--crop", "16", "--width", "8", "--trunk", "unet", "--quiet"],
+        capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr
+    denoiser = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser")
+    assert denoiser.config.trunk == "unet" and "--noisy-targets" in denoiser.checkpoint_extra["command"]
+    assert "best validation SMAPE" in result.stdout
