@@ -40,7 +40,7 @@ from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN  # noqa: F401  (re-export
 class DenoiserConfig:
     source: str = "mitsuba-path"   # render source → encoder input (models.features.FEATURE_SETS)
     width: int = 32                # feature channels everywhere between encoder and kernel head
-    spatial_blocks: int = 2        # residual blocks of the spatial feature extractor
+    spatial_blocks: int = 2        # residual blocks of the spatial feature extractor (the "levels" trunk's)
     temporal_blocks: int = 3       # residual blocks of the temporal feature extractor (paper: 3)
     kernel_size: int = 5           # k; per level, so the 3-level pyramid reaches 5·4 = 20 px
     levels: int = 3                # pyramid levels (paper: 3)
