@@ -310,7 +310,8 @@ class Denoiser(nn.Module):
                 # pooled like the images (variance of a 4-pixel mean ÷ 4), so a level whose
                 # gate is saturated returns exactly D(candidate) and eq. 5 then changes nothing
                 extra = None if extra is None else (down(extra[0]), down(extra[1]) * 0.25, 0)
-            cache = self._prepare_level(frames, images, center, None if trunk_features is None else trunk_features[level])
+            level_features = None if trunk_features is None else trunk_features[level]
+            cache = self._prepare_level(frames, images, center, level_features)
             if extra is not None:
                 cache.candidate = extra[0]
                 cache.gate_hidden = self.gate.prepare(cache.hidden[:, 0, :-1], images[center], extra[0], extra[1])
