@@ -29,7 +29,7 @@ from models.energy import conserve_energy, sample_energy
 from models.features import HDR_MAX, demodulate, feature_set, log_transform, remodulate, sanitize, sanitize_frame
 from models.frames import FrameTensors
 from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
-from models.layers import Pointwise, cat_channels_last, conv3x3, res_blocks, trunk_in_bfloat16
+from models.layers import ConvPair, Pointwise, cat_channels_last, conv3x3, res_blocks, trunk_in_bfloat16
 from models.unet import UNetTrunk
 from models.warp import flow_to_center, warp
 
@@ -124,15 +124,8 @@ def lambda_code(lam: Tensor) -> Tensor:
 
 # --- modules ------------------------------------------------------------------------------
 
-class Encoder(nn.Module):
+class Encoder(ConvPair):
     """Source-specific: two 3×3 convs from that source's features to the shared width."""
-
-    def __init__(self, cin: int, width: int):
-        super().__init__()
-        self.conv1, self.conv2 = conv3x3(cin, width), conv3x3(width, width)
-
-    def forward(self, x: Tensor) -> Tensor:
-        return F.relu_(self.conv2(F.relu_(self.conv1(x))))
 
 
 class TemporalExtractor(nn.Module):

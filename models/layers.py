@@ -57,6 +57,17 @@ class Pointwise(nn.Module):
         return y.view(*lead, -1, h, w)
 
 
+class ConvPair(nn.Module):
+    """relu(conv(relu(conv(x)))): two 3×3 convolutions (the source encoder; a U-Net stage)."""
+
+    def __init__(self, cin: int, cout: int):
+        super().__init__()
+        self.conv1, self.conv2 = conv3x3(cin, cout), conv3x3(cout, cout)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.relu_(self.conv2(F.relu_(self.conv1(x))))
+
+
 class ResBlock(nn.Module):
     """relu(x + conv(relu(conv(x)))): the residual block of Vogels et al. 2018 (Fig. 3).
     ReLUs run in place: at 512² every avoided full-size allocation saves page faults."""

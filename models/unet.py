@@ -22,18 +22,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.layers import cat_channels_last, conv3x3
-
-
-class ConvPair(nn.Module):
-    """relu(conv(relu(conv(x)))): one U-Net stage."""
-
-    def __init__(self, cin: int, cout: int):
-        super().__init__()
-        self.conv1, self.conv2 = conv3x3(cin, cout), conv3x3(cout, cout)
-
-    def forward(self, x: Tensor) -> Tensor:
-        return F.relu_(self.conv2(F.relu_(self.conv1(x))))
+from models.layers import ConvPair, cat_channels_last
 
 
 def stage_width(width: int, depth: int) -> int:
