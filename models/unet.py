@@ -12,9 +12,8 @@ says which features each level's kernel head reads.
 
 Cost: the paper's trunk repeats its full stack on every level (≈ 7.9 full-resolution 3×3
 convolutions of width w for three levels); this one has 2 encoder + 2 decoder convolutions at
-full resolution and twice the width at each coarser stage, ≈ 9.5 by that count. Measured, one
-512² frame through the whole single-frame denoiser without its OIDN call: 150 ms against 108
-(2 threads, median of 5; docs/unet-trunk.md).
+full resolution and twice the width at each coarser stage, ≈ 9.5 by that count; measured by
+`python -m bench.experiments.trunk_speed` (docs/unet-trunk.md).
 """
 from __future__ import annotations
 

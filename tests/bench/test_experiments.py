@@ -13,6 +13,8 @@ from bench.experiments.allocation_variants import allocator_variant
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
                                              ranking_row)
 from bench.experiments.gate_offset import offset_ratios
+from bench.experiments.target_cost import INPUT_SPP, scene_costs
+from bench.experiments.trunk_speed import median_seconds, random_frame
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
 from service.loop.tensors import to_image
@@ -76,3 +78,15 @@ def test_error_ceiling_scores_a_predictor_against_its_own_render_and_the_repeata
     row = ranking_row(true, np.repeat(expected, 6, axis=0))
     assert row["network_vs_repeatable"] > row["network"] > 0.5   # the oracle ranks the repeatable part best
     assert row["repeatable"] == pytest.approx(leave_one_out_spearman(true))
+
+
+def test_target_cost_times_the_inputs_sample_count_the_build_renders_and_every_count_asked():
+    assert INPUT_SPP == 176   # spp16 → spp128 uniformly (128), then adaptive32 (+16) and adaptive64 (+32)
+    costs = scene_costs(scenes=1, size=8, spp_counts=(1, 4))
+    assert set(costs) == {1, 4} and all(seconds > 0 for seconds in costs.values())
+
+
+def test_trunk_speed_times_both_trunks_on_the_same_frame():
+    frame = random_frame(16)
+    for trunk in ("levels", "unet"):
+        assert median_seconds(DenoiserConfig(width=4, temporal=False, trunk=trunk), frame, repeats=1) > 0
