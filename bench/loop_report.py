@@ -32,11 +32,14 @@ DEFAULT_CACHE_DIR = Path("bench-cache")  # git-ignored (/bench-cache/)
 # Goals the product is measured against: time-to-SMAPE speed-ups of (d) and its SMAPE ratio at
 # equal budget (issue 14: ≥ 1.3× vs (b), (d)/(b) ≤ 0.85; the 10× vs (a) is the first benchmark's).
 GOAL_SPEEDUP_VS_A, GOAL_SPEEDUP_VS_B, GOAL_SMAPE_RATIO_D_B = 10.0, 1.3, 0.85
-# torch intra-op threads for every timed network call (loop, model micro-benchmarks, server).
-# The report measures one against two threads in the same run (see its Notes) instead of
-# quoting an old figure.
-TORCH_THREADS = 1
+# torch intra-op threads for every timed network call (loop, model micro-benchmarks, server):
+# whichever of THREAD_PROBE_COUNTS a probe at the start of the run finds faster. OIDN's own pool
+# always takes every core, so one pinned torch thread handicapped (b)–(d) against (e) on a quiet
+# host (256×192, 2 cores: the error stage 0.12 → 0.08 s per loop with two); on a busy one two
+# threads can measure the neighbours instead (docs/oidn-candidate.md: 1.46× against 1.84× OIDN's
+# time at load 5). The probe decides per run, and the report says what it measured.
 THREAD_PROBE_COUNTS = (1, 2)
+THREAD_PROBE_SIZE = 256  # the probe's image side where the suite runs at each scene's own size
 
 
 @dataclass
@@ -45,7 +48,7 @@ class MicroResults:
 
     sampler: list[SamplerResult] | str | None = None
     models: list[dict] | str | None = None
-    threads: ThreadTiming | str | None = None
+    threads: ThreadTiming | str | None = None  # the probe that chose the run's torch threads
     http: dict | str | None = None
 
 
@@ -59,6 +62,7 @@ class LoopResults:
     nets: BenchNetworks
     oidn_status: str
     load_before: str
+    threads: int  # torch intra-op threads of every timed network call (choose_torch_threads)
     scenes: list[SceneResult] = field(default_factory=list)
     head: Headline | None = None
     micro: MicroResults = field(default_factory=MicroResults)
@@ -80,10 +84,13 @@ def run_loop_benchmark(out_dir: Path = Path("docs"), *, quick: bool = False, wei
     out_dir, cache_dir = Path(out_dir), Path(cache_dir)
     settings = DEV if suite == "dev" else QUICK if quick else FULL
     name = "benchmarks-dev" if suite == "dev" else "benchmarks"
-    with pinned_torch_threads(TORCH_THREADS):
-        results = measure_loops(settings, quick, weights_dir, cache_dir, command, only)
+    nets = load_bench_networks(weights_dir)
+    probe, threads = choose_torch_threads(nets, settings.size or THREAD_PROBE_SIZE)
+    with pinned_torch_threads(threads):
+        results = measure_loops(settings, quick, nets, threads, cache_dir, command, only)
         if settings.micro:
-            results.micro = micro_benchmarks(results.settings, results.nets)
+            results.micro = micro_benchmarks(results.settings, results.nets, threads)
+    results.micro.threads = probe
     folder = out_dir / name
     results.csv_path = write_csv(results.scenes, folder / ("loop-quick.csv" if quick else "loop.csv"))
     results.plots = write_plots(results.scenes, results.head, folder)
@@ -100,11 +107,20 @@ def scene_reference_image(scene, settings: BenchSettings, cache_dir: Path):
                            cache_dir / "references").mean
 
 
-def measure_loops(settings: BenchSettings, quick: bool, weights_dir: Path | None, cache_dir: Path,
+def choose_torch_threads(nets: BenchNetworks, size: int) -> tuple[ThreadTiming | str, int]:
+    """The probe's timings (or why it failed) and the thread count to run with: the faster one,
+    1 when the probe failed (the count that cannot oversubscribe a busy host)."""
+    try:
+        probe = denoise_ms_by_threads(nets.networks.denoiser, size, THREAD_PROBE_COUNTS)
+    except Exception as exc:  # the report says what failed; the run goes on
+        return f"{type(exc).__name__}: {exc}", 1
+    return probe, min(probe.ms_median, key=probe.ms_median.get)
+
+
+def measure_loops(settings: BenchSettings, quick: bool, nets: BenchNetworks, threads: int, cache_dir: Path,
                   command: str | None, only: list[str] | None = None) -> LoopResults:
-    nets = load_bench_networks(weights_dir)
     oidn, oidn_status = oidn_denoiser()
-    results = LoopResults(command or command_line(), settings, quick, nets, oidn_status, load_average())
+    results = LoopResults(command or command_line(), settings, quick, nets, oidn_status, load_average(), threads)
     for scene in prepare_scenes(settings, cache_dir, only):
         reference = scene_reference_image(scene, settings, cache_dir)
         warm_up(scene, settings, nets)
@@ -119,16 +135,15 @@ def measure_loops(settings: BenchSettings, quick: bool, weights_dir: Path | None
     return results
 
 
-def micro_benchmarks(settings: BenchSettings, nets: BenchNetworks) -> MicroResults:
+def micro_benchmarks(settings: BenchSettings, nets: BenchNetworks, threads: int) -> MicroResults:
     """Each part is independent: one that fails is reported with its error, the rest still run."""
     size, spp, repeats = settings.sampler
     parts: dict[str, Callable[[], object]] = {
         "sampler": lambda: bench_sampler(size, spp, repeats, SAMPLER_CASES[:settings.sampler_cases]),
         "models": lambda: benchmark_models(sizes=settings.model_sizes, repeats=settings.model_repeats,
-                                           threads=TORCH_THREADS, cases=MODEL_CASES),
-        "threads": lambda: denoise_ms_by_threads(nets.networks.denoiser, settings.size, THREAD_PROBE_COUNTS),
+                                           threads=threads, cases=MODEL_CASES),
         "http": lambda: bench_http_lambda(settings.http_size, settings.http_requests, nets.folder, LOOP_SEED,
-                                          TORCH_THREADS),
+                                          threads),
     }
     micro = MicroResults()
     for name, run in parts.items():
@@ -174,7 +189,7 @@ def write_loop_report(path: Path, results: LoopResults) -> Path:
         quick=" (**--quick**: small images, few scenes and iterations; not the real report)" if results.quick else "",
         size_label=f"{s.size}×{s.size}" if s.size else "each scene's own film size (about 256²)",
         suite=suite_note(s), iterations=s.iterations, spps=", ".join(spps), last_spp=spps[-1], reference_spp=s.reference_spp,
-        repeats=s.timing_repeats, threads=TORCH_THREADS,
+        repeats=s.timing_repeats, threads=results.threads,
         methods="; ".join(f"({m.key}) {m.label}" for m in METHODS), oidn_status=results.oidn_status,
         headline_table=headline_table(scenes, head), goals="; ".join(goal_lines(head)),
         error_plot=f"![SMAPE vs cumulative wall time, log-log, one panel per scene; dotted: the target]({rel(plots[0])})"
@@ -333,9 +348,11 @@ def threads_note(timing: ThreadTiming | str | None) -> str:
     if isinstance(timing, ThreadTiming):
         measured = " and ".join(f"{ms:.1f} ms with {t} thread{'s' if t > 1 else ''}"
                                 for t, ms in timing.ms_median.items())
-        return (f"Measured in this run, in this process, with the loaded denoiser: one single-frame "
-                f"{timing.size}² denoise took {measured} (median of {timing.repeats}, interleaved).")
-    return f"The one-vs-two-thread comparison failed: {timing}" if timing else "The thread comparison was not run."
+        return (f"Measured at the start of this run, in this process, with the loaded denoiser: one "
+                f"single-frame {timing.size}² denoise took {measured} (median of {timing.repeats}, "
+                "interleaved); the faster count ran everything.")
+    return f"The one-vs-two-thread probe failed ({timing}), so everything ran on one thread." if timing \
+        else "The thread probe was not run."
 
 
 # --- the command ------------------------------------------------------------------------------------

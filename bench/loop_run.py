@@ -66,9 +66,11 @@ FULL = BenchSettings(size=64, reference_spp=4096, iterations=5,
                      timing_repeats=3, sampler=(256, 64, 3), sampler_cases=3, model_sizes=(256, 512), model_repeats=3,
                      http_size=256, http_requests=40)
 # The development suite (scenes/dev, never trained on) at its own film sizes (about 256²) against
-# its committed references; one timing repeat keeps 12 scenes × 5 methods within minutes.
+# its committed references. Two timing repeats: with one, a scene's render stage alone moved by up
+# to 20 % between two runs of the same loop on the shared host, enough to flip (d)-vs-(e) verdicts;
+# two keep 12 scenes × 6 methods within about ten minutes.
 DEV = BenchSettings(size=None, reference_spp=16384, iterations=4, builtin_scenes=(), heldout_scenes=0,
-                    timing_repeats=1, sampler=(256, 64, 1), sampler_cases=0, model_sizes=(), model_repeats=0,
+                    timing_repeats=2, sampler=(256, 64, 1), sampler_cases=0, model_sizes=(), model_repeats=0,
                     http_size=0, http_requests=0, suite="dev", micro=False)
 QUICK = BenchSettings(size=32, reference_spp=512, iterations=3, builtin_scenes=("cornell-box",),
                       heldout_scenes=1, timing_repeats=1, sampler=(32, 16, 1), sampler_cases=1, model_sizes=(32,),

@@ -52,6 +52,7 @@ class DenoiserConfig:
     multiscale: bool = True        # False: finest level only, no compositing
     oidn_candidate: bool = False   # an external denoiser's image joins every level's joint softmax (models.candidate)
     gate_width: int = 8            # hidden channels of the candidate gate
+    gate_firefly: bool = False     # the gate also reads the samples' relative variance (models.candidate)
     energy_tolerance: float = 0.0  # τ of models.energy: > 0 pulls the image's total towards the samples'; 0 = off
     # Logits added to the candidate gate after training (models.candidate.CandidateGate.weight):
     # > 0 leans to the candidate, in full at λ = 1 and not at all at λ = 10.
@@ -262,6 +263,7 @@ class Denoiser(nn.Module):
         self.composite = ScaleCompositor(cfg.composite_width) if cfg.multiscale else None
         self.gate = CandidateGate(
             cfg.lambda_width, cfg.gate_width, LambdaModule(cfg.gate_width, cfg.lambda_width, 1, cfg.lambda_rank),
+            firefly=cfg.gate_firefly,
         ) if cfg.oidn_candidate else None
 
     # -- prepare: everything before λ -----------------------------------------------------

@@ -40,6 +40,9 @@ def add_parser(sub) -> None:
                         f"(default {d.symmetric_fraction:g})")
     p.add_argument("--oidn-candidate", action="store_true",
                    help="OIDN's image on the same inputs joins the joint softmax (models/candidate.py)")
+    p.add_argument("--gate-firefly", action="store_true",
+                   help="with --oidn-candidate: the gate also reads each pixel's relative variance, ≈ 1 where one "
+                        "sample dominates (a gate --init lacks them for starts fresh)")
     p.add_argument("--single-frame", action="store_true",
                    help="no temporal extractor: a one-frame network (data sets of single frames)")
     p.add_argument("--init", type=Path, default=d.init,
@@ -69,7 +72,7 @@ def train_config(args) -> TrainConfig:
         data=tuple(args.data), out=args.out, stage=args.stage, steps=args.steps, batch=args.batch, crop=args.crop,
         lr=args.lr, val_every=args.val_every, seed=args.seed, width=args.width, spatial_blocks=args.spatial_blocks,
         trunk=args.trunk, symmetric_fraction=args.symmetric_fraction, oidn_candidate=args.oidn_candidate,
-        temporal=not args.single_frame, init=args.init, resume=args.resume, device=args.device,
+        gate_firefly=args.gate_firefly, temporal=not args.single_frame, init=args.init, resume=args.resume, device=args.device,
         quiet=args.quiet, error_levels=args.error_levels, noisy_targets=args.noisy_targets, val_data=args.val_data,
         command_line="renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
     )

@@ -65,6 +65,7 @@ class TrainConfig:
     trunk: str | None = None  # denoiser feature extractor: levels | unet (None: the model's default)
     symmetric_fraction: float = 0.5  # end to end: first fraction of steps at λ = 1
     oidn_candidate: bool = False  # OIDN's image as one more candidate of the joint softmax
+    gate_firefly: bool = False  # the candidate gate also reads the relative variance (models.candidate)
     temporal: bool = True  # False: a single-frame denoiser (no temporal extractor, one-frame windows)
     init: Path | None = None  # start from this checkpoint: the denoiser's (--stage error: the error network's)
     resume: bool = False  # continue from OUT/.train_<stage>.pt
@@ -108,5 +109,7 @@ class TrainConfig:
         if self.noisy_targets and self.stage in NEEDS_CLEAN_REFERENCES:
             raise TrainConfigError(f"--noisy-targets trains the denoiser at λ = 1; --stage {self.stage} needs clean "
                                    "references (eq. 6's λ weighting and the error network's SMAPE target)")
+        if self.gate_firefly and not self.oidn_candidate:
+            raise TrainConfigError("--gate-firefly adds statistics to the OIDN candidate's gate: add --oidn-candidate")
         if self.stage in ("gate", "mixing") and not self.oidn_candidate:
             raise TrainConfigError(f"--stage {self.stage} trains the OIDN candidate's gate: add --oidn-candidate")

@@ -137,14 +137,19 @@ def _denoiser_to_train(config, device, switches: dict):
     wanted = {"oidn_candidate": config.oidn_candidate, "temporal": config.temporal}
     if config.init is None:
         sizes = {"width": config.width, "spatial_blocks": config.spatial_blocks, "trunk": config.trunk}
-        base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None}, **wanted)
+        base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None}, **wanted,
+                              gate_firefly=config.gate_firefly)
         return Denoiser(dataclasses.replace(base, **switches)).to(device)
     trained = load_checkpoint(config.init, expected_kind="denoiser", device=device)
-    # a candidate gate the earlier weights lack starts fresh (near "copy the candidate"); the
-    # checkpoint's post-training settings (gate offsets, energy factor) are not trained through
+    # a candidate gate the earlier weights lack starts fresh (near "copy the candidate"), and so
+    # does a gate layer whose inputs --gate-firefly widens; the checkpoint's post-training
+    # settings (gate offsets, energy factor) are not trained through
+    wanted["gate_firefly"] = config.gate_firefly or trained.config.gate_firefly
     full = dataclasses.replace(trained.config.without_post_training_settings(), multiscale=True, **wanted)
     model = Denoiser(dataclasses.replace(full, **switches)).to(device)
-    model.load_state_dict(trained.state_dict(), strict=False)
+    shapes = {name: tensor.shape for name, tensor in model.state_dict().items()}
+    model.load_state_dict({name: tensor for name, tensor in trained.state_dict().items()
+                           if shapes.get(name, tensor.shape) == tensor.shape}, strict=False)
     return model
 
 

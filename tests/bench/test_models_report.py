@@ -1,4 +1,5 @@
-from bench.models_report import benchmark_models, main
+from bench.models_report import benchmark_models, denoise_ms_by_threads, main
+from models.denoiser import Denoiser, DenoiserConfig
 
 
 def test_benchmark_reports_time_and_memory_per_case():
@@ -15,3 +16,10 @@ def test_bench_main_reads_its_own_arguments_and_writes_the_report(monkeypatch, t
     text = path.read_text()
     assert "width=8" in text and "| temporal-3 | 8² | 1 |" in text
     assert "Command: `renderloop bench --models`" in text and "Date:" in text
+
+
+def test_thread_probe_times_a_denoiser_that_takes_the_oidn_candidate():
+    """The loop report's one-vs-two-thread note once read 'this denoiser needs candidate image'."""
+    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True)).eval()
+    timing = denoise_ms_by_threads(denoiser, 16, (1, 2), repeats=1)
+    assert set(timing.ms_median) == {1, 2} and all(ms > 0 for ms in timing.ms_median.values())

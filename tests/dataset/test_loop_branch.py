@@ -119,3 +119,21 @@ def test_fine_tuning_stages_train_only_their_part_of_the_shipped_denoiser(loop_d
     assert changed and all(name.startswith(trainable) for name in changed)
     config = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser").config   # chosen after training: reset
     assert (config.gate_offset, config.coarse_gate_offset, config.energy_tolerance) == (0.0, None, 0.0)
+
+
+def test_gate_firefly_widens_the_shipped_gate_and_keeps_every_other_weight(loop_dataset, tmp_path):
+    out = tmp_path / "firefly"
+    result = subprocess.run(
+        [sys.executable, "-m", "service.cli", "train", "--data", str(loop_dataset), "--stage", "gate", "-o", str(out),
+         "--init", str(SHIPPED_WEIGHTS_DIR / "denoiser.pt"), "--oidn-candidate", "--gate-firefly", "--single-frame",
+         "--steps", "2", "--val-every", "2", "--batch", "2", "--crop", "16", "--quiet"],
+        capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    shipped = load_checkpoint(SHIPPED_WEIGHTS_DIR / "denoiser.pt", expected_kind="denoiser")
+    tuned = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser")
+    assert tuned.config.gate_firefly and not shipped.config.gate_firefly
+    before, after = shipped.state_dict(), tuned.state_dict()
+    assert after["gate.hidden.weight"].shape[1] == before["gate.hidden.weight"].shape[1] + 2  # N_FIREFLY_STATS
+    for name, value in before.items():
+        if not name.startswith("gate."):
+            torch.testing.assert_close(after[name], value, atol=0, rtol=0)

@@ -6,6 +6,7 @@ import dataclasses
 import pytest
 import torch
 
+from models.candidate import N_FIREFLY_STATS, N_STATS, gate_statistics, relative_variance
 from models.checkpoint import load_checkpoint, save_checkpoint
 from models.denoiser import Denoiser
 
@@ -168,3 +169,45 @@ def test_gate_offsets_act_fully_at_lambda_1_and_not_at_all_at_lambda_10():
     finest = model.candidate_weights(cache, lam_map)[0][0, 0]
     torch.testing.assert_close(finest[:, W // 2:], leaning[10.0][0][0, 0, :, W // 2:])
     assert (finest[:, : W // 2] > plain[10.0][0][0, 0, :, : W // 2]).all()
+
+
+def _mean_and_variance_of_mean(samples: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n, …) samples → the per-pixel mean and its variance (sample variance / n), as the frame
+    buffer stores them."""
+    n = samples.shape[0]
+    return samples.mean(0), samples.var(0, unbiased=True) / n
+
+
+def test_relative_variance_reads_one_where_a_single_sample_dominates_the_mean():
+    n = 16
+    firefly = torch.zeros(n, 1, 3, 1, 1)
+    firefly[3] = 500.0
+    m, v = _mean_and_variance_of_mean(firefly)
+    assert relative_variance(m, v).item() == pytest.approx(1.0, rel=0.01)
+    smooth = 0.5 + 0.05 * torch.randn(n, 1, 3, 8, 8, generator=torch.Generator().manual_seed(0))
+    m, v = _mean_and_variance_of_mean(smooth)
+    assert relative_variance(m, v).max() < 0.01   # CV² / n for well-behaved samples
+    black = torch.zeros(n, 1, 3, 2, 2)
+    assert (relative_variance(*_mean_and_variance_of_mean(black)) == 0).all()   # no 0/0
+
+
+def test_firefly_statistics_mark_the_firefly_and_its_neighbours_only_when_asked_for():
+    samples = 0.5 + 0.05 * torch.randn(16, 1, 3, 15, 15, generator=torch.Generator().manual_seed(1))
+    samples[0, :, :, 7, 7] = 400.0
+    m, v = _mean_and_variance_of_mean(samples)
+    candidate = torch.full_like(m, 0.5)
+    assert gate_statistics(m, candidate, v).shape[1] == N_STATS
+    stats = gate_statistics(m, candidate, v, firefly=True)
+    assert stats.shape[1] == N_STATS + N_FIREFLY_STATS
+    at_pixel, pooled = stats[0, N_STATS], stats[0, N_STATS + 1]
+    assert at_pixel[7, 7] > 0.6 and at_pixel[0, 0] < 0.01   # log(1 + 1) ≈ 0.69 on the firefly only
+    assert pooled[5, 9] > 0.6 and pooled[0, 0] < 0.01       # its 7×7 neighbourhood, not the corner
+
+
+def test_a_firefly_gate_checkpoint_reloads_with_its_wider_gate(tmp_path):
+    model = Denoiser(dataclasses.replace(CANDIDATE, gate_firefly=True)).eval()
+    save_checkpoint(tmp_path / "d.pt", model)
+    loaded = load_checkpoint(tmp_path / "d.pt", expected_kind="denoiser")
+    assert loaded.config.gate_firefly
+    frame, candidate = make_frame(H, W), candidate_image()
+    torch.testing.assert_close(loaded([frame], 0, 2.0, candidate), model([frame], 0, 2.0, candidate))
