@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from bench.calibration_report import run_calibration_report
-from bench.dev_references import DEFAULT_REFERENCE_DIR, SUITES, VAL_REFERENCE_DIR, write_references
+from bench.dev_references import DEFAULT_REFERENCE_DIR, SUITES, VAL_REFERENCE_DIR, scaled_reference_dir, write_references
 from bench.dev_suite_report import run_dev_suite_report
 from bench.loop_report import add_arguments as add_loop_arguments, run_loop_command
 from bench.models_report import main as models_main
@@ -80,8 +80,13 @@ def main(argv: list[str]) -> int:
 def run_bench(args: argparse.Namespace) -> int:
     if args.references:
         suite = SUITES["val" if args.suite == "val" else "dev"]
-        folder = args.references_dir or suite.references
-        written = write_references(folder, spp=args.reference_spp, only=args.only, root=suite.root)
+        if args.film_scale < 1:
+            print("renderloop bench: error: --film-scale must be >= 1", file=sys.stderr)
+            return 2
+        default = suite.references if args.film_scale == 1 else scaled_reference_dir(args.cache, args.film_scale)
+        folder = args.references_dir or default
+        written = write_references(folder, spp=args.reference_spp, only=args.only, root=suite.root,
+                                   film_scale=args.film_scale)
         print(f"wrote {len(written)} reference(s) to {folder}")
         return 0
     if args.fit_scale is not None and not (args.calibration and args.suite == "val"):

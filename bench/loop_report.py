@@ -13,13 +13,13 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from bench.common import (METRIC_NAMES, BenchNetworks, command_line, fill, load_average,
                           load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance, scene_reference)
 from bench.loop_plots import write_plots
-from bench.dev_references import DEFAULT_REFERENCE_DIR, load_reference
+from bench.dev_references import DEFAULT_REFERENCE_DIR, SCALED_REFERENCE_SPP, load_reference, scaled_reference_dir
 from bench.loop_run import (DEGENERATE_PREDICTION_RATIO, DEV, FULL, LOOP_SEED, METHODS, PRODUCT, QUICK, STAGES,
                             BenchSettings, ErrorAgreement, Headline, SceneResult, error_agreement, headline,
                             prepare_scenes, run_method, warm_up)
@@ -76,14 +76,15 @@ class LoopResults:
 
 def run_loop_benchmark(out_dir: Path = Path("docs"), *, quick: bool = False, weights_dir: Path | None = None,
                        cache_dir: Path = DEFAULT_CACHE_DIR, command: str | None = None, suite: str = "procedural",
-                       only: list[str] | None = None) -> Path:
+                       only: list[str] | None = None, film_scale: int = 1, reference_spp: int | None = None) -> Path:
     """Run the loop benchmark and write `out_dir/benchmarks.md` (+ CSV and PNGs in
-    `out_dir/benchmarks/`), or `benchmarks-dev.md` for the development suite; returns the
-    markdown path."""
+    `out_dir/benchmarks/`), or `benchmarks-dev.md` for the development suite (`benchmarks-dev-xK.md`
+    at film_scale K > 1, against the references `renderloop bench --references --film-scale K`
+    left in the cache, of `reference_spp`); returns the markdown path."""
     started = time.perf_counter()
     out_dir, cache_dir = Path(out_dir), Path(cache_dir)
-    settings = DEV if suite == "dev" else QUICK if quick else FULL
-    name = "benchmarks-dev" if suite == "dev" else "benchmarks"
+    settings = dev_settings(film_scale, reference_spp) if suite == "dev" else QUICK if quick else FULL
+    name = ("benchmarks-dev" + (f"-x{film_scale}" if film_scale > 1 else "")) if suite == "dev" else "benchmarks"
     nets = load_bench_networks(weights_dir)
     probe, threads = choose_torch_threads(nets, settings.size or THREAD_PROBE_SIZE)
     with pinned_torch_threads(threads):
@@ -98,10 +99,30 @@ def run_loop_benchmark(out_dir: Path = Path("docs"), *, quick: bool = False, wei
     return write_loop_report(out_dir / f"{name}.md", results)
 
 
+def dev_settings(film_scale: int = 1, reference_spp: int | None = None) -> BenchSettings:
+    """The development suite's settings; at film_scale > 1 against the cached scaled references."""
+    if film_scale < 1:
+        raise ValueError(f"film_scale must be >= 1, got {film_scale}")
+    if film_scale == 1:
+        return DEV
+    return replace(DEV, film_scale=film_scale, reference_spp=reference_spp or SCALED_REFERENCE_SPP)
+
+
 def scene_reference_image(scene, settings: BenchSettings, cache_dir: Path):
-    """A development scene's committed reference (frame 0), else one rendered once and cached."""
+    """A development scene's committed reference (frame 0) — or at film_scale > 1 the cached one of
+    that film size and settings.reference_spp — else one rendered once and cached."""
+    frame = None if scene.dev is None or scene.dev.frames == 1 else 0
+    if scene.dev is not None and settings.film_scale > 1:
+        folder = scaled_reference_dir(cache_dir, settings.film_scale)
+        image, header = load_reference(folder, scene.dev, frame, size=scene.film)
+        if header.get("spp") != settings.reference_spp:
+            raise FileNotFoundError(f"{scene.label}: the cached {scene.film[0]}x{scene.film[1]} reference has "
+                                    f"{header.get('spp')} spp, not {settings.reference_spp}: run `renderloop bench "
+                                    f"--references --film-scale {settings.film_scale} --reference-spp "
+                                    f"{settings.reference_spp} --only {scene.label}`")
+        return image
     if scene.dev is not None:
-        return load_reference(DEFAULT_REFERENCE_DIR, scene.dev, None if scene.dev.frames == 1 else 0)[0]
+        return load_reference(DEFAULT_REFERENCE_DIR, scene.dev, frame)[0]
     print(f"bench --loop: {scene.label}: reference at {settings.reference_spp} spp …", flush=True)
     return scene_reference(scene.source, scene.label, settings.size, settings.reference_spp,
                            cache_dir / "references").mean
@@ -187,7 +208,7 @@ def write_loop_report(path: Path, results: LoopResults) -> Path:
         load_before=results.load_before, load_after=load_average(), minutes=f"{results.seconds / 60:.1f}",
         weights=results.nets.description,
         quick=" (**--quick**: small images, few scenes and iterations; not the real report)" if results.quick else "",
-        size_label=f"{s.size}×{s.size}" if s.size else "each scene's own film size (about 256²)",
+        size_label=size_label(s),
         suite=suite_note(s), iterations=s.iterations, spps=", ".join(spps), last_spp=spps[-1], reference_spp=s.reference_spp,
         repeats=s.timing_repeats, threads=results.threads,
         methods="; ".join(f"({m.key}) {m.label}" for m in METHODS), oidn_status=results.oidn_status,
@@ -204,7 +225,23 @@ def write_loop_report(path: Path, results: LoopResults) -> Path:
     return path
 
 
+def size_label(settings: BenchSettings) -> str:
+    if settings.size:
+        return f"{settings.size}×{settings.size}"
+    if settings.film_scale > 1:
+        side = 256 * settings.film_scale
+        return f"{settings.film_scale}× each scene's film size in width and height (about {side}²)"
+    return "each scene's own film size (about 256²)"
+
+
 def suite_note(settings: BenchSettings) -> str:
+    if settings.suite == "dev" and settings.film_scale > 1:
+        return (f"Scenes: the hand-written development scenes (scenes/dev, never trained on), rendered as written "
+                f"but for the film's size, against references at that size (mi.render of the same resized scene, "
+                f"{settings.reference_spp} spp, made by `renderloop bench --references --film-scale "
+                f"{settings.film_scale}` and cached in the bench cache, not committed; not rendered by this run). "
+                "At this spp a reference's own noise is a visible part of the smallest errors below, the same "
+                "for every method: it pulls ratios between methods towards 1.")
     if settings.suite == "dev":
         return ("Scenes: the twelve hand-written development scenes (scenes/dev, never trained on), rendered as "
                 "written, against their committed references (scenes/dev/references: mi.render as written, "
@@ -366,6 +403,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", type=Path, default=None,
                         help="with --loop or --denoiser: weights folder (default models/weights)")
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE_DIR, help="with --loop: reference cache folder")
+    parser.add_argument("--film-scale", type=int, default=1, metavar="K",
+                        help="with --loop --suite dev or --references: each film's width and height × K (2: about "
+                             "512²), against references rendered by --references --film-scale K into the cache")
     parser.add_argument("--suite", choices=("procedural", "dev", "val"), default="procedural",
                         help="with --loop: 'dev' runs the development suite at its own sizes → benchmarks-dev.md; "
                              "with --denoiser or --references: 'dev' (scenes/dev) or 'val' (scenes/val, "
@@ -377,7 +417,15 @@ def run_loop_command(args: argparse.Namespace) -> int:
         print("renderloop bench: error: --loop runs on --suite procedural or dev; the validation scenes "
               "(--suite val) are for --denoiser", file=sys.stderr)
         return 2
-    path = run_loop_benchmark(args.out, quick=args.quick, weights_dir=args.weights, cache_dir=args.cache,
-                              suite=args.suite, only=args.only)
+    if args.film_scale != 1 and args.suite != "dev":
+        print("renderloop bench: error: --film-scale runs the development suite: add --suite dev", file=sys.stderr)
+        return 2
+    try:
+        path = run_loop_benchmark(args.out, quick=args.quick, weights_dir=args.weights, cache_dir=args.cache,
+                                  suite=args.suite, only=args.only, film_scale=args.film_scale,
+                                  reference_spp=args.reference_spp)
+    except FileNotFoundError as exc:  # a scaled reference not rendered yet: the message names the command
+        print(f"renderloop bench: error: {exc}", file=sys.stderr)
+        return 2
     print(f"wrote {path}")
     return 0

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from bench.common import BenchNetworks, OidnDenoise, image_metrics, true_error_map
-from bench.dev_references import DevScene, dev_scenes
+from bench.dev_references import DevScene, dev_scenes, scaled_film
 from models.frames import FrameTensors
 from models.pretrained import Networks
 from service.dataset.procedural import generate_scene
@@ -58,6 +58,7 @@ class BenchSettings:
     http_size: int
     http_requests: int
     suite: str = "procedural"  # "procedural": built-ins + held-out procedural; "dev": scenes/dev as written
+    film_scale: int = 1  # dev suite: each film's width and height × this (2: about 512²)
     micro: bool = True  # the renderer / model / HTTP micro-benchmarks
 
 
@@ -106,6 +107,7 @@ class BenchScene:
     source: str  # a built-in name or an XML path: what LoopSpec.scene takes
     origin: str  # for the report
     dev: DevScene | None = None  # a development-suite scene: its reference is committed
+    film: tuple[int, int] | None = None  # (width, height) the loop renders at; None: settings.size or the scene's own
 
 
 # --- scenes and references ----------------------------------------------------------------------
@@ -152,7 +154,9 @@ def procedural_scene_xml(seed: int, folder: Path, size: int) -> Path:
 
 def prepare_scenes(settings: BenchSettings, cache_dir: Path, only: list[str] | None = None) -> list[BenchScene]:
     if settings.suite == "dev":
-        return [BenchScene(scene.name, str(scene.path), "development suite", scene) for scene in dev_scenes(only)]
+        return [BenchScene(scene.name, str(scene.path), "development suite", scene,
+                           scaled_film(scene, settings.film_scale) if settings.film_scale > 1 else None)
+                for scene in dev_scenes(only)]
     scenes = [BenchScene(name, name, "built-in") for name in settings.builtin_scenes]
     for seed in scene_seeds("heldout", settings.heldout_scenes, HELDOUT_DATASET_SEED):
         path = procedural_scene_xml(seed, cache_dir / "scenes" / f"heldout-{seed}", settings.size)
@@ -224,7 +228,8 @@ class MethodRun:
 
 
 def _loop_spec(scene: BenchScene, method: LoopMethod, settings: BenchSettings, iterations: int) -> LoopSpec:
-    return LoopSpec(scene=scene.source, width=settings.size, height=settings.size, max_iterations=iterations,
+    width, height = scene.film or (settings.size, settings.size)
+    return LoopSpec(scene=scene.source, width=width, height=height, max_iterations=iterations,
                     allocator=method.allocator, denoise=method.denoiser == "kpcn", seed=LOOP_SEED)
 
 

@@ -28,7 +28,7 @@ VECTOR_LAYERS: dict[str, tuple[str, tuple[str, ...]]] = {
 SCALAR_LAYERS: dict[str, str] = {"depth": "Z", "spp": "spp", "error": "error", "lam": "lambda"}
 HEADER_KEYS = ("scene", "iteration", "total_samples", "variant", "frame")
 # Provenance a reference image carries (bench/dev_references.py).
-REFERENCE_HEADER_KEYS = ("content_hash", "spp", "passes", "seeds")
+REFERENCE_HEADER_KEYS = ("content_hash", "spp", "passes", "seeds", "film_scale")
 # Optional extra channels (an integrator's AOVs, named as Mitsuba names them) live under this
 # prefix so they can never clobber the layers above (`albedo.R` vs `aov.albedo.R`).
 EXTRA_PREFIX = "aov."
