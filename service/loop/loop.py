@@ -33,7 +33,8 @@ def next_counts(allocator: str, buffer: FrameBuffer, predicted_error: np.ndarray
     weights. Pixels whose samples all agreed (empty background, flat emitters) gain nothing
     from more: they get only the allocator's uniform floor."""
     weights = allocation_weights(allocator, predicted_error=predicted_error,
-                                 relative_variance=buffer.relative_variance(), shape=buffer.shape)
+                                 relative_variance=buffer.relative_variance(), shape=buffer.shape,
+                                 spp=buffer.spp, budget=budget)
     settled = buffer.converged() if allocator != "uniform" else None
     return allocate_samples(weights, budget, seed=seed, floor_only=settled)
 
