@@ -25,12 +25,10 @@ from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
 
 # name → (error exponent, allocate_samples keyword overrides, the equal-gain rule's β — None: the
-# paper's new samples ∝ error). The rows up to "floor 20 %" were first measured against the
-# paper's rule, when it was the product's (docs/error-network.md, "Allocation").
+# paper's new samples ∝ error, the shipped rule).
 SHIPPED_GAIN = allocate.ERROR_GAIN_EXPONENT
 VARIANTS: dict[str, tuple[float, dict, float | None]] = {
     "shipped": (1.0, {}, SHIPPED_GAIN),
-    "∝ error (the paper's)": (1.0, {}, None),
     "clamp 95": (1.0, {"clamp_percentile": 95.0}, SHIPPED_GAIN),
     "clamp 99.5": (1.0, {"clamp_percentile": 99.5}, SHIPPED_GAIN),
     "no clamp": (1.0, {"clamp_percentile": None}, SHIPPED_GAIN),
@@ -40,8 +38,9 @@ VARIANTS: dict[str, tuple[float, dict, float | None]] = {
     "dilation 3": (1.0, {"dilate_radius": 3}, SHIPPED_GAIN),
     "floor 1 %": (1.0, {"floor_fraction": 0.01}, SHIPPED_GAIN),
     "floor 20 %": (1.0, {"floor_fraction": 0.2}, SHIPPED_GAIN),
+    "equal gain β ½": (1.0, {}, 0.5),
+    "equal gain β ½, no dilation": (1.0, {"dilate_radius": 0}, 0.5),
     "equal gain β ¼": (1.0, {}, 0.25),
-    "∝ error, no dilation": (1.0, {"dilate_radius": 0}, None),
 }
 
 

@@ -34,14 +34,13 @@ def test_allocator_variant_applies_its_settings_inside_and_restores_the_product_
     np.testing.assert_array_equal(loop.allocate_samples(weights, 1000, seed=0), default)
 
 
-def test_allocator_variant_can_restore_the_papers_rule_for_one_loop():
+def test_allocator_variant_switches_the_equal_gain_rule_on_for_one_loop_only():
     error, spp = np.array([[0.2, 0.2]]), np.array([[16, 64]])
-    shipped = allocate.error_weights(error, spp, 100)
-    with allocator_variant(1.0, {}, gain=None):
-        np.testing.assert_array_equal(allocate.allocation_weights("error", predicted_error=error, shape=(1, 2),
-                                                                  spp=spp, budget=100), error)
-    np.testing.assert_array_equal(allocate.error_weights(error, spp, 100), shipped)
-    assert shipped[0, 0] > shipped[0, 1]   # the product's rule: the pixel with fewer samples first
+    np.testing.assert_array_equal(allocate.error_weights(error, spp, 100), error)   # shipped: the paper's rule
+    with allocator_variant(1.0, {}, gain=0.5):
+        weights = allocate.allocation_weights("error", predicted_error=error, shape=(1, 2), spp=spp, budget=100)
+        assert weights[0, 0] > weights[0, 1]   # the pixel with fewer samples first
+    np.testing.assert_array_equal(allocate.error_weights(error, spp, 100), error)
 
 
 @torch.no_grad()

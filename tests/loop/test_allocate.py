@@ -321,9 +321,11 @@ def test_equal_gain_without_any_error_or_budget_stays_finite_and_uniform():
     assert (equal_gain_samples(np.full((2, 2), np.nan), np.zeros((2, 2)), 0, 0.5) == 0).all()
 
 
-def test_error_weights_use_the_counts_when_given_and_the_papers_rule_otherwise():
+def test_error_weights_are_the_papers_unless_the_equal_gain_rule_is_switched_on(monkeypatch):
     error, spp = np.array([[0.2, 0.2]]), np.array([[16, 64]])
     np.testing.assert_array_equal(error_weights(error), error)
+    np.testing.assert_array_equal(error_weights(error, spp, 100), error)   # shipped: ∝ predicted error
+    monkeypatch.setattr("service.loop.allocate.ERROR_GAIN_EXPONENT", 0.5)
     weights = error_weights(error, spp, 100)
     assert weights.sum() == pytest.approx(100) and weights[0, 0] > weights[0, 1]
     with pytest.raises(ValueError, match="does not match"):
