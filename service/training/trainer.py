@@ -147,9 +147,12 @@ def _denoiser_to_train(config, device, switches: dict):
     wanted["gate_firefly"] = config.gate_firefly or trained.config.gate_firefly
     full = dataclasses.replace(trained.config.without_post_training_settings(), multiscale=True, **wanted)
     model = Denoiser(dataclasses.replace(full, **switches)).to(device)
+    # Only the gate's widened layer may differ in shape; any other mismatch stays a loud error.
     shapes = {name: tensor.shape for name, tensor in model.state_dict().items()}
-    model.load_state_dict({name: tensor for name, tensor in trained.state_dict().items()
-                           if shapes.get(name, tensor.shape) == tensor.shape}, strict=False)
+    widened = {name for name, tensor in trained.state_dict().items()
+               if name.startswith("gate.") and shapes.get(name, tensor.shape) != tensor.shape}
+    model.load_state_dict({name: tensor for name, tensor in trained.state_dict().items() if name not in widened},
+                          strict=False)
     return model
 
 
