@@ -417,6 +417,9 @@ def run_loop_command(args: argparse.Namespace) -> int:
         print("renderloop bench: error: --loop runs on --suite procedural or dev; the validation scenes "
               "(--suite val) are for --denoiser", file=sys.stderr)
         return 2
+    if args.film_scale < 1:
+        print("renderloop bench: error: --film-scale must be >= 1", file=sys.stderr)
+        return 2
     if args.film_scale != 1 and args.suite != "dev":
         print("renderloop bench: error: --film-scale runs the development suite: add --suite dev", file=sys.stderr)
         return 2

@@ -42,7 +42,7 @@ def add_parser(sub) -> None:
                    help="OIDN's image on the same inputs joins the joint softmax (models/candidate.py)")
     p.add_argument("--gate-firefly", action="store_true",
                    help="with --oidn-candidate: the gate also reads each pixel's relative variance, ≈ 1 where one "
-                        "sample dominates (a gate --init lacks them for starts fresh)")
+                        "sample dominates (the gate's input layer starts fresh when --init's gate lacks them)")
     p.add_argument("--single-frame", action="store_true",
                    help="no temporal extractor: a one-frame network (data sets of single frames)")
     p.add_argument("--init", type=Path, default=d.init,

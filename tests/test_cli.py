@@ -55,6 +55,8 @@ def test_uniform_render_writes_every_layer_and_matches_mi_render(tmp_path):
     (["train", "--data", "no-data", "--spatial-blocks", "-1"], "--spatial-blocks must be >= 0"),
     (["train", "--data", "no-data", "--stage", "gate", "--oidn-candidate"], "name it with --init"),
     (["train", "--data", "no-data", "--stage", "gate", "--init", "d.pt"], "add --oidn-candidate"),
+    (["train", "--data", "no-data", "--gate-firefly"], "--gate-firefly adds statistics"),
+    (["bench", "--loop", "--film-scale", "0", "--suite", "dev"], "--film-scale must be >= 1"),
 ])
 def test_bad_input_gives_one_clear_line_and_a_nonzero_exit(tmp_path, args, message):
     result = renderloop(*args, cwd=tmp_path)

@@ -62,3 +62,11 @@ def test_scaled_development_loop_benchmark_writes_its_own_report(scaled_cache, t
     text = report.read_text()
     assert report.name == "benchmarks-dev-x2.md" and "$" not in text
     assert "about 512²" in text and "4 spp" in text and "| point_object |" in text
+
+
+def test_a_scaled_loop_without_its_references_names_the_command_that_makes_them(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "service.cli", "bench", "--loop", "--suite", "dev", "--film-scale",
+                             "3", "--only", POINT_OBJECT, "--cache", str(tmp_path), "-o", str(tmp_path)],
+                            capture_output=True, text=True, timeout=600)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "renderloop bench --references --film-scale K (a 768x768 film)" in result.stderr
