@@ -116,16 +116,35 @@ def _per_iteration_table(results: dict[str, list[IterationScore]]) -> str:
     return "\n".join(rows)
 
 
+@dataclass(frozen=True)
+class StopCounts:
+    """Where --target-error E stops, counted over the scenes."""
+
+    stops: int      # scenes whose prediction reaches E within the run
+    trusted: int    # of them, true SMAPE within TRUSTED of E at the stop
+    first: int      # of them, stopped after the first iteration (16 spp): no sampling choice was made
+    first_below: int  # of those, true SMAPE below (1 − TRUSTED)·E: the first pass already beat E by more
+
+
+def stop_counts(results: dict[str, list[IterationScore]], target: float) -> StopCounts:
+    stops = [(scores, stop) for scores in results.values() if (stop := stop_for_target(scores, target)) is not None]
+    trusted = [abs(stop.true / target - 1) <= TRUSTED for _, stop in stops]
+    first = [stop is scores[0] for scores, stop in stops]
+    below = [f and stop.true / target < 1 - TRUSTED for f, (_, stop) in zip(first, stops)]
+    return StopCounts(len(stops), sum(trusted), sum(first), sum(below))
+
+
 def _target_table(results: dict[str, list[IterationScore]]) -> str:
     rows = []
     final_spp = f"{max(scores[-1].spp for scores in results.values()):g}"
     for target in TARGETS:
         reached = [(name, stop_for_target(scores, target)) for name, scores in results.items()]
         stops = [(name, s) for name, s in reached if s is not None]
-        trusted = sum(abs(s.true / target - 1) <= TRUSTED for _, s in stops)
+        counts = stop_counts(results, target)
         cells = ", ".join(f"{name} {s.spp:g} spp → {s.true / target:.2f}×" for name, s in stops) or "—"
         never = len(reached) - len(stops)
-        rows.append(f"| {target:g} | {len(stops)} ({never} never reach it by {final_spp} spp) | {trusted} | {cells} |")
+        rows.append(f"| {target:g} | {counts.stops} ({never} never reach it by {final_spp} spp) | {counts.trusted} | "
+                    f"{counts.first} ({counts.first_below}) | {cells} |")
     return "\n".join(rows)
 
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.calibration_report import (IterationScore, fitted_output_scale, run_calibration_report, stop_for_target,
-                                      write_calibrated_error_network)
+from bench.calibration_report import (IterationScore, fitted_output_scale, run_calibration_report, stop_counts,
+                                      stop_for_target, write_calibrated_error_network)
 from bench.cli import main as bench_main
 from bench.quality_measures import block_means
 from models.checkpoint import read_checkpoint, save_checkpoint
@@ -23,6 +23,17 @@ def test_target_error_stop_is_the_first_iteration_predicted_at_or_below_it():
     assert stop_for_target(scores, 0.03).spp == 32  # at or below
     assert stop_for_target(scores, 0.06).spp == 16
     assert stop_for_target(scores, 0.01) is None  # never reached
+
+
+def test_stop_counts_separate_stops_the_first_pass_already_overshot():
+    results = {
+        "easy": [IterationScore(16, 0.03, 0.01, 0.5), IterationScore(32, 0.02, 0.008, 0.5)],    # 16 spp, 0.25× E
+        "right": [IterationScore(16, 0.08, 0.07, 0.5), IterationScore(32, 0.035, 0.04, 0.5)],  # 32 spp, 1.0× E
+        "close": [IterationScore(16, 0.035, 0.036, 0.5)],                                       # 16 spp, 0.9× E
+        "never": [IterationScore(16, 0.09, 0.08, 0.5), IterationScore(32, 0.06, 0.05, 0.5)],
+    }
+    counts = stop_counts(results, 0.04)
+    assert (counts.stops, counts.trusted, counts.first, counts.first_below) == (3, 2, 2, 1)
 
 
 def test_calibration_report_scores_every_iteration_against_the_reference(tmp_path: Path):
