@@ -117,7 +117,7 @@ def denoise_ms_by_threads(denoiser: Denoiser, size: int, thread_counts: tuple[in
                           repeats: int = 5) -> ThreadTiming:
     """Median wall time of one single-frame forward pass of `denoiser` at size² per torch thread
     count, in this process, interleaved so the machine's load hits every count alike. The loop
-    report quotes it as the reason its networks run on one thread."""
+    report runs every timed network call with the faster count (bench.loop_report.choose_torch_threads)."""
     gen = torch.Generator().manual_seed(0)
     window = [_frame(size, size, gen)]
     # a denoiser with the OIDN candidate takes OIDN's image as an input: computed once, untimed
