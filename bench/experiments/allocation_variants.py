@@ -3,8 +3,8 @@
 The loop (16 → 128 spp, 4 iterations, seed 1 or --seed) with one allocator setting changed at a time,
 driven either by the shipped error network or by the denoised image's true error map
 (bench.loop_run.TrueErrorMap); each figure is SMAPE at 128 spp ÷ uniform (b)'s with the same
-denoiser. The variants patch `service.loop.loop.allocate_samples`, `allocate.error_weights` and
-`allocate.ERROR_GAIN_EXPONENT` for the duration of one loop: an experiment, not a product setting.
+denoiser. The variants patch `service.loop.loop.allocate_samples` / `next_counts` and
+`allocate.error_weights` for the duration of one loop: an experiment, not a product setting.
 
     python -m bench.experiments.allocation_variants [--suite val|dev] [--map true|predicted] [--seed S]
 """
@@ -24,39 +24,67 @@ from models.pretrained import Networks
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
 
-# name → (error exponent, allocate_samples keyword overrides, the equal-gain rule's β — None: the
-# paper's new samples ∝ error, the shipped rule).
-SHIPPED_GAIN = allocate.ERROR_GAIN_EXPONENT
+# name → (error exponent, allocate_samples keyword overrides, β of `equal_gain_samples` — None:
+# the shipped rule, the paper's new samples ∝ error).
 VARIANTS: dict[str, tuple[float, dict, float | None]] = {
-    "shipped": (1.0, {}, SHIPPED_GAIN),
-    "clamp 95": (1.0, {"clamp_percentile": 95.0}, SHIPPED_GAIN),
-    "clamp 99.5": (1.0, {"clamp_percentile": 99.5}, SHIPPED_GAIN),
-    "no clamp": (1.0, {"clamp_percentile": None}, SHIPPED_GAIN),
-    "error²": (2.0, {}, SHIPPED_GAIN),
-    "√error": (0.5, {}, SHIPPED_GAIN),
-    "no dilation": (1.0, {"dilate_radius": 0}, SHIPPED_GAIN),
-    "dilation 3": (1.0, {"dilate_radius": 3}, SHIPPED_GAIN),
-    "floor 1 %": (1.0, {"floor_fraction": 0.01}, SHIPPED_GAIN),
-    "floor 20 %": (1.0, {"floor_fraction": 0.2}, SHIPPED_GAIN),
+    "shipped": (1.0, {}, None),
+    "clamp 95": (1.0, {"clamp_percentile": 95.0}, None),
+    "clamp 99.5": (1.0, {"clamp_percentile": 99.5}, None),
+    "no clamp": (1.0, {"clamp_percentile": None}, None),
+    "error²": (2.0, {}, None),
+    "√error": (0.5, {}, None),
+    "no dilation": (1.0, {"dilate_radius": 0}, None),
+    "dilation 3": (1.0, {"dilate_radius": 3}, None),
+    "floor 1 %": (1.0, {"floor_fraction": 0.01}, None),
+    "floor 20 %": (1.0, {"floor_fraction": 0.2}, None),
     "equal gain β ½": (1.0, {}, 0.5),
     "equal gain β ½, no dilation": (1.0, {"dilate_radius": 0}, 0.5),
     "equal gain β ¼": (1.0, {}, 0.25),
 }
 
 
+def equal_gain_samples(error: np.ndarray, spp: np.ndarray, budget: int, beta: float) -> np.ndarray:
+    """New samples per pixel (real-valued, summing to `budget`) that make the error one more
+    sample removes equal everywhere, for errors falling as e ∝ n^−β.
+
+    Minimising Σ e_i(n_i) at fixed Σ n_i asks for equal marginal gains β·e_i/n_i, i.e. a total
+    n_i = s·(e_i·n_i^β)^(1/(1+β)) measured at the current (e_i, n_i): pixels already past
+    their share get nothing, new_i = max(0, total_i − n_i), and s (monotone) is found by
+    bisection. The paper's ∝ e_i keeps feeding a pixel however many samples it holds. Measured
+    against it, not shipped (docs/error-network.md, "Allocation: what each pixel already has")."""
+    e = np.nan_to_num(np.asarray(error, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0).clip(min=0.0)
+    n = np.maximum(np.asarray(spp, dtype=np.float64), 1.0)  # a pixel never sampled counts as one
+    g = (e * n ** beta) ** (1.0 / (1.0 + beta))
+    if budget <= 0 or not (g > 0).any():
+        return np.full(e.shape, max(budget, 0) / max(e.size, 1))
+    lo, hi = 0.0, (n.max() + budget) / g[g > 0].min()
+    for _ in range(100):   # halves [lo, hi] to far below one sample
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if np.maximum(0.0, mid * g - n).sum() > budget else (mid, hi)
+    new = np.maximum(0.0, hi * g - n)
+    return new * (budget / new.sum())
+
+
 @contextmanager
-def allocator_variant(exponent: float, overrides: dict, gain: float | None = SHIPPED_GAIN):
+def allocator_variant(exponent: float, overrides: dict, gain: float | None = None):
     """The loop's allocation with one variant in place, the product's restored after: the error
-    map raised to `exponent`, allocate_samples' settings overridden, the equal-gain rule's β."""
-    weights, samples, shipped_gain = allocate.error_weights, loop.allocate_samples, allocate.ERROR_GAIN_EXPONENT
-    allocate.error_weights = lambda error, *args: weights(error ** exponent, *args)
+    map raised to `exponent`, allocate_samples' settings overridden, and with `gain` the error
+    allocator's weights replaced by `equal_gain_samples` (it needs each pixel's count, so the
+    loop's `next_counts` is what gets replaced)."""
+    weights, samples, counts = allocate.error_weights, loop.allocate_samples, loop.next_counts
+    allocate.error_weights = lambda error: weights(error ** exponent)
     loop.allocate_samples = lambda w, budget, **kw: samples(w, budget, **{**kw, **overrides})
-    allocate.ERROR_GAIN_EXPONENT = gain
+    if gain is not None:
+        def next_counts(allocator, buffer, predicted_error, budget, seed):
+            if allocator != "error":
+                return counts(allocator, buffer, predicted_error, budget, seed)
+            w = equal_gain_samples(allocate.error_weights(predicted_error), buffer.spp, budget, gain)
+            return loop.allocate_samples(w, budget, seed=seed, floor_only=buffer.converged())
+        loop.next_counts = next_counts
     try:
         yield
     finally:
-        allocate.error_weights, loop.allocate_samples = weights, samples
-        allocate.ERROR_GAIN_EXPONENT = shipped_gain
+        allocate.error_weights, loop.allocate_samples, loop.next_counts = weights, samples, counts
 
 
 def final_smape(scene_path: str, networks: Networks, allocator: str, reference: np.ndarray, seed: int = 1) -> float:

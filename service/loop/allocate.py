@@ -1,9 +1,7 @@
 """Sample allocators: per-pixel weights → integer sample counts that sum exactly to a budget.
 
 The paper (Vogels et al. 2018, §6) hands each new iteration's samples out in proportion to the
-predicted post-denoise error and doubles the total every iteration (`equal_gain_samples`, which
-also weighs what each pixel already has, was measured against it and is not shipped: see
-ERROR_GAIN_EXPONENT). A raw error map is a poor
+predicted post-denoise error and doubles the total every iteration. A raw error map is a poor
 allocation on its own: NaNs and fireflies would swallow the budget, isolated hard pixels leave
 their neighbours (which share the feature) untouched, and pixels predicted as "easy" would never
 be revisited. So the weights pass through a fixed pipeline, one small function per step:
@@ -25,10 +23,8 @@ __all__ = [
     "ALLOCATORS",
     "DEFAULT_CAP_MULTIPLE",
     "DEFAULT_CLAMP_PERCENTILE",
-    "ERROR_GAIN_EXPONENT",
     "allocate_samples",
     "allocation_weights",
-    "equal_gain_samples",
     "error_weights",
     "iteration_budget",
     "uniform_weights",
@@ -45,14 +41,6 @@ DEFAULT_CAP_MULTIPLE = 8.0
 # level, and with the error network (d)/(b) at 128 spp averaged 0.979; at 99 0.965 (99.5 and no
 # clamp the same within noise); with the true error map 0.945 → 0.920.
 DEFAULT_CLAMP_PERCENTILE = 99.0
-
-# None: the error allocator's weights are the paper's, new samples ∝ predicted error. A float β:
-# `equal_gain_samples` with e ∝ n^−β. β = ½ won on the validation scenes by 1.2–2.1 points of the
-# loop's SMAPE ÷ uniform's in four runs, and then measured no better on the development suite
-# (median (d)/(b) 0.98 against 0.96, mean 0.971 against 0.967; docs/error-network.md, "Allocation:
-# what each pixel already has"), so the paper's rule stays; bench.experiments.allocation_variants
-# switches it per loop.
-ERROR_GAIN_EXPONENT: float | None = None
 
 # Remainders closer than this are treated as tied, so float noise in the shares (e.g. two equal
 # weights reached through different arithmetic) cannot masquerade as a real preference.
@@ -88,41 +76,12 @@ def variance_weights(relative_variance: np.ndarray) -> np.ndarray:
     raise ValueError(f"relative_variance must be (H, W) or (H, W, C), got shape {rv.shape}")
 
 
-def error_weights(predicted_smape: np.ndarray, spp: np.ndarray | None = None, budget: int | None = None) -> np.ndarray:
-    """The error allocator's weights: with each pixel's sample count `spp` and the iteration's
-    `budget`, the new samples that equalise the error a sample removes (`equal_gain_samples`,
-    ERROR_GAIN_EXPONENT); without them — or with ERROR_GAIN_EXPONENT None — the paper's
-    weight = predicted post-denoise SMAPE per pixel."""
+def error_weights(predicted_smape: np.ndarray) -> np.ndarray:
+    """The paper's allocator: weight = predicted post-denoise SMAPE per pixel."""
     err = _sanitise(predicted_smape)
     if err.ndim != 2:
         raise ValueError(f"predicted_smape must be (H, W), got shape {err.shape}")
-    if spp is None or budget is None or ERROR_GAIN_EXPONENT is None:
-        return err
-    if np.shape(spp) != err.shape:
-        raise ValueError(f"spp {np.shape(spp)} does not match the error map {err.shape}")
-    return equal_gain_samples(err, spp, budget, ERROR_GAIN_EXPONENT)
-
-
-def equal_gain_samples(error: np.ndarray, spp: np.ndarray, budget: int, beta: float) -> np.ndarray:
-    """New samples per pixel (real-valued, summing to `budget`) that make the error one more
-    sample removes equal everywhere, for errors falling as e ∝ n^−β.
-
-    Minimising Σ e_i(n_i) at fixed Σ n_i asks for equal marginal gains β·e_i/n_i, i.e. a total
-    n_i = s·(e_i·n_i^β)^(1/(1+β)) measured at the current (e_i, n_i): pixels already past
-    their share get nothing, new_i = max(0, total_i − n_i), and s (monotone) is found by
-    bisection. At equal counts this is ∝ e^(1/(1+β)) minus what each already has; the paper's
-    ∝ e_i keeps feeding a pixel however many samples it holds. No error anywhere: uniform."""
-    e = _sanitise(error)
-    n = np.maximum(np.asarray(spp, dtype=np.float64), 1.0)  # a pixel never sampled counts as one
-    g = (e * n ** beta) ** (1.0 / (1.0 + beta))
-    if budget <= 0 or not (g > 0).any():
-        return np.full(e.shape, max(budget, 0) / max(e.size, 1))
-    lo, hi = 0.0, (n.max() + budget) / g[g > 0].min()
-    for _ in range(100):   # halves [lo, hi] to far below one sample
-        mid = 0.5 * (lo + hi)
-        lo, hi = (lo, mid) if np.maximum(0.0, mid * g - n).sum() > budget else (mid, hi)
-    new = np.maximum(0.0, hi * g - n)
-    return new * (budget / new.sum())
+    return err
 
 
 def allocation_weights(
@@ -131,14 +90,10 @@ def allocation_weights(
     predicted_error: np.ndarray | None = None,
     relative_variance: np.ndarray | None = None,
     shape: tuple[int, int],
-    spp: np.ndarray | None = None,
-    budget: int | None = None,
 ) -> np.ndarray:
-    """Weights for allocator `kind`; fails at once on an unknown kind or a missing input.
-    spp, budget: each pixel's samples so far and this iteration's, for the error allocator's
-    equal-gain rule (`error_weights`)."""
+    """Weights for allocator `kind`; fails at once on an unknown kind or a missing input."""
     if kind == "error":
-        weights = error_weights(_require(predicted_error, "predicted_error", kind), spp, budget)
+        weights = error_weights(_require(predicted_error, "predicted_error", kind))
     elif kind == "variance":
         weights = variance_weights(_require(relative_variance, "relative_variance", kind))
     elif kind == "uniform":

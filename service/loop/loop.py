@@ -33,8 +33,7 @@ def next_counts(allocator: str, buffer: FrameBuffer, predicted_error: np.ndarray
     weights. Pixels whose samples all agreed (empty background, flat emitters) gain nothing
     from more: they get only the allocator's uniform floor."""
     weights = allocation_weights(allocator, predicted_error=predicted_error,
-                                 relative_variance=buffer.relative_variance(), shape=buffer.shape,
-                                 spp=buffer.spp, budget=budget)
+                                 relative_variance=buffer.relative_variance(), shape=buffer.shape)
     settled = buffer.converged() if allocator != "uniform" else None
     return allocate_samples(weights, budget, seed=seed, floor_only=settled)
 

@@ -9,7 +9,7 @@ import torch
 import service.loop.allocate as allocate
 import service.loop.loop as loop
 from bench.common import image_metrics
-from bench.experiments.allocation_variants import allocator_variant
+from bench.experiments.allocation_variants import allocator_variant, equal_gain_samples
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
                                              ranking_row)
 from bench.experiments.gate_offset import offset_ratios
@@ -34,13 +34,36 @@ def test_allocator_variant_applies_its_settings_inside_and_restores_the_product_
     np.testing.assert_array_equal(loop.allocate_samples(weights, 1000, seed=0), default)
 
 
-def test_allocator_variant_switches_the_equal_gain_rule_on_for_one_loop_only():
-    error, spp = np.array([[0.2, 0.2]]), np.array([[16, 64]])
-    np.testing.assert_array_equal(allocate.error_weights(error, spp, 100), error)   # shipped: the paper's rule
+def test_equal_gain_spends_the_budget_where_one_more_sample_removes_most_error():
+    error = np.array([[0.2, 0.2, 0.05, 0.0]])
+    spp = np.array([[16, 64, 16, 16]])
+    new = equal_gain_samples(error, spp, 128, beta=0.5)
+    assert new.sum() == pytest.approx(128) and (new >= 0).all()
+    assert new[0, 3] == 0                     # nothing to gain where there is no error
+    assert new[0, 0] > new[0, 1] > 0          # equal error: the pixel with fewer samples gains more
+    assert new[0, 0] > new[0, 2]              # equal samples: the larger error gains more
+
+
+def test_equal_gain_totals_follow_the_lagrange_optimum_when_every_pixel_gets_samples():
+    """With e ∝ n^−β the optimum total is n ∝ (e·n^β)^(1/(1+β)): at equal counts ∝ e^(2/3) for β = ½."""
+    error = np.array([[0.01, 0.08, 0.27]])
+    spp = np.full((1, 3), 4)
+    new = equal_gain_samples(error, spp, 3000, beta=0.5)
+    totals = new + spp
+    np.testing.assert_allclose(totals / totals.sum(), error ** (2 / 3) / (error ** (2 / 3)).sum(), rtol=1e-6)
+
+
+def test_equal_gain_without_any_error_or_budget_stays_finite_and_uniform():
+    np.testing.assert_allclose(equal_gain_samples(np.zeros((2, 2)), np.full((2, 2), 8), 8, 0.5), 2.0)
+    assert (equal_gain_samples(np.full((2, 2), np.nan), np.zeros((2, 2)), 0, 0.5) == 0).all()
+
+
+
+def test_equal_gain_variant_replaces_the_error_allocators_counts_for_one_loop_only():
+    product = loop.next_counts
     with allocator_variant(1.0, {}, gain=0.5):
-        weights = allocate.allocation_weights("error", predicted_error=error, shape=(1, 2), spp=spp, budget=100)
-        assert weights[0, 0] > weights[0, 1]   # the pixel with fewer samples first
-    np.testing.assert_array_equal(allocate.error_weights(error, spp, 100), error)
+        assert loop.next_counts is not product
+    assert loop.next_counts is product
 
 
 @torch.no_grad()

@@ -14,7 +14,6 @@ from service.loop.allocate import (
     DEFAULT_CAP_MULTIPLE,
     allocate_samples,
     allocation_weights,
-    equal_gain_samples,
     error_weights,
     iteration_budget,
     uniform_weights,
@@ -296,37 +295,3 @@ def test_allocation_weights_knows_every_allocator_and_rejects_others():
     with pytest.raises(ValueError, match="shape"):
         allocation_weights("error", predicted_error=np.ones((2, 2)), shape=(3, 4))
 
-
-def test_equal_gain_spends_the_budget_where_one_more_sample_removes_most_error():
-    error = np.array([[0.2, 0.2, 0.05, 0.0]])
-    spp = np.array([[16, 64, 16, 16]])
-    new = equal_gain_samples(error, spp, 128, beta=0.5)
-    assert new.sum() == pytest.approx(128) and (new >= 0).all()
-    assert new[0, 3] == 0                     # nothing to gain where there is no error
-    assert new[0, 0] > new[0, 1] > 0          # equal error: the pixel with fewer samples gains more
-    assert new[0, 0] > new[0, 2]              # equal samples: the larger error gains more
-
-
-def test_equal_gain_totals_follow_the_lagrange_optimum_when_every_pixel_gets_samples():
-    """With e ∝ n^−β the optimum total is n ∝ (e·n^β)^(1/(1+β)): at equal counts ∝ e^(2/3) for β = ½."""
-    error = np.array([[0.01, 0.08, 0.27]])
-    spp = np.full((1, 3), 4)
-    new = equal_gain_samples(error, spp, 3000, beta=0.5)
-    totals = new + spp
-    np.testing.assert_allclose(totals / totals.sum(), error ** (2 / 3) / (error ** (2 / 3)).sum(), rtol=1e-6)
-
-
-def test_equal_gain_without_any_error_or_budget_stays_finite_and_uniform():
-    np.testing.assert_allclose(equal_gain_samples(np.zeros((2, 2)), np.full((2, 2), 8), 8, 0.5), 2.0)
-    assert (equal_gain_samples(np.full((2, 2), np.nan), np.zeros((2, 2)), 0, 0.5) == 0).all()
-
-
-def test_error_weights_are_the_papers_unless_the_equal_gain_rule_is_switched_on(monkeypatch):
-    error, spp = np.array([[0.2, 0.2]]), np.array([[16, 64]])
-    np.testing.assert_array_equal(error_weights(error), error)
-    np.testing.assert_array_equal(error_weights(error, spp, 100), error)   # shipped: ∝ predicted error
-    monkeypatch.setattr("service.loop.allocate.ERROR_GAIN_EXPONENT", 0.5)
-    weights = error_weights(error, spp, 100)
-    assert weights.sum() == pytest.approx(100) and weights[0, 0] > weights[0, 1]
-    with pytest.raises(ValueError, match="does not match"):
-        error_weights(error, np.ones((2, 2)), 100)
