@@ -6,13 +6,14 @@ hand-written scenes they are 1.1–5× worse at 16 spp (bench.experiments.gate_b
 that trusts them as much as in training mixes in too much of them. One logit offset b added to
 the finest level's gate logit (DenoiserConfig.gate_offset), and one bc to the coarser levels'
 (coarse_gate_offset), move the gate towards the candidate (> 0) without retraining. Per scene,
-sample count and pair (b, bc): SMAPE and relMSE of ours and of OIDN, the renders and the
-network's preparation shared by every pair.
+sample count and setting (b, bc, cap): SMAPE and relMSE of ours and of OIDN, the renders and the
+network's preparation shared by every setting.
 
     python -m bench.experiments.gate_offset [--suite val|dev] [--spp 16 64 256] [--offsets 0 1 2] [--coarse 2 10]
-                                            [--weights DIR]
+                                            [--cap off on] [--weights DIR]
 
-Without --coarse, bc = b (one offset for every level).
+Without --coarse, bc = b (one offset for every level). --cap crosses every pair with the
+compositor's candidate cap off and/or on (DenoiserConfig.candidate_cap; without it, the checkpoint's own).
 """
 from __future__ import annotations
 
@@ -33,15 +34,19 @@ from service.loop.tensors import frame_tensors, to_image
 DEFAULT_OFFSETS = (0.0, 1.0, 2.0, 3.0, 4.0)
 
 
+Setting = tuple[float, float, bool]   # (b, bc, candidate cap)
+
+
 def offset_ratios(denoiser: Denoiser, frame: FrameTensors, candidate: torch.Tensor, reference: np.ndarray,
-                  oidn: dict[str, float], pairs: list[tuple[float, float]]) -> list[tuple[float, float]]:
-    """(ours ÷ OIDN SMAPE, ours ÷ OIDN relMSE) per (b, bc) at λ = 1, from one preparation (oidn:
-    the candidate's own scores); the denoiser's config is back in place afterwards, whatever happens."""
+                  oidn: dict[str, float], settings: list[Setting]) -> list[tuple[float, float]]:
+    """(ours ÷ OIDN SMAPE, ours ÷ OIDN relMSE) per (b, bc, cap) at λ = 1, from one preparation
+    (oidn: the candidate's own scores); the denoiser's config is back in place afterwards, whatever happens."""
     cache = denoiser.prepare([frame], 0, candidate)
     base_config, ratios = denoiser.config, []
     try:
-        for b, bc in pairs:
-            denoiser.config = dataclasses.replace(base_config, gate_offset=b, coarse_gate_offset=bc)
+        for b, bc, cap in settings:
+            denoiser.config = dataclasses.replace(base_config, gate_offset=b, coarse_gate_offset=bc,
+                                                  candidate_cap=cap)
             ours = image_metrics(to_image(denoiser.apply(cache)), reference)
             ratios.append((ours["smape"] / oidn["smape"], ours["relmse"] / oidn["relmse"]))
     finally:
@@ -56,15 +61,19 @@ def main() -> None:
     parser.add_argument("--offsets", type=float, nargs="+", default=list(DEFAULT_OFFSETS))
     parser.add_argument("--coarse", type=float, nargs="+", default=None,
                         help="offsets of the coarser levels, each paired with every --offsets value")
+    parser.add_argument("--cap", choices=("off", "on"), nargs="+", default=None,
+                        help="the compositor's candidate cap (DenoiserConfig.candidate_cap), crossed with every pair")
     parser.add_argument("--weights", default=None, help="folder of denoiser.pt and error_predictor.pt (default: shipped)")
     args = parser.parse_args()
-    pairs = [(b, b if args.coarse is None else bc) for b in args.offsets for bc in (args.coarse or [None])]
     nets = load_bench_networks(args.weights)
     denoiser = nets.networks.denoiser
-    head = " | ".join(f"b={b:g}, bc={bc:g}" for b, bc in pairs)
+    caps = [c == "on" for c in args.cap] if args.cap else [denoiser.config.candidate_cap]
+    pairs = [(b, b if args.coarse is None else bc, cap)
+             for b in args.offsets for bc in (args.coarse or [None]) for cap in caps]
+    head = " | ".join(f"b={b:g}, bc={bc:g}, cap {'on' if cap else 'off'}" for b, bc, cap in pairs)
     print(f"SMAPE / relMSE ÷ OIDN's (< 1: ours better)\n\n| scene | spp | OIDN SMAPE | {head} |\n"
           "|---|---:|---:|" + "---:|" * len(pairs))
-    ratios: dict[tuple[int, float, float], list[tuple[float, float]]] = {}
+    ratios: dict[tuple[int, float, float, bool], list[tuple[float, float]]] = {}
     with pinned_torch_threads(2), torch.no_grad():
         for scene in dev_scenes(None, SUITES[args.suite].root):
             reference, _ = load_reference(SUITES[args.suite].references, scene, None if scene.frames == 1 else 0)
@@ -77,11 +86,11 @@ def main() -> None:
                     ratios.setdefault((spp, *pair), []).append(ratio)
                     cells.append(f"{ratio[0]:.3f} / {ratio[1]:.3f}")
                 print(f"| {scene.name} | {spp} | {oidn['smape']:.4f} | " + " | ".join(cells) + " |", flush=True)
-    print("\n| spp | b | bc | median SMAPE ÷ OIDN | ≤ OIDN SMAPE | median / mean relMSE ÷ OIDN | ≤ OIDN relMSE |\n"
-          "|---:|---:|---:|---:|---:|---:|---:|")
-    for (spp, b, bc), values in sorted(ratios.items()):
+    print("\n| spp | b | bc | cap | median SMAPE ÷ OIDN | ≤ OIDN SMAPE | median / mean relMSE ÷ OIDN | ≤ OIDN relMSE |\n"
+          "|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for (spp, b, bc, cap), values in sorted(ratios.items()):
         s, r = np.array(values).T
-        print(f"| {spp} | {b:g} | {bc:g} | {np.median(s):.3f} | {(s <= 1).sum()} of {len(s)} "
+        print(f"| {spp} | {b:g} | {bc:g} | {'on' if cap else 'off'} | {np.median(s):.3f} | {(s <= 1).sum()} of {len(s)} "
               f"| {np.median(r):.3f} / {r.mean():.3f} | {(r <= 1).sum()} of {len(r)} |")
 
 

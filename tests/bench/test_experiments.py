@@ -67,7 +67,7 @@ def test_equal_gain_variant_replaces_the_error_allocators_counts_for_one_loop_on
 
 
 @torch.no_grad()
-def test_gate_offset_sweep_scores_each_pair_and_leaves_the_denoisers_config_as_it_was():
+def test_gate_offset_sweep_scores_each_setting_and_leaves_the_denoisers_config_as_it_was():
     config = DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True)
     denoiser = Denoiser(config).eval()
     g = torch.Generator().manual_seed(0)
@@ -77,10 +77,10 @@ def test_gate_offset_sweep_scores_each_pair_and_leaves_the_denoisers_config_as_i
     candidate = torch.rand(1, 3, 16, 16, generator=g)
     reference = to_image(candidate) * 1.1
     oidn = image_metrics(to_image(candidate), reference)
-    pairs = [(0.0, 0.0), (10.0, 10.0)]
-    ratios = offset_ratios(denoiser, frame, candidate, reference, oidn, pairs)
+    settings = [(0.0, 0.0, False), (10.0, 10.0, False), (0.0, 0.0, True)]
+    ratios = offset_ratios(denoiser, frame, candidate, reference, oidn, settings)
     assert denoiser.config == config
-    assert len(ratios) == 2 and ratios[0] != ratios[1]
+    assert len(ratios) == 3 and ratios[0] != ratios[1] and ratios[0] != ratios[2]
     np.testing.assert_allclose(ratios[1], (1.0, 1.0), rtol=0.05)   # b = 10 everywhere: OIDN's image back
 
 

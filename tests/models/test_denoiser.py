@@ -217,6 +217,28 @@ def test_scale_compositor_keeps_a_bright_emitters_coarse_band_off_its_dark_neigh
     assert uncapped[..., 4, :].min() > 1.0                      # what the cap prevents
 
 
+
+def test_the_candidate_cap_keeps_an_emitters_band_off_a_dark_pixel_inside_the_emitters_own_block():
+    # The emitter is one pixel of each 2×2 block on row 2; the fine result lost 20 % of its light,
+    # the coarse level (OIDN's, pooled) has all of it. The block-wise cap admits up to the coarse
+    # block's value on all four pixels; the candidate, known per pixel, says the dark three stay dark.
+    compositor = ScaleCompositor(4)
+    with torch.no_grad():
+        compositor.alpha[2].bias.fill_(20.0)       # α ≈ 1: take the coarse band everywhere
+    candidate = torch.full((1, 3, 8, 8), 0.4)
+    candidate[..., 2, ::2] = 800.0
+    fine = candidate.clone()
+    fine[..., 2, ::2] = 640.0
+    coarse = down(candidate)
+    with torch.no_grad():
+        block_capped = compositor(fine, coarse)
+        capped = compositor(fine, coarse, candidate=candidate)
+    dark = candidate < 1.0
+    assert block_capped[dark].max() > 10.0                          # the leak the block cap lets through
+    assert capped[dark].max() <= 0.4 + 1e-5
+    # the emitter itself is left exactly as the block cap alone leaves it
+    torch.testing.assert_close(capped[~dark], block_capped[~dark])
+
 @torch.no_grad()
 def test_bfloat16_trunk_changes_the_denoised_image_by_under_a_percent(monkeypatch):
     if not cpu_has_native_bfloat16():
