@@ -14,7 +14,7 @@ from bench.suite_quality_report import run_suite_quality_report
 
 def test_validation_scenes_are_disjoint_from_the_suite_and_have_current_references():
     validation, suite = dev_scenes(root=VAL_SCENES), dev_scenes()
-    assert len(validation) >= 4
+    assert len(validation) >= 8
     assert not {s.name for s in validation} & {s.name for s in suite}
     assert not {s.content_hash for s in validation} & {s.content_hash for s in suite}
     for scene in validation:
