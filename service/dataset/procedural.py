@@ -8,9 +8,9 @@ motion vectors between them (frame −1 exists too: it is the previous camera of
 
 Scenes are kept cheap for a CPU: a handful of analytic shapes, no media (so the plain `path`
 integrator suffices), max depth 8, small textures. Layouts: a room lit from inside and open at
-the front, open ground under a sky, and (only when asked for: it is not in the default mix, so
+the front, open ground under a sky, and (only when asked for: they are not in the default mix, so
 the scenes of every existing seed stay what they were) a closed room lit through a window
-(service.dataset.window_room).
+(service.dataset.window_room) or by a tiny bulb in a lampshade (service.dataset.shaded_lamp).
 """
 from __future__ import annotations
 
@@ -21,7 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.dataset.textures import TEXTURE_KINDS, SkySpec, TextureSpec, sky_image, texture_image
-from service.dataset.window_room import WindowSpec, closed_room_bounds, sample_window, sun_through, wall_panels
+from service.dataset.shaded_lamp import ShadeSpec, sample_shade, shade_shapes
+from service.dataset.window_room import (WindowSpec, closed_room_bounds, front_wall, sample_window, sun_through,
+                                         wall_panels)
 from service.render.runtime import mitsuba
 
 Color = tuple[float, float, float]
@@ -29,8 +31,10 @@ Vec3 = tuple[float, float, float]
 
 LAYOUTS = ("room", "ground")   # the default mix, drawn per seed
 WINDOW_LAYOUT = "window"        # only on request (sample_spec's `layout`)
+SHADED_LAYOUT = "shaded"        # likewise
+CLOSED_LAYOUTS = (WINDOW_LAYOUT, SHADED_LAYOUT)   # rooms closed on all four sides
 # What a data set may ask for (`renderloop dataset --layout`): "mixed" is the seeds' own draw.
-DATASET_LAYOUTS = ("mixed", *LAYOUTS, WINDOW_LAYOUT)
+DATASET_LAYOUTS = ("mixed", *LAYOUTS, *CLOSED_LAYOUTS)
 SHAPES = ("sphere", "cube", "cylinder", "rectangle", "disk")
 MATERIALS = ("diffuse", "textured", "roughplastic", "roughconductor", "conductor", "dielectric")
 LIGHTS = ("area_rect", "area_sphere", "point", "spot", "constant", "sky", "firefly")
@@ -104,6 +108,7 @@ class SceneSpec:
     lights: tuple[LightSpec, ...]
     camera: CameraSpec
     window: WindowSpec | None = None  # the window layout's opening
+    shade: ShadeSpec | None = None    # the shaded layout's lamp
 
 
 # --- sampling the spec ---------------------------------------------------------------------
@@ -263,16 +268,16 @@ def _camera(rng: np.random.Generator, layout: str, room: Vec3) -> CameraSpec:
 
 def sample_spec(seed: int, layout: str | None = None) -> SceneSpec:
     """All random choices of scene `seed`, in a fixed order (so one seed, one scene). `layout`:
-    one of LAYOUTS or WINDOW_LAYOUT instead of the seed's own draw (which is still made, so the
+    one of LAYOUTS or CLOSED_LAYOUTS instead of the seed's own draw (which is still made, so the
     rest of the scene comes from the same random stream)."""
-    if layout not in (None, *LAYOUTS, WINDOW_LAYOUT):
-        raise ValueError(f"unknown layout {layout!r}; known: {', '.join((*LAYOUTS, WINDOW_LAYOUT))}")
+    if layout not in (None, *LAYOUTS, *CLOSED_LAYOUTS):
+        raise ValueError(f"unknown layout {layout!r}; known: {', '.join((*LAYOUTS, *CLOSED_LAYOUTS))}")
     rng = np.random.default_rng(seed)
     drawn = LAYOUTS[int(rng.integers(len(LAYOUTS)))]
     layout = layout or drawn
     room = (float(rng.uniform(3, 5)), float(rng.uniform(2.5, 3.5)), float(rng.uniform(3, 5)))
     floor, walls = _surface_material(rng), _surface_material(rng)
-    window = None
+    window = shade = None
     if layout == "room":
         w, _, d = room
         objects = _objects(rng, (-w / 2 + 0.5, w / 2 - 0.5, -d / 2 + 0.5, d / 2 - 1.5))
@@ -284,16 +289,21 @@ def sample_spec(seed: int, layout: str | None = None) -> SceneSpec:
         objects = _objects(rng, (-w / 2 + 0.5, w / 2 - 0.5, -d / 2 + 0.5, d / 2 - 1.5))
         window = sample_window(rng, room)
         lights = [LightSpec("sky", sky=sun_through(rng, window, _sky(rng)))]
+    elif layout == SHADED_LAYOUT:   # lit only by the bulb in its shade
+        w, _, d = room
+        objects = _objects(rng, (-w / 2 + 0.5, w / 2 - 0.5, -d / 2 + 0.5, d / 2 - 1.5))
+        shade = sample_shade(rng, room, _exposure(rng), _tint(rng, 1.0))
+        lights = []
     else:
         objects = _objects(rng, (-2.0, 2.0, -2.0, 2.0))
         lights = _ground_lights(rng)
     if rng.random() < FIREFLY_PROBABILITY:
         lights.append(_firefly(rng, (0.0, 0.0, 0.0), 1.5))
-    camera = _camera(rng, "room" if layout == WINDOW_LAYOUT else layout, room)
-    if window is not None:
+    camera = _camera(rng, "room" if layout in CLOSED_LAYOUTS else layout, room)
+    if layout in CLOSED_LAYOUTS:
         camera = dataclasses.replace(camera, bounds=closed_room_bounds(room))
     return SceneSpec(seed=seed, layout=layout, room=room, floor=floor, walls=walls, objects=objects,
-                     lights=tuple(lights), camera=camera, window=window)
+                     lights=tuple(lights), camera=camera, window=window, shade=shade)
 
 
 # --- spec → Mitsuba dict -------------------------------------------------------------------
@@ -360,7 +370,8 @@ def _object_shapes(mi, index: int, o: ObjectSpec) -> dict[str, dict]:
 
 def _surfaces(mi, spec: SceneSpec) -> dict[str, dict]:
     """Floor, plus ceiling and three walls for a room (the front stays open for the camera); the
-    window layout's room is closed, its window wall cut around the opening."""
+    closed layouts' rooms have the front wall too, the window layout's window wall cut around
+    the opening."""
     down = ((1.0, 0.0, 0.0), -90.0)  # rectangle normal +Z → +Y
     if spec.layout == "ground":
         return {"floor": {"type": "rectangle", "to_world": _rect(mi, (0, 0, 0), [down], (20, 20, 1)),
@@ -382,6 +393,8 @@ def _surfaces(mi, spec: SceneSpec) -> dict[str, dict]:
     if spec.window is not None:
         del surfaces[f"wall_{spec.window.wall}"]
         surfaces.update(wall_panels(mi, spec.room, spec.window, walls))
+    elif spec.layout in CLOSED_LAYOUTS:
+        surfaces.update(front_wall(mi, spec.room, walls))
     return surfaces
 
 
@@ -460,6 +473,8 @@ def scene_dict(spec: SceneSpec, *, size: int, frame: int = 0) -> dict:
         scene.update(_object_shapes(mi, i, o))
     for i, light in enumerate(spec.lights):
         scene.update(_light(mi, i, light))
+    if spec.shade is not None:
+        scene.update(shade_shapes(spec.shade, len(spec.lights)))
     return scene
 
 

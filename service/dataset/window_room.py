@@ -98,6 +98,12 @@ def wall_panels(mi, room: Vec3, window: WindowSpec, bsdf: dict) -> dict[str, dic
     shapes = {f"wall_{window.wall}_{name}": {"type": "rectangle", "to_world": _panel(mi, window.wall, room, pu, pv),
                                              "bsdf": bsdf}
               for name, (pu, pv) in pieces.items() if pu[1] - pu[0] > 1e-6 and pv[1] - pv[0] > 1e-6}
-    shapes["wall_front"] = {"type": "rectangle", "bsdf": bsdf,
-                            "to_world": _panel(mi, "front", room, (-width / 2, width / 2), (0.0, height))}
+    shapes.update(front_wall(mi, room, bsdf))
     return shapes
+
+
+def front_wall(mi, room: Vec3, bsdf: dict) -> dict[str, dict]:
+    """The wall the procedural rooms leave open for the camera, closing the room."""
+    width, height, _ = room
+    return {"wall_front": {"type": "rectangle", "bsdf": bsdf,
+                           "to_world": _panel(mi, "front", room, (-width / 2, width / 2), (0.0, height))}}

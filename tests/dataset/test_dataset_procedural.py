@@ -110,11 +110,34 @@ def test_window_rooms_are_closed_and_lit_only_by_a_sun_shining_in_through_the_op
     assert np.isfinite(image).all() and image.mean() > 0.01   # light gets in
 
 
+def test_shaded_rooms_are_closed_and_lit_only_by_a_tiny_bulb_inside_its_shade():
+    mi = mitsuba()
+    for seed in range(12):
+        spec = sample_spec(seed, "shaded")
+        shade, (w, h, d) = spec.shade, spec.room
+        assert [light.kind for light in spec.lights] in ([], ["firefly"])
+        x, y, z = shade.centre
+        assert abs(x) < w / 2 and abs(z) < d / 2 and 0 < y - shade.shade_half_height and y + shade.shade_half_height < h
+        assert shade.bulb_radius < shade.shade_radius / 4       # a bulb well inside its shade
+        (low, high) = spec.camera.bounds
+        assert high[2] < d / 2 and low[0] > -w / 2 and high[0] < w / 2   # the camera stays inside
+        shapes = generate_scene(seed, size=8, layout="shaded")
+        assert "wall_front" in shapes
+        bulb = next(v for k, v in shapes.items() if k.endswith("_bulb"))
+        cylinder = next(v for k, v in shapes.items() if k.endswith("_shade"))
+        assert "emitter" in bulb and cylinder["type"] == "cylinder" and "emitter" not in cylinder
+    # lit, finite, and with fireflies: a few pixels carry far more than the typical pixel
+    image = np.asarray(mi.render(mi.load_dict(generate_scene(3, size=32, layout="shaded")), spp=16))
+    luminance = image.mean(-1)
+    assert np.isfinite(image).all() and image.mean() > 0.01
+    assert luminance.max() > 20 * np.median(luminance)
+
 def test_asking_for_a_layout_keeps_the_rest_of_the_seeds_scene_and_the_default_mix_unchanged():
     for seed in range(6):
         own = sample_spec(seed)
         assert sample_spec(seed, own.layout) == own
-        window = sample_spec(seed, "window")
-        assert (window.room, window.floor, window.walls) == (own.room, own.floor, own.walls)
+        for layout in ("window", "shaded"):
+            closed = sample_spec(seed, layout)
+            assert (closed.room, closed.floor, closed.walls) == (own.room, own.floor, own.walls)
     with pytest.raises(ValueError, match="unknown layout"):
         sample_spec(0, "attic")
