@@ -281,13 +281,12 @@ def user_errors() -> tuple[type[BaseException], ...]:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] == ["bench"]:
-        from bench.cli import main as bench_main  # heavy: report code, plots, every network
-
-        return bench_main(argv[1:])
-    parser = build_parser()
-    args = parser.parse_args(argv)
     try:
+        if argv[:1] == ["bench"]:
+            from bench.cli import main as bench_main  # heavy: report code, plots, every network
+
+            return bench_main(argv[1:])
+        args = build_parser().parse_args(argv)
         return args.handler(args)
     except KeyboardInterrupt:
         print("renderloop: interrupted", file=sys.stderr)

@@ -57,8 +57,10 @@ def test_uniform_render_writes_every_layer_and_matches_mi_render(tmp_path):
     (["train", "--data", "no-data", "--stage", "gate", "--init", "d.pt"], "add --oidn-candidate"),
     (["train", "--data", "no-data", "--gate-firefly"], "--gate-firefly adds statistics"),
     (["bench", "--loop", "--film-scale", "0", "--suite", "dev"], "--film-scale must be >= 1"),
+    (["bench", "--calibration", "--suite", "val", "--weights", "empty", "-o", "out"], "no trained denoiser"),
 ])
 def test_bad_input_gives_one_clear_line_and_a_nonzero_exit(tmp_path, args, message):
+    (tmp_path / "empty").mkdir()
     result = renderloop(*args, cwd=tmp_path)
     assert result.returncode == 2
     assert "Traceback" not in result.stderr
