@@ -138,11 +138,10 @@ def _target_table(results: dict[str, list[IterationScore]]) -> str:
     rows = []
     final_spp = f"{max(scores[-1].spp for scores in results.values()):g}"
     for target in TARGETS:
-        reached = [(name, stop_for_target(scores, target)) for name, scores in results.items()]
-        stops = [(name, s) for name, s in reached if s is not None]
+        stops = [(name, s) for name, scores in results.items() if (s := stop_for_target(scores, target)) is not None]
         counts = stop_counts(results, target)
         cells = ", ".join(f"{name} {s.spp:g} spp → {s.true / target:.2f}×" for name, s in stops) or "—"
-        never = len(reached) - len(stops)
+        never = len(results) - counts.stops
         rows.append(f"| {target:g} | {counts.stops} ({never} never reach it by {final_spp} spp) | {counts.trusted} | "
                     f"{counts.first} ({counts.first_below}) | {cells} |")
     return "\n".join(rows)

@@ -278,24 +278,21 @@ def sample_spec(seed: int, layout: str | None = None) -> SceneSpec:
     room = (float(rng.uniform(3, 5)), float(rng.uniform(2.5, 3.5)), float(rng.uniform(3, 5)))
     floor, walls = _surface_material(rng), _surface_material(rng)
     window = shade = None
+    w, _, d = room
+    # Objects first in every layout: the rest of a seed's stream is the same whichever is asked for.
+    objects = _objects(rng, (-2.0, 2.0, -2.0, 2.0) if layout == "ground"
+                       else (-w / 2 + 0.5, w / 2 - 0.5, -d / 2 + 0.5, d / 2 - 1.5))
     if layout == "room":
-        w, _, d = room
-        objects = _objects(rng, (-w / 2 + 0.5, w / 2 - 0.5, -d / 2 + 0.5, d / 2 - 1.5))
         lights = [_room_light(rng, room)]
         if rng.random() < 0.3:
             lights.append(_room_light(rng, room))
     elif layout == WINDOW_LAYOUT:   # lit only by the sun and sky through the opening
-        w, _, d = room
-        objects = _objects(rng, (-w / 2 + 0.5, w / 2 - 0.5, -d / 2 + 0.5, d / 2 - 1.5))
         window = sample_window(rng, room)
         lights = [LightSpec("sky", sky=sun_through(rng, window, _sky(rng)))]
     elif layout == SHADED_LAYOUT:   # lit only by the bulb in its shade
-        w, _, d = room
-        objects = _objects(rng, (-w / 2 + 0.5, w / 2 - 0.5, -d / 2 + 0.5, d / 2 - 1.5))
         shade = sample_shade(rng, room, _exposure(rng), _tint(rng, 1.0))
         lights = []
     else:
-        objects = _objects(rng, (-2.0, 2.0, -2.0, 2.0))
         lights = _ground_lights(rng)
     if rng.random() < FIREFLY_PROBABILITY:
         lights.append(_firefly(rng, (0.0, 0.0, 0.0), 1.5))

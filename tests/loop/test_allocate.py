@@ -294,4 +294,3 @@ def test_allocation_weights_knows_every_allocator_and_rejects_others():
         allocation_weights("error", shape=(3, 4))
     with pytest.raises(ValueError, match="shape"):
         allocation_weights("error", predicted_error=np.ones((2, 2)), shape=(3, 4))
-
