@@ -58,12 +58,35 @@ def relative_variance(noisy: Tensor, variance: Tensor) -> Tensor:
     return (variance / (noisy * noisy + VARIANCE_FLOOR)).mean(1, keepdim=True)
 
 
+def _in_image_count(n: int, r: int, like: Tensor) -> Tensor:
+    """How many of positions i−r … i+r lie inside 0 … n−1, for each i."""
+    i = torch.arange(n, device=like.device)
+    return ((i + r).clamp(max=n - 1) - (i - r).clamp(min=0) + 1).to(like.dtype)
+
+
+def box_mean(x: Tensor, k: int) -> Tensor:
+    """Mean over the k×k window around each pixel, over the pixels inside the image (what
+    F.avg_pool2d(x, k, 1, k // 2, count_include_pad=False) returns): a separable sum of shifted
+    views of the zero-padded planes divided by the in-image count, which factors into rows ×
+    columns. ~4× faster than the pooling at 512² (it is a third of the gate's preparation)."""
+    r = k // 2
+    h, w = x.shape[-2:]
+    padded = F.pad(x, (r, r, r, r))
+    rows = padded[..., :, 0:w].clone()
+    for dx in range(1, k):
+        rows += padded[..., :, dx:dx + w]
+    total = rows[..., 0:h, :].clone()
+    for dy in range(1, k):
+        total += rows[..., dy:dy + h, :]
+    return total / (_in_image_count(h, r, x).view(-1, 1) * _in_image_count(w, r, x))
+
+
 def gate_statistics(noisy: Tensor, candidate: Tensor, variance: Tensor, firefly: bool = False) -> Tensor:
     """(N, N_STATS [+ N_FIREFLY_STATS], H, W): log(1 + box-averaged z) per window, log brightness
     of the candidate, and the mean |log(1+noisy) − log(1+candidate)|; with `firefly`, also log(1 +
     relative variance) at the pixel and max-pooled around it. All compressed to a CNN-friendly range."""
     z = disagreement(noisy, candidate, variance)
-    pooled = [F.avg_pool2d(z, k, stride=1, padding=k // 2, count_include_pad=False) for k in WINDOWS]
+    pooled = [box_mean(z, k) for k in WINDOWS]
     ln, lc = log_transform(noisy), log_transform(candidate)
     stats = [*(torch.log1p(p) for p in pooled), lc.mean(1, keepdim=True), (ln - lc).abs().mean(1, keepdim=True)]
     if firefly:

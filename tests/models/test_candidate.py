@@ -6,7 +6,9 @@ import dataclasses
 import pytest
 import torch
 
-from models.candidate import N_FIREFLY_STATS, N_STATS, gate_statistics, relative_variance
+import torch.nn.functional as F
+
+from models.candidate import N_FIREFLY_STATS, N_STATS, box_mean, gate_statistics, relative_variance
 from models.checkpoint import load_checkpoint, save_checkpoint
 from models.denoiser import Denoiser
 
@@ -176,6 +178,14 @@ def _mean_and_variance_of_mean(samples: torch.Tensor) -> tuple[torch.Tensor, tor
     buffer stores them."""
     n = samples.shape[0]
     return samples.mean(0), samples.var(0, unbiased=True) / n
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 37, 29), (2, 1, 5, 3), (1, 1, 1, 1)])
+@pytest.mark.parametrize("k", [3, 7])
+def test_box_mean_equals_pooling_over_in_image_pixels(shape, k):
+    x = torch.rand(shape, generator=torch.Generator().manual_seed(k)) * 100
+    expected = F.avg_pool2d(x, k, stride=1, padding=k // 2, count_include_pad=False)
+    torch.testing.assert_close(box_mean(x, k), expected)
 
 
 def test_relative_variance_reads_one_where_a_single_sample_dominates_the_mean():

@@ -25,6 +25,12 @@ def test_apply_of_prepare_equals_forward(lam):
         torch.testing.assert_close(den.apply(cache, lam), den.apply(cache, lam))   # cache not consumed
 
 
+@pytest.mark.parametrize("shape", [(1, 3, 12, 16), (2, 1, 7, 5), (1, 16, 2, 2)])
+def test_down_is_two_by_two_average_pooling(shape):
+    x = torch.rand(shape, generator=torch.Generator().manual_seed(1)) * 1e3
+    torch.testing.assert_close(down(x), torch.nn.functional.avg_pool2d(x, 2))
+
+
 def test_lambda_changes_the_output_once_the_module_is_trained():
     den = Denoiser(TINY).eval()
     torch.nn.init.normal_(den.specialise.delta)   # untrained module starts neutral

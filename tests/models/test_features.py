@@ -21,6 +21,14 @@ def test_sanitize_replaces_and_counts_bad_values():
     assert clean.tolist() == [1.0, 0.0, 0.0, 0.0, 0.0, HDR_MAX]
 
 
+def test_sanitize_fast_path_matches_the_full_path_on_finite_and_huge_values():
+    t = torch.tensor([[2.0, -1.0], [3e38, 3e38]])          # finite, but its sum overflows to inf
+    clean, n_bad = sanitize(t)
+    assert n_bad == 0 and clean.tolist() == [[2.0, 0.0], [HDR_MAX, HDR_MAX]]
+    clean, n_bad = sanitize(t[0])
+    assert n_bad == 0 and clean.tolist() == [2.0, 0.0]
+
+
 def test_network_input_is_finite_with_hostile_buffers():
     f = make_frame()
     f.color[0, 0, 0, 0] = float("nan")
