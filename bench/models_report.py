@@ -47,9 +47,11 @@ def _case(name: str, size: int, repeats: int, threads: int, queue, base: Denoise
     torch.manual_seed(0)
     gen = torch.Generator().manual_seed(0)
     # The temporal cases time the checkpoint's architecture with its temporal extractor on, also
-    # when the checkpoint is a single-frame network (speed does not depend on trained weights).
+    # when the checkpoint is a single-frame network (speed does not depend on trained weights);
+    # candidate features are single-frame only (a neighbour has no candidate), so off there.
     cfg = {"single-frame": replace(base, temporal=False, multiscale=False),
-           "multi-scale": replace(base, temporal=False)}.get(name, replace(base, temporal=True))
+           "multi-scale": replace(base, temporal=False)}.get(
+        name, replace(base, temporal=True, candidate_features=False))
     model = Denoiser(cfg).eval()
     window = [_frame(size, size, gen) for _ in range(3 if cfg.temporal else 1)]
     center = len(window) // 2

@@ -64,12 +64,21 @@ class DenoiserConfig:
     # Post-training: with a candidate, eq. 5's swap never lifts a pixel above both its fine result
     # and the candidate's own value there (ScaleCompositor's cap); False = the block-wise cap alone.
     candidate_cap: bool = False
+    # The trunk also reads the candidate (log of its demodulated image at each level): kernels
+    # predicted with a clean estimate of the image in view, as a cross-bilateral filter is
+    # guided by one. Single-frame only (a neighbour frame has no candidate of its own).
+    candidate_features: bool = False
+    # Post-training: the kernels' result at each level is clamped to [c/(1+t), c·(1+t)] around the
+    # candidate c before the two are blended, t = kernel_clamp at λ = 1 widening to no clamp at
+    # λ = 10 (t / (1 − log λ / log 10)); None = off. A highlight the kernels spread beyond what
+    # OIDN saw there is a relMSE outlier (docs/guided-kernels.md).
+    kernel_clamp: float | None = None
 
     def without_post_training_settings(self) -> "DenoiserConfig":
         """This config with the settings chosen after training (on validation scenes, for given
         weights) back at their defaults: what a fine-tuning run starts from and trains through."""
         return dataclasses.replace(self, energy_tolerance=0.0, gate_offset=0.0, coarse_gate_offset=None,
-                                   candidate_cap=False)
+                                   candidate_cap=False, kernel_clamp=None)
 
     def level_gate_offset(self, level: int) -> float:
         """The logit offset of pyramid level `level` (0 = finest)."""
@@ -87,6 +96,7 @@ class DenoiserConfig:
 
 
 TRUNKS = ("levels", "unet")
+CANDIDATE_CHANNELS = 3   # trunk input channels DenoiserConfig.candidate_features adds (log demodulated RGB)
 
 # Inference bands of rows for the λ tail: a band's F·k² weight planes and its 3-channel output
 # stay in cache from the GEMM through exp to the last tap.
@@ -123,6 +133,13 @@ def down_frame(frame: FrameTensors) -> FrameTensors:
     motion in pixels halves with the resolution."""
     scale = {"variance": 0.25, "motion": 0.5}
     return frame.map(lambda name, t: down(t) * scale.get(name, 1.0))
+
+
+def clamp_around(result: Tensor, candidate: Tensor, t: float, code: Tensor) -> Tensor:
+    """result clamped to [c/(1+t'), c·(1+t')] around the candidate c, t' = t / (1 − code): the band
+    at λ = 1 (code 0), wider with λ and gone at λ = 10 (code 1), per pixel under a λ map."""
+    band = 1.0 + t / (1.0 - code).clamp_min(1e-6)
+    return torch.minimum(torch.maximum(result, candidate / band), candidate * band)
 
 
 def lambda_code(lam: Tensor) -> Tensor:
@@ -269,10 +286,14 @@ class Denoiser(nn.Module):
         self.features = feature_set(cfg.source)              # unknown source fails here
         if cfg.trunk not in TRUNKS:
             raise ValueError(f"unknown trunk {cfg.trunk!r}; known: {', '.join(TRUNKS)}")
+        if cfg.candidate_features and not (cfg.oidn_candidate and not cfg.temporal):
+            raise ValueError("candidate_features reads the OIDN candidate of a single-frame network: "
+                             "it needs oidn_candidate=True and temporal=False")
+        cin = self.features.channels + (CANDIDATE_CHANNELS if cfg.candidate_features else 0)
         if cfg.trunk == "unet":
-            self.unet = UNetTrunk(self.features.channels, cfg.width, cfg.n_levels)
+            self.unet = UNetTrunk(cin, cfg.width, cfg.n_levels)
         else:
-            self.encoder = Encoder(self.features.channels, cfg.width)
+            self.encoder = Encoder(cin, cfg.width)
             self.spatial = res_blocks(cfg.width, cfg.spatial_blocks)
         self.temporal = TemporalExtractor(cfg.width, cfg.temporal_blocks) if cfg.temporal else None
         self.kernel_head = Pointwise(cfg.width, cfg.lambda_width)
@@ -313,7 +334,8 @@ class Denoiser(nn.Module):
         images = [demodulate(f.color, f.albedo) for f in frames]
         extra = self._demodulated_candidate(candidate, frames[center], align) if candidate is not None else None
         n_bad += extra[2] if extra is not None else 0
-        trunk_features = self._unet_features(frames) if self.config.trunk == "unet" else None
+        guide = extra[0] if self.config.candidate_features else None
+        trunk_features = self._unet_features(frames, guide) if self.config.trunk == "unet" else None
         levels = []
         for level in range(self.config.n_levels):
             if level:
@@ -323,7 +345,8 @@ class Denoiser(nn.Module):
                 # gate is saturated returns exactly D(candidate) and eq. 5 then changes nothing
                 extra = None if extra is None else (down(extra[0]), down(extra[1]) * 0.25, 0)
             level_features = None if trunk_features is None else trunk_features[level]
-            cache = self._prepare_level(frames, images, center, level_features)
+            guide = extra[0] if self.config.candidate_features else None
+            cache = self._prepare_level(frames, images, center, level_features, guide)
             if extra is not None:
                 cache.candidate = extra[0]
                 cache.gate_hidden = self.gate.prepare(cache.hidden[:, 0, :-1], images[center], extra[0], extra[1])
@@ -337,22 +360,26 @@ class Denoiser(nn.Module):
         scale = demodulate(torch.ones_like(frame.albedo), frame.albedo)
         return demodulate(pad_to(clean, align), frame.albedo), frame.variance * scale * scale, n_bad
 
-    def _trunk_inputs(self, frames: list[FrameTensors]) -> Tensor:
-        """All frames as one channels-last batch: one pass through the shared convs."""
+    def _trunk_inputs(self, frames: list[FrameTensors], guide: Tensor | None = None) -> Tensor:
+        """All frames as one channels-last batch: one pass through the shared convs. guide: the
+        demodulated candidate at this resolution (DenoiserConfig.candidate_features; one frame)."""
+        if guide is not None:
+            return cat_channels_last([self.features.build(frames[0]), log_transform(guide)])
         return torch.cat([self.features.build(f).permute(0, 2, 3, 1) for f in frames], 0).permute(0, 3, 1, 2)
 
-    def _unet_features(self, frames: list[FrameTensors]) -> list[tuple[Tensor, ...]]:
+    def _unet_features(self, frames: list[FrameTensors], guide: Tensor | None = None) -> list[tuple[Tensor, ...]]:
         """Per pyramid level, each frame's U-Net features (finest first), from the finest inputs."""
-        inputs = self._trunk_inputs(frames)
+        inputs = self._trunk_inputs(frames, guide)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=trunk_in_bfloat16(inputs)):
             return [f.float().split(frames[0].color.shape[0], 0) for f in self.unet(inputs)]
 
     def _prepare_level(self, frames: list[FrameTensors], images: list[Tensor], center: int,
-                       feats: tuple[Tensor, ...] | None = None) -> LevelCache:
-        """feats: this level's per-frame features from the U-Net; None: the level's own trunk."""
+                       feats: tuple[Tensor, ...] | None = None, guide: Tensor | None = None) -> LevelCache:
+        """feats: this level's per-frame features from the U-Net; None: the level's own trunk
+        (reading `guide`, the level's demodulated candidate, with candidate_features)."""
         n = frames[0].color.shape[0]
         if feats is None:
-            inputs = self._trunk_inputs(frames)
+            inputs = self._trunk_inputs(frames, guide)
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=trunk_in_bfloat16(inputs)):
                 feats = self.spatial(self.encoder(inputs)).float().split(n, 0)
         motions = [f.motion for f in frames]
@@ -397,6 +424,8 @@ class Denoiser(nn.Module):
             if kernel_only is not None:
                 kernel_only.append(result)
             if level.candidate is not None:                                       # eq. 4 + one candidate
+                if self.config.kernel_clamp is not None:
+                    result = clamp_around(result, level.candidate, self.config.kernel_clamp, code)
                 result = blend(result, level.candidate,
                                self.gate.weight(level.gate_hidden, code, self.config.level_gate_offset(i)))
             results.append(result)

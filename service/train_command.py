@@ -43,6 +43,10 @@ def add_parser(sub) -> None:
     p.add_argument("--gate-firefly", action="store_true",
                    help="with --oidn-candidate: the gate also reads each pixel's relative variance, ≈ 1 where one "
                         "sample dominates (the gate's input layer starts fresh when --init's gate lacks them)")
+    p.add_argument("--candidate-features", action="store_true",
+                   help="with --oidn-candidate --single-frame: the denoiser's trunk also reads OIDN's image, so its "
+                        "kernels are predicted with a clean estimate in view (--init's first conv is widened with "
+                        "zero weights: training starts from exactly that network)")
     p.add_argument("--single-frame", action="store_true",
                    help="no temporal extractor: a one-frame network (data sets of single frames)")
     p.add_argument("--init", type=Path, default=d.init,
@@ -72,7 +76,8 @@ def train_config(args) -> TrainConfig:
         data=tuple(args.data), out=args.out, stage=args.stage, steps=args.steps, batch=args.batch, crop=args.crop,
         lr=args.lr, val_every=args.val_every, seed=args.seed, width=args.width, spatial_blocks=args.spatial_blocks,
         trunk=args.trunk, symmetric_fraction=args.symmetric_fraction, oidn_candidate=args.oidn_candidate,
-        gate_firefly=args.gate_firefly, temporal=not args.single_frame, init=args.init, resume=args.resume, device=args.device,
+        gate_firefly=args.gate_firefly, candidate_features=args.candidate_features,
+        temporal=not args.single_frame, init=args.init, resume=args.resume, device=args.device,
         quiet=args.quiet, error_levels=args.error_levels, noisy_targets=args.noisy_targets, val_data=args.val_data,
         command_line="renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
     )

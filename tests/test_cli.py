@@ -56,6 +56,7 @@ def test_uniform_render_writes_every_layer_and_matches_mi_render(tmp_path):
     (["train", "--data", "no-data", "--stage", "gate", "--oidn-candidate"], "name it with --init"),
     (["train", "--data", "no-data", "--stage", "gate", "--init", "d.pt"], "add --oidn-candidate"),
     (["train", "--data", "no-data", "--gate-firefly"], "--gate-firefly adds statistics"),
+    (["train", "--data", "no-data", "--oidn-candidate", "--candidate-features"], "add --oidn-candidate and --single-frame"),
     (["bench", "--loop", "--film-scale", "0", "--suite", "dev"], "--film-scale must be >= 1"),
     (["bench", "--calibration", "--suite", "val", "--weights", "empty", "-o", "out"], "no trained denoiser"),
 ])

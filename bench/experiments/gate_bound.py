@@ -4,7 +4,7 @@ Per scene at one uniform sample count: the shipped denoiser, OIDN, the denoiser'
 (the candidate suppressed), and two oracles that pick per pixel, or per 8×8 neighbourhood, the
 lower true error of the two — bounds that no gate reading only the inputs can beat.
 
-    python -m bench.experiments.gate_bound [SPP] [--suite val|dev]
+    python -m bench.experiments.gate_bound [SPP] [--suite val|dev] [--weights DIR]
 """
 from __future__ import annotations
 
@@ -27,8 +27,9 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("spp", type=int, nargs="?", default=16)
     parser.add_argument("--suite", choices=sorted(SUITES), default="val")
+    parser.add_argument("--weights", default=None, help="folder of denoiser.pt and error_predictor.pt (default: shipped)")
     args = parser.parse_args()
-    nets = load_bench_networks(None)
+    nets = load_bench_networks(args.weights)
     denoiser = nets.networks.denoiser
     print("| scene | ours | OIDN | kernels alone | per-pixel oracle | 8×8 oracle |\n|---|---:|---:|---:|---:|---:|")
     with pinned_torch_threads(2), torch.no_grad():

@@ -10,7 +10,7 @@ sample count and setting (b, bc, cap): SMAPE and relMSE of ours and of OIDN, the
 network's preparation shared by every setting.
 
     python -m bench.experiments.gate_offset [--suite val|dev] [--spp 16 64 256] [--offsets 0 1 2] [--coarse 2 10]
-                                            [--cap off on] [--weights DIR]
+                                            [--cap off on] [--clamp off 0.5] [--weights DIR]
 
 Without --coarse, bc = b (one offset for every level). --cap crosses every pair with the
 compositor's candidate cap off and/or on (DenoiserConfig.candidate_cap; without it, the checkpoint's own).
@@ -34,19 +34,19 @@ from service.loop.tensors import frame_tensors, to_image
 DEFAULT_OFFSETS = (0.0, 1.0, 2.0, 3.0, 4.0)
 
 
-Setting = tuple[float, float, bool]   # (b, bc, candidate cap)
+Setting = tuple[float, float, bool, float | None]   # (b, bc, candidate cap, kernel clamp)
 
 
 def offset_ratios(denoiser: Denoiser, frame: FrameTensors, candidate: torch.Tensor, reference: np.ndarray,
                   oidn: dict[str, float], settings: list[Setting]) -> list[tuple[float, float]]:
-    """(ours ÷ OIDN SMAPE, ours ÷ OIDN relMSE) per (b, bc, cap) at λ = 1, from one preparation
+    """(ours ÷ OIDN SMAPE, ours ÷ OIDN relMSE) per (b, bc, cap, clamp) at λ = 1, from one preparation
     (oidn: the candidate's own scores); the denoiser's config is back in place afterwards, whatever happens."""
     cache = denoiser.prepare([frame], 0, candidate)
     base_config, ratios = denoiser.config, []
     try:
-        for b, bc, cap in settings:
+        for b, bc, cap, clamp in settings:
             denoiser.config = dataclasses.replace(base_config, gate_offset=b, coarse_gate_offset=bc,
-                                                  candidate_cap=cap)
+                                                  candidate_cap=cap, kernel_clamp=clamp)
             ours = image_metrics(to_image(denoiser.apply(cache)), reference)
             ratios.append((ours["smape"] / oidn["smape"], ours["relmse"] / oidn["relmse"]))
     finally:
@@ -63,17 +63,22 @@ def main() -> None:
                         help="offsets of the coarser levels, each paired with every --offsets value")
     parser.add_argument("--cap", choices=("off", "on"), nargs="+", default=None,
                         help="the compositor's candidate cap (DenoiserConfig.candidate_cap), crossed with every pair")
+    parser.add_argument("--clamp", type=_clamp, nargs="+", default=None,
+                        help="the kernels' clamp around the candidate (DenoiserConfig.kernel_clamp; 'off' or t), "
+                             "crossed with every setting; without it, the checkpoint's own")
     parser.add_argument("--weights", default=None, help="folder of denoiser.pt and error_predictor.pt (default: shipped)")
     args = parser.parse_args()
     nets = load_bench_networks(args.weights)
     denoiser = nets.networks.denoiser
     caps = [c == "on" for c in args.cap] if args.cap else [denoiser.config.candidate_cap]
-    pairs = [(b, b if args.coarse is None else bc, cap)
-             for b in args.offsets for bc in (args.coarse or [None]) for cap in caps]
-    head = " | ".join(f"b={b:g}, bc={bc:g}, cap {'on' if cap else 'off'}" for b, bc, cap in pairs)
+    clamps = args.clamp or [denoiser.config.kernel_clamp]
+    pairs = [(b, b if args.coarse is None else bc, cap, clamp)
+             for b in args.offsets for bc in (args.coarse or [None]) for cap in caps for clamp in clamps]
+    head = " | ".join(f"b={b:g}, bc={bc:g}, cap {'on' if cap else 'off'}, clamp {_clamp_text(clamp)}"
+                      for b, bc, cap, clamp in pairs)
     print(f"SMAPE / relMSE ÷ OIDN's (< 1: ours better)\n\n| scene | spp | OIDN SMAPE | {head} |\n"
           "|---|---:|---:|" + "---:|" * len(pairs))
-    ratios: dict[tuple[int, float, float, bool], list[tuple[float, float]]] = {}
+    ratios: dict[tuple[int, float, float, bool, float | None], list[tuple[float, float]]] = {}
     with pinned_torch_threads(2), torch.no_grad():
         for scene in dev_scenes(None, SUITES[args.suite].root):
             reference, _ = load_reference(SUITES[args.suite].references, scene, None if scene.frames == 1 else 0)
@@ -86,12 +91,20 @@ def main() -> None:
                     ratios.setdefault((spp, *pair), []).append(ratio)
                     cells.append(f"{ratio[0]:.3f} / {ratio[1]:.3f}")
                 print(f"| {scene.name} | {spp} | {oidn['smape']:.4f} | " + " | ".join(cells) + " |", flush=True)
-    print("\n| spp | b | bc | cap | median SMAPE ÷ OIDN | ≤ OIDN SMAPE | median / mean relMSE ÷ OIDN | ≤ OIDN relMSE |\n"
-          "|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for (spp, b, bc, cap), values in sorted(ratios.items()):
+    print("\n| spp | b | bc | cap | clamp | median SMAPE ÷ OIDN | ≤ OIDN SMAPE | median / mean relMSE ÷ OIDN | ≤ OIDN relMSE |\n"
+          "|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for (spp, b, bc, cap, clamp), values in sorted(ratios.items(), key=lambda kv: (kv[0][:4], kv[0][4] or -1.0)):
         s, r = np.array(values).T
-        print(f"| {spp} | {b:g} | {bc:g} | {'on' if cap else 'off'} | {np.median(s):.3f} | {(s <= 1).sum()} of {len(s)} "
+        print(f"| {spp} | {b:g} | {bc:g} | {'on' if cap else 'off'} | {_clamp_text(clamp)} | {np.median(s):.3f} | {(s <= 1).sum()} of {len(s)} "
               f"| {np.median(r):.3f} / {r.mean():.3f} | {(r <= 1).sum()} of {len(r)} |")
+
+
+def _clamp(text: str) -> float | None:
+    return None if text == "off" else float(text)
+
+
+def _clamp_text(clamp: float | None) -> str:
+    return "off" if clamp is None else f"{clamp:g}"
 
 
 if __name__ == "__main__":

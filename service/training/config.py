@@ -66,6 +66,7 @@ class TrainConfig:
     symmetric_fraction: float = 0.5  # end to end: first fraction of steps at λ = 1
     oidn_candidate: bool = False  # OIDN's image as one more candidate of the joint softmax
     gate_firefly: bool = False  # the candidate gate also reads the relative variance (models.candidate)
+    candidate_features: bool = False  # the denoiser's trunk also reads OIDN's image (single-frame, models.denoiser)
     temporal: bool = True  # False: a single-frame denoiser (no temporal extractor, one-frame windows)
     init: Path | None = None  # start from this checkpoint: the denoiser's (--stage error: the error network's)
     resume: bool = False  # continue from OUT/.train_<stage>.pt
@@ -111,5 +112,8 @@ class TrainConfig:
                                    "references (eq. 6's λ weighting and the error network's SMAPE target)")
         if self.gate_firefly and not self.oidn_candidate:
             raise TrainConfigError("--gate-firefly adds statistics to the OIDN candidate's gate: add --oidn-candidate")
+        if self.candidate_features and not (self.oidn_candidate and not self.temporal):
+            raise TrainConfigError("--candidate-features feeds the OIDN candidate to a single-frame trunk: "
+                                   "add --oidn-candidate and --single-frame")
         if self.stage in ("gate", "mixing") and not self.oidn_candidate:
             raise TrainConfigError(f"--stage {self.stage} trains the OIDN candidate's gate: add --oidn-candidate")

@@ -138,22 +138,41 @@ def _denoiser_to_train(config, device, switches: dict):
     if config.init is None:
         sizes = {"width": config.width, "spatial_blocks": config.spatial_blocks, "trunk": config.trunk}
         base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None}, **wanted,
-                              gate_firefly=config.gate_firefly)
+                              gate_firefly=config.gate_firefly, candidate_features=config.candidate_features)
         return Denoiser(dataclasses.replace(base, **switches)).to(device)
     trained = load_checkpoint(config.init, expected_kind="denoiser", device=device)
     # a candidate gate the earlier weights lack starts fresh (near "copy the candidate"), and so
     # does a gate layer whose inputs --gate-firefly widens; the checkpoint's post-training
     # settings (gate offsets, energy factor) are not trained through
     wanted["gate_firefly"] = config.gate_firefly or trained.config.gate_firefly
+    wanted["candidate_features"] = config.candidate_features or trained.config.candidate_features
     full = dataclasses.replace(trained.config.without_post_training_settings(), multiscale=True, **wanted)
     model = Denoiser(dataclasses.replace(full, **switches)).to(device)
-    # Only the gate's widened layer may differ in shape; any other mismatch stays a loud error.
+    # Only the gate's widened layer and the trunk's first conv (widened by --candidate-features)
+    # may differ in shape; any other mismatch stays a loud error.
     shapes = {name: tensor.shape for name, tensor in model.state_dict().items()}
-    widened = {name for name, tensor in trained.state_dict().items()
-               if name.startswith("gate.") and shapes.get(name, tensor.shape) != tensor.shape}
-    model.load_state_dict({name: tensor for name, tensor in trained.state_dict().items() if name not in widened},
-                          strict=False)
+    weights = {}
+    for name, tensor in trained.state_dict().items():
+        shape = shapes.get(name, tensor.shape)
+        if shape == tensor.shape:
+            weights[name] = tensor
+        elif name in TRUNK_INPUT_WEIGHTS and shape[0] == tensor.shape[0] and shape[2:] == tensor.shape[2:]:
+            weights[name] = widen_input_channels(tensor, shape[1])
+        elif not name.startswith("gate."):
+            raise ValueError(f"{config.init}: {name} has shape {tuple(tensor.shape)}, this network {tuple(shape)}")
+    model.load_state_dict(weights, strict=False)
     return model
+
+
+# The first convolution of each trunk: the layer --candidate-features widens.
+TRUNK_INPUT_WEIGHTS = ("encoder.conv1.weight", "unet.down.0.conv1.weight")
+
+
+def widen_input_channels(weight: torch.Tensor, channels: int) -> torch.Tensor:
+    """A conv weight (out, in, k, k) with zero weights for the input channels appended after
+    `in`: the widened network computes exactly what the trained one did until it learns to read them."""
+    extra = weight.new_zeros(weight.shape[0], channels - weight.shape[1], *weight.shape[2:])
+    return torch.cat([weight, extra], 1)
 
 
 def train_denoiser(config, device, stage: str = "denoiser", plan: StagePlan = StagePlan({}, "mixed")) -> dict:

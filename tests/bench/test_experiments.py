@@ -77,10 +77,11 @@ def test_gate_offset_sweep_scores_each_setting_and_leaves_the_denoisers_config_a
     candidate = torch.rand(1, 3, 16, 16, generator=g)
     reference = to_image(candidate) * 1.1
     oidn = image_metrics(to_image(candidate), reference)
-    settings = [(0.0, 0.0, False), (10.0, 10.0, False), (0.0, 0.0, True)]
+    settings = [(0.0, 0.0, False, None), (10.0, 10.0, False, None), (0.0, 0.0, True, None), (0.0, 0.0, False, 0.0)]
     ratios = offset_ratios(denoiser, frame, candidate, reference, oidn, settings)
     assert denoiser.config == config
-    assert len(ratios) == 3 and ratios[0] != ratios[1] and ratios[0] != ratios[2]
+    assert len(ratios) == 4 and ratios[0] != ratios[1] and ratios[0] != ratios[2]
+    np.testing.assert_allclose(ratios[3], (1.0, 1.0), rtol=1e-4)   # a zero-width clamp: the kernels become OIDN
     np.testing.assert_allclose(ratios[1], (1.0, 1.0), rtol=0.05)   # b = 10 everywhere: OIDN's image back
 
 

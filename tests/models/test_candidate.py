@@ -5,12 +5,13 @@ import dataclasses
 
 import pytest
 import torch
-
 import torch.nn.functional as F
 
 from models.candidate import N_FIREFLY_STATS, N_STATS, box_mean, gate_statistics, relative_variance
 from models.checkpoint import load_checkpoint, save_checkpoint
-from models.denoiser import Denoiser
+from models.denoiser import CANDIDATE_CHANNELS, Denoiser, clamp_around, lambda_code
+from service.training.config import TrainConfig
+from service.training.trainer import _denoiser_to_train
 
 from .conftest import TINY, make_frame
 
@@ -221,3 +222,64 @@ def test_a_firefly_gate_checkpoint_reloads_with_its_wider_gate(tmp_path):
     assert loaded.config.gate_firefly
     frame, candidate = make_frame(H, W), candidate_image()
     torch.testing.assert_close(loaded([frame], 0, 2.0, candidate), model([frame], 0, 2.0, candidate))
+
+
+GUIDED = dataclasses.replace(CANDIDATE, temporal=False, candidate_features=True)
+
+
+@pytest.mark.parametrize("changes", [{"oidn_candidate": False}, {"temporal": True}])
+def test_candidate_features_need_a_single_frame_network_with_a_candidate(changes):
+    with pytest.raises(ValueError, match="candidate_features"):
+        Denoiser(dataclasses.replace(GUIDED, **changes))
+
+
+@pytest.mark.parametrize("trunk", ["levels", "unet"])
+@torch.no_grad()
+def test_candidate_features_reach_the_kernels_through_the_trunk(trunk):
+    model = Denoiser(dataclasses.replace(GUIDED, trunk=trunk)).eval()
+    first_conv = model.encoder.conv1 if trunk == "levels" else model.unet.down[0].conv1
+    assert first_conv.in_channels == model.features.channels + CANDIDATE_CHANNELS
+    frame = make_frame(H, W, motion=False)
+    saturate_gate(model, -40.0)             # the candidate's own share at its floor (4.5e-5): kernels alone
+    plain = Denoiser(dataclasses.replace(GUIDED, trunk=trunk, candidate_features=False)).eval()
+    saturate_gate(plain, -40.0)
+
+    def change(net: Denoiser) -> float:   # how far the output moves when only the candidate changes
+        first, second = (net.apply(net.prepare([frame], 0, candidate_image(seed)), 1.0) for seed in (1, 2))
+        return float((first - second).abs().max())
+
+    # without the features only the gate's floor lets the candidate through; with them the kernels read it
+    assert change(model) > 20 * change(plain)
+
+
+@torch.no_grad()
+def test_widening_a_trained_denoiser_for_candidate_features_starts_from_exactly_that_network(tmp_path):
+    trained = Denoiser(dataclasses.replace(CANDIDATE, temporal=False)).eval()
+    save_checkpoint(tmp_path / "denoiser.pt", trained)
+    config = TrainConfig(data=tmp_path, init=tmp_path / "denoiser.pt", oidn_candidate=True, temporal=False,
+                         candidate_features=True)
+    widened = _denoiser_to_train(config, "cpu", {"temporal": False}).eval()
+    assert widened.config.candidate_features
+    frame, candidate = make_frame(H, W, motion=False), candidate_image()
+    torch.testing.assert_close(widened([frame], 0, 2.0, candidate), trained([frame], 0, 2.0, candidate))
+
+
+def test_kernel_clamp_keeps_the_kernels_within_its_band_at_lambda_1_and_lets_go_at_lambda_10():
+    result = torch.tensor([0.1, 1.0, 5.0, 0.0]).view(1, 1, 1, 4)
+    candidate = torch.tensor([1.0, 1.0, 1.0, 2.0]).view(1, 1, 1, 4)
+    at_1 = clamp_around(result, candidate, 0.5, lambda_code(torch.tensor(1.0)).view(1, 1, 1, 1))
+    torch.testing.assert_close(at_1.flatten(), torch.tensor([1 / 1.5, 1.0, 1.5, 2 / 1.5]))
+    at_10 = clamp_around(result, candidate, 0.5, lambda_code(torch.tensor(10.0)).view(1, 1, 1, 1))
+    torch.testing.assert_close(at_10, result)
+
+
+@torch.no_grad()
+def test_kernel_clamp_is_a_post_training_setting_that_moves_the_output_towards_the_candidate():
+    model = Denoiser(CANDIDATE).eval()
+    frame, candidate = make_frame(H, W), candidate_image()
+    saturate_gate(model, -40.0)
+    free = model([frame], 0, 1.0, candidate)
+    model.config = dataclasses.replace(model.config, kernel_clamp=0.0)
+    pinned = model([frame], 0, 1.0, candidate)
+    assert (pinned - candidate).abs().mean() < 0.01 * (free - candidate).abs().mean()
+    assert model.config.without_post_training_settings().kernel_clamp is None
