@@ -125,6 +125,14 @@ class CandidateGate(nn.Module):
         return torch.sigmoid(torch.tanh(raw / GATE_LOGIT_BOUND) * GATE_LOGIT_BOUND)
 
 
+def clamp_around(result: Tensor, candidate: Tensor, t: float, code: Tensor) -> Tensor:
+    """result clamped to [c/(1+t'), c·(1+t')] around the candidate c, t' = t / (1 − code)
+    (DenoiserConfig.kernel_clamp): the band at λ = 1 (code 0), wider with λ and gone at λ = 10
+    (code 1), per pixel under a λ map. The result stays between the kernels' value and c."""
+    band = 1.0 + t / (1.0 - code).clamp_min(1e-6)
+    return torch.minimum(torch.maximum(result, candidate / band), candidate * band)
+
+
 def blend(kernel_result: Tensor, candidate: Tensor, weight: Tensor) -> Tensor:
     """(1 − w)·kernel_result + w·candidate: eq. 4 with the candidate as one more term."""
     return torch.lerp(kernel_result, candidate, weight)

@@ -24,7 +24,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.candidate import CandidateGate, blend
+from models.candidate import CandidateGate, blend, clamp_around
 from models.energy import conserve_energy, sample_energy
 from models.features import HDR_MAX, demodulate, feature_set, log_transform, remodulate, sanitize, sanitize_frame
 from models.frames import FrameTensors
@@ -133,13 +133,6 @@ def down_frame(frame: FrameTensors) -> FrameTensors:
     motion in pixels halves with the resolution."""
     scale = {"variance": 0.25, "motion": 0.5}
     return frame.map(lambda name, t: down(t) * scale.get(name, 1.0))
-
-
-def clamp_around(result: Tensor, candidate: Tensor, t: float, code: Tensor) -> Tensor:
-    """result clamped to [c/(1+t'), c·(1+t')] around the candidate c, t' = t / (1 − code): the band
-    at λ = 1 (code 0), wider with λ and gone at λ = 10 (code 1), per pixel under a λ map."""
-    band = 1.0 + t / (1.0 - code).clamp_min(1e-6)
-    return torch.minimum(torch.maximum(result, candidate / band), candidate * band)
 
 
 def lambda_code(lam: Tensor) -> Tensor:

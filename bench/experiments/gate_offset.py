@@ -93,7 +93,7 @@ def main() -> None:
                 print(f"| {scene.name} | {spp} | {oidn['smape']:.4f} | " + " | ".join(cells) + " |", flush=True)
     print("\n| spp | b | bc | cap | clamp | median SMAPE ÷ OIDN | ≤ OIDN SMAPE | median / mean relMSE ÷ OIDN | ≤ OIDN relMSE |\n"
           "|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for (spp, b, bc, cap, clamp), values in sorted(ratios.items(), key=lambda kv: (kv[0][:4], kv[0][4] or -1.0)):
+    for (spp, b, bc, cap, clamp), values in sorted(ratios.items(), key=lambda kv: (kv[0][:4], -1.0 if kv[0][4] is None else kv[0][4])):
         s, r = np.array(values).T
         print(f"| {spp} | {b:g} | {bc:g} | {'on' if cap else 'off'} | {_clamp_text(clamp)} | {np.median(s):.3f} | {(s <= 1).sum()} of {len(s)} "
               f"| {np.median(r):.3f} / {r.mean():.3f} | {(r <= 1).sum()} of {len(r)} |")

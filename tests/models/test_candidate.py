@@ -7,9 +7,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from models.candidate import N_FIREFLY_STATS, N_STATS, box_mean, gate_statistics, relative_variance
+from models.candidate import N_FIREFLY_STATS, N_STATS, box_mean, clamp_around, gate_statistics, relative_variance
 from models.checkpoint import load_checkpoint, save_checkpoint
-from models.denoiser import CANDIDATE_CHANNELS, Denoiser, clamp_around, lambda_code
+from models.denoiser import CANDIDATE_CHANNELS, Denoiser, lambda_code
 from service.training.config import TrainConfig
 from service.training.trainer import _denoiser_to_train
 
