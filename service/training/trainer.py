@@ -283,7 +283,11 @@ def train_error_predictor(config, device) -> dict:
                                                      candidate)))
         return sum(losses) / len(losses)
 
-    return _fit("error", model, loss_fn, val_fn, config, device, _provenance(config.command_line, "error", init))
+    extra = _provenance(config.command_line, "error", init)
+    # The error network predicts one denoiser's error: name that denoiser by content.
+    target = config.out / "denoiser.pt"
+    extra["denoiser"] = f"{target} sha1 {hashlib.sha1(target.read_bytes()).hexdigest()[:10]}"
+    return _fit("error", model, loss_fn, val_fn, config, device, extra)
 
 
 def run_training(config: TrainConfig, report: Callable[[str], None] = lambda line: None) -> list[str]:

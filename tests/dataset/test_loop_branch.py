@@ -59,7 +59,7 @@ def test_loop_branch_refuses_sequences(tmp_path, tiny):
         build_dataset(tmp_path, scenes=1, frames=2, loop_networks=load_networks(), **tiny)
 
 
-def test_error_network_trains_on_loop_levels_and_reads_their_sample_counts(loop_dataset, tmp_path):
+def test_error_network_trains_on_loop_levels_reads_their_sample_counts_and_names_its_denoiser(loop_dataset, tmp_path):
     out = tmp_path / "weights"
     out.mkdir()
     shutil.copy(SHIPPED_WEIGHTS_DIR / "denoiser.pt", out / "denoiser.pt")
@@ -72,6 +72,8 @@ def test_error_network_trains_on_loop_levels_and_reads_their_sample_counts(loop_
     model = load_checkpoint(out / "error_predictor.pt", expected_kind="error_predictor")
     assert model.config.sample_count_input
     assert ",".join(LOOP_LEVELS) in model.checkpoint_extra["command"]
+    denoiser_digest = hashlib.sha1((out / "denoiser.pt").read_bytes()).hexdigest()[:10]
+    assert model.checkpoint_extra["denoiser"].endswith(f"denoiser.pt sha1 {denoiser_digest}")
     denoiser = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser")
     sample = DenoiserDataset(loop_dataset, split="train", levels=("loop128",), crop=None)[0]
     with torch.no_grad():
