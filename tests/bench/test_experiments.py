@@ -12,6 +12,7 @@ from bench.common import image_metrics
 from bench.experiments.allocation_variants import allocator_variant, equal_gain_samples
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
                                              ranking_row)
+from bench.experiments.energy_tolerance import UNTOUCHED, outputs_per_tolerance
 from bench.experiments.gate_offset import offset_ratios
 from bench.experiments.target_cost import INPUT_SPP, scene_costs
 from bench.experiments.trunk_speed import median_seconds, random_frame
@@ -83,6 +84,26 @@ def test_gate_offset_sweep_scores_each_setting_and_leaves_the_denoisers_config_a
     assert len(ratios) == 4 and ratios[0] != ratios[1] and ratios[0] != ratios[2]
     np.testing.assert_allclose(ratios[3], (1.0, 1.0), rtol=1e-4)   # a zero-width clamp: the kernels become OIDN
     np.testing.assert_allclose(ratios[1], (1.0, 1.0), rtol=0.05)   # b = 10 everywhere: OIDN's image back
+
+
+def test_energy_tolerance_sweep_pulls_towards_the_samples_only_as_tau_grows_and_restores_the_config():
+    # gate offset 10: the output is the candidate's image, whatever the untrained kernels do
+    config = DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True, energy_tolerance=0.03,
+                            gate_offset=10.0)
+    torch.manual_seed(0)
+    denoiser = Denoiser(config).eval()
+    g = torch.Generator().manual_seed(0)
+    color = torch.rand(1, 3, 16, 16, generator=g)
+    frame = FrameTensors(color=color, variance=torch.full((1, 3, 16, 16), 1e-8), albedo=torch.full((1, 3, 16, 16), 0.5),
+                         normal=torch.rand(1, 3, 16, 16, generator=g), depth=torch.ones(1, 1, 16, 16), motion=None)
+    candidate = color * 0.8                       # a denoiser that lost a fifth of the energy
+    with torch.no_grad():
+        cache = denoiser.prepare([frame], 0, candidate)
+        untouched, pulled = outputs_per_tolerance(denoiser, cache, [UNTOUCHED, 1.0])
+    assert denoiser.config == config
+    samples_mean = float(color.mean())
+    assert untouched.mean() == pytest.approx(0.8 * samples_mean, rel=0.02)  # left as the network made it
+    assert pulled.mean() == pytest.approx(samples_mean, rel=1e-3)         # rse ≪ τ: the samples' total
 
 
 def test_error_ceiling_is_one_for_a_repeatable_map_and_near_zero_for_pure_noise():
