@@ -6,6 +6,7 @@ references and their metric values from here, so their numbers are comparable.
 """
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import hashlib
 import math
@@ -117,6 +118,19 @@ def pinned_torch_threads(threads: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(previous)
+
+
+@contextmanager
+def denoiser_settings(denoiser, **changes) -> Iterator[None]:
+    """Run with `changes` to the denoiser's config (post-training settings: gate offsets, clamp,
+    energy τ — applied by `apply`, so one preparation serves every setting) and put the config
+    back afterwards, whatever happens: an experiment's setting must not leak into the next one."""
+    base = denoiser.config
+    denoiser.config = dataclasses.replace(base, **changes)
+    try:
+        yield
+    finally:
+        denoiser.config = base
 
 
 # --- networks ---------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ import math
 import numpy as np
 import torch
 
-from bench.common import image_metrics, load_bench_networks, pinned_torch_threads
+from bench.common import denoiser_settings, image_metrics, load_bench_networks, pinned_torch_threads
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.suite_quality import uniform_render
 from models.denoiser import Denoiser, DenoiserCache
@@ -32,13 +32,10 @@ UNTOUCHED = 1e-9   # a τ this small trusts the samples with weight ~0: the deno
 
 def outputs_per_tolerance(denoiser: Denoiser, cache: DenoiserCache, taus: list[float]) -> list[np.ndarray]:
     """The λ = 1 image for each τ from one preparation; the denoiser's config is back in place afterwards."""
-    base, images = denoiser.config, []
-    try:
-        for tau in taus:
-            denoiser.config = dataclasses.replace(base, energy_tolerance=tau)
+    images = []
+    for tau in taus:
+        with denoiser_settings(denoiser, energy_tolerance=tau):
             images.append(to_image(denoiser.apply(cache)))
-    finally:
-        denoiser.config = base
     return images
 
 

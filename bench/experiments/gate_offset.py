@@ -18,12 +18,11 @@ compositor's candidate cap off and/or on (DenoiserConfig.candidate_cap; without 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 import numpy as np
 import torch
 
-from bench.common import image_metrics, load_bench_networks, pinned_torch_threads
+from bench.common import denoiser_settings, image_metrics, load_bench_networks, pinned_torch_threads
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.suite_quality import uniform_render
 from models.denoiser import Denoiser
@@ -42,15 +41,11 @@ def offset_ratios(denoiser: Denoiser, frame: FrameTensors, candidate: torch.Tens
     """(ours ÷ OIDN SMAPE, ours ÷ OIDN relMSE) per (b, bc, cap, clamp) at λ = 1, from one preparation
     (oidn: the candidate's own scores); the denoiser's config is back in place afterwards, whatever happens."""
     cache = denoiser.prepare([frame], 0, candidate)
-    base_config, ratios = denoiser.config, []
-    try:
-        for b, bc, cap, clamp in settings:
-            denoiser.config = dataclasses.replace(base_config, gate_offset=b, coarse_gate_offset=bc,
-                                                  candidate_cap=cap, kernel_clamp=clamp)
+    ratios = []
+    for b, bc, cap, clamp in settings:
+        with denoiser_settings(denoiser, gate_offset=b, coarse_gate_offset=bc, candidate_cap=cap, kernel_clamp=clamp):
             ours = image_metrics(to_image(denoiser.apply(cache)), reference)
-            ratios.append((ours["smape"] / oidn["smape"], ours["relmse"] / oidn["relmse"]))
-    finally:
-        denoiser.config = base_config
+        ratios.append((ours["smape"] / oidn["smape"], ours["relmse"] / oidn["relmse"]))
     return ratios
 
 

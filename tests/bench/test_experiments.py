@@ -8,7 +8,7 @@ import torch
 
 import service.loop.allocate as allocate
 import service.loop.loop as loop
-from bench.common import image_metrics
+from bench.common import denoiser_settings, image_metrics
 from bench.experiments.allocation_variants import allocator_variant, equal_gain_samples
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
                                              ranking_row)
@@ -104,6 +104,16 @@ def test_energy_tolerance_sweep_pulls_towards_the_samples_only_as_tau_grows_and_
     samples_mean = float(color.mean())
     assert untouched.mean() == pytest.approx(0.8 * samples_mean, rel=0.02)  # left as the network made it
     assert pulled.mean() == pytest.approx(samples_mean, rel=1e-3)         # rse ≪ τ: the samples' total
+
+
+def test_denoiser_settings_apply_inside_and_are_undone_even_when_the_measurement_fails():
+    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True)).eval()
+    config = denoiser.config
+    with pytest.raises(RuntimeError):
+        with denoiser_settings(denoiser, gate_offset=3.0, kernel_clamp=0.5):
+            assert (denoiser.config.gate_offset, denoiser.config.kernel_clamp) == (3.0, 0.5)
+            raise RuntimeError("a measurement failed")
+    assert denoiser.config == config
 
 
 def test_error_ceiling_is_one_for_a_repeatable_map_and_near_zero_for_pure_noise():
