@@ -56,28 +56,10 @@ HIGH_VARIANCE_SPP = {"lamp_room": 65536, "fog_spot": 65536, "glass_box": 65536,
                      "shaded_bulb_study": 16384, "misty_lantern": 16384}
 PASS_SPP = 1024  # one mi.render call: bounded wavefront memory, and passes can be added later
 # References of the suite at K× its film size in width and height (`--film-scale K`, issue 14's
-# 512² benchmark) have K² times the pixels of the committed ones, so they are rendered on demand
-# into the bench cache, not committed. Each keeps its scene's spp per pixel (`suite_reference_spp`),
-# so its own noise per pixel is the committed reference's: a 2-core CPU renders the suite at 2× in
-# about 90 min, most of it fog_spot's 65 536 spp.
-
-
-def suite_reference_spp(name: str, root: Path = DEV_SCENES) -> int:
-    """The spp a scene's reference has at any film scale: its suite's default, more for the noisiest."""
-    return HIGH_VARIANCE_SPP.get(name, VAL_SPP if root == VAL_SCENES else DEFAULT_SPP)
-
-
-def reference_spp_note(root: Path = DEV_SCENES) -> str:
-    """What the reports say of a suite's reference spp: "16 384 spp, 65 536 for fog_spot, glass_box and lamp_room"."""
-    spaced = lambda n: f"{n:_}".replace("_", " ")
-    default = suite_reference_spp("", root)
-    more: dict[int, list[str]] = {}
-    for scene in dev_scenes(None, root):
-        if (spp := suite_reference_spp(scene.name, root)) != default:
-            more.setdefault(spp, []).append(scene.name)
-    parts = [f"{spaced(spp)} for " + (", ".join(group[:-1]) + " and " if len(group) > 1 else "") + group[-1]
-             for spp, group in sorted(more.items())]
-    return ", ".join([f"{spaced(default)} spp", *parts])
+# 512² benchmark): 4K× the pixels of the committed ones, so they are rendered on demand and kept
+# in the bench cache, not committed; 4096 spp is what a 2-core CPU renders for the cheaper scenes
+# in minutes each (a GPU renders the committed spp).
+SCALED_REFERENCE_SPP = 4096
 
 
 def scaled_reference_dir(cache_dir: Path, film_scale: int) -> Path:
@@ -149,12 +131,12 @@ def render_reference(scene: DevScene, spp: int, frame: int | None, film_scale: i
 def write_references(folder: Path = DEFAULT_REFERENCE_DIR, *, spp: int | None = None,
                      only: list[str] | None = None, root: Path = DEV_SCENES, film_scale: int = 1) -> list[Path]:
     """Render and write the references of the scenes under `root`; returns the files written.
-    spp: for every scene (default: `suite_reference_spp`, at every film scale). film_scale > 1: at that
-    multiple of each film's width and height, and only the first frame of a sequence (the loop
-    benchmark's)."""
+    film_scale > 1: at that multiple of each film's width and height, SCALED_REFERENCE_SPP by default,
+    and only the first frame of a sequence (the loop benchmark's)."""
     written = []
+    default_spp = VAL_SPP if root == VAL_SCENES else DEFAULT_SPP
     for scene in dev_scenes(only, root):
-        scene_spp = spp or suite_reference_spp(scene.name, root)
+        scene_spp = spp or (SCALED_REFERENCE_SPP if film_scale > 1 else HIGH_VARIANCE_SPP.get(scene.name, default_spp))
         frames = [None] if scene.frames == 1 else [0] if film_scale > 1 else list(range(scene.frames))
         for frame in frames:
             started = time.perf_counter()

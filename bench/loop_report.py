@@ -19,8 +19,7 @@ from pathlib import Path
 from bench.common import (METRIC_NAMES, BenchNetworks, command_line, fill, load_average,
                           load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance, scene_reference)
 from bench.loop_plots import write_plots
-from bench.dev_references import (DEFAULT_REFERENCE_DIR, load_reference, reference_spp_note, scaled_reference_dir,
-                                  suite_reference_spp)
+from bench.dev_references import DEFAULT_REFERENCE_DIR, SCALED_REFERENCE_SPP, load_reference, scaled_reference_dir
 from bench.loop_run import (DEGENERATE_PREDICTION_RATIO, DEV, FULL, LOOP_SEED, METHODS, PRODUCT, QUICK, STAGES,
                             BenchSettings, ErrorAgreement, Headline, SceneResult, error_agreement, headline,
                             prepare_scenes, run_method, warm_up)
@@ -106,7 +105,7 @@ def dev_settings(film_scale: int = 1, reference_spp: int | None = None) -> Bench
         raise ValueError(f"film_scale must be >= 1, got {film_scale}")
     if film_scale == 1:
         return DEV
-    return replace(DEV, film_scale=film_scale, reference_spp=reference_spp)
+    return replace(DEV, film_scale=film_scale, reference_spp=reference_spp or SCALED_REFERENCE_SPP)
 
 
 def scene_reference_image(scene, settings: BenchSettings, cache_dir: Path):
@@ -116,12 +115,11 @@ def scene_reference_image(scene, settings: BenchSettings, cache_dir: Path):
     if scene.dev is not None and settings.film_scale > 1:
         folder = scaled_reference_dir(cache_dir, settings.film_scale)
         image, header = load_reference(folder, scene.dev, frame, size=scene.film)
-        wanted = settings.reference_spp or suite_reference_spp(scene.dev.name)
-        if header.get("spp") != wanted:
+        if header.get("spp") != settings.reference_spp:
             raise FileNotFoundError(f"{scene.label}: the cached {scene.film[0]}x{scene.film[1]} reference has "
-                                    f"{header.get('spp')} spp, not {wanted}: run `renderloop bench "
+                                    f"{header.get('spp')} spp, not {settings.reference_spp}: run `renderloop bench "
                                     f"--references --film-scale {settings.film_scale} --reference-spp "
-                                    f"{wanted} --only {scene.label}`")
+                                    f"{settings.reference_spp} --only {scene.label}`")
         return image
     if scene.dev is not None:
         return load_reference(DEFAULT_REFERENCE_DIR, scene.dev, frame)[0]
@@ -211,7 +209,7 @@ def write_loop_report(path: Path, results: LoopResults) -> Path:
         weights=results.nets.description,
         quick=" (**--quick**: small images, few scenes and iterations; not the real report)" if results.quick else "",
         size_label=size_label(s),
-        suite=suite_note(s), iterations=s.iterations, spps=", ".join(spps), last_spp=spps[-1], reference_spp=reference_spp_label(s),
+        suite=suite_note(s), iterations=s.iterations, spps=", ".join(spps), last_spp=spps[-1], reference_spp=s.reference_spp,
         repeats=s.timing_repeats, threads=results.threads,
         methods="; ".join(f"({m.key}) {m.label}" for m in METHODS), oidn_status=results.oidn_status,
         headline_table=headline_table(scenes, head), goals="; ".join(goal_lines(head)),
@@ -236,27 +234,18 @@ def size_label(settings: BenchSettings) -> str:
     return "each scene's own film size (about 256²)"
 
 
-def reference_spp_label(settings: BenchSettings) -> str:
-    """The references' spp as the report states it (per scene where the suite sets it)."""
-    if settings.reference_spp is None:
-        return reference_spp_note()
-    return f"{settings.reference_spp} spp"
-
-
 def suite_note(settings: BenchSettings) -> str:
     if settings.suite == "dev" and settings.film_scale > 1:
-        noise = ("" if settings.reference_spp is None else
-                 " At fewer spp than the committed references a reference's own noise is a visible part of the "
-                 "smallest errors below, the same for every method: it pulls ratios between methods towards 1.")
         return (f"Scenes: the hand-written development scenes (scenes/dev, never trained on), rendered as written "
                 f"but for the film's size, against references at that size (mi.render of the same resized scene, "
-                f"{reference_spp_label(settings)}, made by `renderloop bench --references --film-scale "
-                f"{settings.film_scale}` and cached in the bench cache, not committed; not rendered by this run)."
-                + noise)
+                f"{settings.reference_spp} spp, made by `renderloop bench --references --film-scale "
+                f"{settings.film_scale}` and cached in the bench cache, not committed; not rendered by this run). "
+                "At this spp a reference's own noise is a visible part of the smallest errors below, the same "
+                "for every method: it pulls ratios between methods towards 1.")
     if settings.suite == "dev":
         return ("Scenes: the twelve hand-written development scenes (scenes/dev, never trained on), rendered as "
                 "written, against their committed references (scenes/dev/references: mi.render as written, "
-                f"{reference_spp_note()}; not rendered by this run).")
+                "16 384 spp, 65 536 for the three noisiest; not rendered by this run).")
     return ("Scenes: built-ins and held-out procedural scenes, each reference rendered once by the same "
             "renderer and integrator with its own seed and cached on disk (`--cache`, default `bench-cache/`).")
 

@@ -46,7 +46,7 @@ DEGENERATE_PREDICTION_RATIO = 0.05
 @dataclass(frozen=True)
 class BenchSettings:
     size: int | None  # square images (every method sees the same pixels); None: each scene's own film
-    reference_spp: int | None  # None: the development suite's own per scene (bench.dev_references.suite_reference_spp)
+    reference_spp: int
     iterations: int  # 16, 32, 64, … spp mean
     builtin_scenes: tuple[str, ...]
     heldout_scenes: int
@@ -70,7 +70,7 @@ FULL = BenchSettings(size=64, reference_spp=4096, iterations=5,
 # its committed references. Two timing repeats: with one, a scene's render stage alone moved by up
 # to 20 % between two runs of the same loop on the shared host, enough to flip (d)-vs-(e) verdicts;
 # two keep 12 scenes × 6 methods within about ten minutes.
-DEV = BenchSettings(size=None, reference_spp=None, iterations=4, builtin_scenes=(), heldout_scenes=0,
+DEV = BenchSettings(size=None, reference_spp=16384, iterations=4, builtin_scenes=(), heldout_scenes=0,
                     timing_repeats=2, sampler=(256, 64, 1), sampler_cases=0, model_sizes=(), model_repeats=0,
                     http_size=0, http_requests=0, suite="dev", micro=False)
 QUICK = BenchSettings(size=32, reference_spp=512, iterations=3, builtin_scenes=("cornell-box",),

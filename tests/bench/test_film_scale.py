@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.dev_references import (VAL_SCENES, load_reference, reference_file, reference_spp_note, scaled_film,
-                                  scaled_reference_dir, dev_scenes, suite_reference_spp, write_references)
-from bench.loop_report import dev_settings, reference_spp_label, run_loop_benchmark, scene_reference_image
+from bench.dev_references import (load_reference, reference_file, scaled_film, scaled_reference_dir, dev_scenes,
+                                  write_references)
+from bench.loop_report import dev_settings, run_loop_benchmark, scene_reference_image
 from bench.loop_run import DEV, _loop_spec, METHODS, prepare_scenes
 
 POINT_OBJECT = "point_object"   # the suite's cheapest scene (256×256, mostly background)
@@ -44,17 +44,8 @@ def test_the_scaled_loop_renders_at_the_scaled_film_against_the_scaled_reference
     spec = _loop_spec(scene, METHODS[0], settings, iterations=1)
     assert (spec.width, spec.height) == (512, 512)
     assert scene_reference_image(scene, settings, scaled_cache).shape == (512, 512, 3)
-    # By default the scaled reference keeps the suite's spp per pixel: a 4-spp one is refused by name.
-    with pytest.raises(FileNotFoundError, match="--reference-spp 16384 --only point_object"):
+    with pytest.raises(FileNotFoundError, match="--reference-spp 4096"):   # a reference of another spp
         scene_reference_image(scene, dev_settings(2), scaled_cache)
-
-
-def test_scaled_references_keep_the_suites_spp_per_scene():
-    assert suite_reference_spp("point_object") == 16384 and suite_reference_spp("fog_spot") == 65536
-    assert suite_reference_spp("misty_lantern", VAL_SCENES) == 16384 and suite_reference_spp("bokeh_bar", VAL_SCENES) == 4096
-    assert reference_spp_note() == "16 384 spp, 65 536 for fog_spot, glass_box and lamp_room"
-    assert reference_spp_label(dev_settings(2)) == reference_spp_note()
-    assert reference_spp_label(dev_settings(2, reference_spp=4096)) == "4096 spp"
 
 
 def test_film_scale_outside_the_development_suite_is_refused_in_one_line(tmp_path):
