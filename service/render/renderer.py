@@ -24,6 +24,8 @@ from service.render.scenes import SceneError
 # 2^22 lanes ≈ a few hundred MB of Dr.Jit state on the LLVM backend: a 1024² × 64 spp pass
 # (67 M samples) runs in 16 chunks instead of one 10+ GB wavefront.
 DEFAULT_MAX_WAVEFRONT = 1 << 22
+# Floats of the smallest per-chunk sums array (256 KB to zero): see sums_capacity.
+MIN_SUMS_CAPACITY = 1 << 16
 # A miss has no first-hit point; motion of the background is taken at this distance.
 BACKGROUND_DISTANCE = 1e4
 
@@ -158,12 +160,24 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.n
     # never exist as arrays, so memory stays O(pixels of this chunk). Lanes are sorted by
     # pixel, so the chunk covers one contiguous pixel range and only that range is summed.
     first, span, stride = int(pixels[0]), int(pixels[-1]) - int(pixels[0]) + 1, len(channels)
-    sums = dr.zeros(mi.Float, span * stride)
+    # The kernel is keyed by the sums array's size and by literals: a chunk's first pixel and
+    # span change from chunk to chunk under a non-uniform count map, and each new key built a new
+    # kernel (~0.34 s on the LLVM backend, for every chunk of every adaptive pass). A power-of-two
+    # capacity and an opaque offset leave a handful of kernels per scene, each built once.
+    sums = dr.zeros(mi.Float, sums_capacity(span * stride))
+    offset = dr.opaque(mi.UInt32, first)
     for c, value in enumerate(channels):
-        dr.scatter_reduce(dr.ReduceOp.Add, sums, value, (idx - first) * stride + c)
+        dr.scatter_reduce(dr.ReduceOp.Add, sums, value, (idx - offset) * stride + c)
     nonfinite = dr.count(~finite)
     dr.eval(sums, nonfinite)
-    return np.asarray(sums, dtype=np.float64).reshape(span, stride), first, int(np.asarray(nonfinite).ravel()[0])
+    per_pixel = np.asarray(sums, dtype=np.float64)[:span * stride].reshape(span, stride)
+    return per_pixel, first, int(np.asarray(nonfinite).ravel()[0])
+
+
+def sums_capacity(size: int) -> int:
+    """The length of a chunk's sums array (see _trace_chunk): the smallest power of two ≥ size,
+    at least MIN_SUMS_CAPACITY so every small chunk (a pass's last one) shares one kernel."""
+    return max(1 << max(size - 1, 0).bit_length(), MIN_SUMS_CAPACITY)
 
 
 def _add_sums(buffer: FrameBuffer, sums: np.ndarray, first: int, motion: bool) -> None:

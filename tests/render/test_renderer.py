@@ -1,9 +1,10 @@
 """The per-pixel-count renderer: exact counts, unbiased accumulation, bounded chunks."""
+import drjit as dr
 import numpy as np
 import pytest
 
 from service.render.framebuffer import FrameBuffer
-from service.render.renderer import expand_counts, pass_seed, render_samples
+from service.render.renderer import MIN_SUMS_CAPACITY, expand_counts, pass_seed, render_samples, sums_capacity
 from service.render.runtime import mitsuba
 
 SIZE = 24
@@ -212,3 +213,27 @@ def test_filter_weights_average_to_one_per_pixel_even_at_the_film_border():
     # Signed weights (negative lobes) have a spread; judge each pixel by its own standard error.
     z = (buffer.mean[..., 0] - 1.0) / np.sqrt(buffer.variance[..., 0])
     assert np.abs(z).max() < 4.5 and abs(z.mean()) < 4.5 / np.sqrt(z.size)
+
+
+def test_sums_capacity_is_a_power_of_two_with_a_floor():
+    assert sums_capacity(1) == MIN_SUMS_CAPACITY and sums_capacity(MIN_SUMS_CAPACITY) == MIN_SUMS_CAPACITY
+    assert sums_capacity(MIN_SUMS_CAPACITY + 1) == 2 * MIN_SUMS_CAPACITY
+    assert sums_capacity(3 * MIN_SUMS_CAPACITY) == 4 * MIN_SUMS_CAPACITY
+
+
+def test_adaptive_passes_reuse_the_compiled_kernels(cornell):
+    """Every new count map moves the chunks' first pixels and spans; keyed by them, each chunk of
+    each adaptive pass used to build its own kernel (~0.34 s apiece at 512²). Three different
+    maps in 8 chunks each must launch the same one or two kernels."""
+    rng = np.random.default_rng(3)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()   # drop what ran before
+        for _ in range(3):
+            counts = rng.choice([1, 3], (SIZE, SIZE))
+            render_samples(cornell, counts, FrameBuffer.empty(SIZE, SIZE), max_wavefront=int(counts.sum()) // 8 + 1)
+        launched = [entry for entry in dr.kernel_history() if entry["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(launched) >= 24   # 3 maps × 8 chunks actually traced
+    assert len({str(entry["hash"]) for entry in launched}) <= 3
