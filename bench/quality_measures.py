@@ -80,6 +80,13 @@ def flicker(frames: Sequence[Tensor]) -> tuple[float, float]:
     return float(np.mean(linear)), float(np.mean(shown))
 
 
+def mean_abs_change(frames: Sequence[np.ndarray]) -> float:
+    """Mean over consecutive pairs of the mean |difference| (linear radiance): the development
+    suite's temporal flicker, taken of residuals (denoised − reference) or, against one fixed
+    reference, of the images themselves."""
+    return float(np.mean([np.abs(b - a).mean() for a, b in zip(frames, frames[1:])]))
+
+
 def nanstats(values: Iterable[float]) -> tuple[float, float, float, int]:
     """(mean, min, max, n) over the finite values."""
     v = np.array([x for x in values if np.isfinite(x)], dtype=np.float64)

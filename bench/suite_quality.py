@@ -18,7 +18,7 @@ import numpy as np
 
 from bench.common import OidnDenoise, image_metrics, true_error_map
 from bench.dev_references import DevScene
-from bench.quality_measures import shadow_contrast_ratio
+from bench.quality_measures import mean_abs_change, shadow_contrast_ratio
 from models.pretrained import Networks
 from service.images import linear_to_srgb
 from service.loop.loop import RenderLoop
@@ -115,7 +115,7 @@ def temporal_flicker(scene: DevScene, references: list[np.ndarray], networks: Ne
     out = {}
     for method in METHODS:
         residuals = [np.nan_to_num(images[method]) - ref for images, ref in zip(per_frame, references)]
-        out[method] = float(np.mean([np.abs(b - a).mean() for a, b in zip(residuals, residuals[1:])]))
+        out[method] = mean_abs_change(residuals)
     return out
 
 

@@ -19,6 +19,7 @@ import torch
 
 from bench.common import denoiser_settings, image_metrics, load_bench_networks, pinned_torch_threads
 from bench.dev_references import SUITES, dev_scenes, load_reference
+from bench.quality_measures import mean_abs_change
 from bench.suite_quality import SEED, uniform_render
 from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, to_image
@@ -37,11 +38,6 @@ SETTINGS: dict[str, dict] = {
     "b 0": {"gate_offset": 0.0},
     "b 4": {"gate_offset": 4.0},
 }
-
-
-def mean_flicker(frames: list[np.ndarray]) -> float:
-    """Mean over consecutive pairs of the mean |difference| (linear radiance)."""
-    return float(np.mean([np.abs(b - a).mean() for a, b in zip(frames, frames[1:])]))
 
 
 def main() -> None:
@@ -71,11 +67,11 @@ def main() -> None:
                 for name, changes in SETTINGS.items():
                     with denoiser_settings(denoiser, **changes):
                         ours[name].append(to_image(denoiser.apply(cache)))
-            base, first = mean_flicker(oidn), image_metrics(oidn[0], reference)
+            base, first = mean_abs_change(oidn), image_metrics(oidn[0], reference)
             cells = []
             for name, images in ours.items():
                 m = image_metrics(images[0], reference)
-                ratio = (mean_flicker(images) / base, m["smape"] / first["smape"], m["relmse"] / first["relmse"])
+                ratio = (mean_abs_change(images) / base, m["smape"] / first["smape"], m["relmse"] / first["relmse"])
                 ratios[name].append(ratio)
                 cells.append(" / ".join(f"{r:.3f}" for r in ratio))
             print(f"| {scene.name} | " + " | ".join(cells) + " |", flush=True)

@@ -11,6 +11,7 @@ import pytest
 import bench.suite_quality as suite_quality
 from bench.common import load_bench_networks, oidn_denoiser
 from bench.dev_references import DEFAULT_REFERENCE_DIR, dev_scenes, load_reference
+from bench.quality_measures import mean_abs_change
 from bench.suite_quality import CROP, STATIC_FRAMES, _hardest_crop, render_levels, temporal_flicker
 from bench.suite_quality_report import run_suite_quality_report
 
@@ -57,3 +58,9 @@ def test_static_flicker_takes_the_quality_renders_first_frame_instead_of_renderi
     assert seeds == [suite_quality.SEED + f for f in range(STATIC_FRAMES)]
     for method in ("noisy", "kpcn", "oidn"):   # the same seeds, so the same sequence within render noise
         assert given[method] == pytest.approx(again[method], rel=0.05)
+
+
+def test_flicker_is_zero_for_identical_frames_and_the_mean_step_otherwise():
+    frame = np.random.default_rng(0).random((4, 5, 3))
+    assert mean_abs_change([frame, frame, frame]) == 0.0
+    assert mean_abs_change([frame, frame + 0.2, frame, frame + 0.2]) == pytest.approx(0.2)
