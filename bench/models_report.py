@@ -31,9 +31,11 @@ from service.loop.oidn import oidn_tensor
 # single-frame: no temporal, no pyramid (KPCN); multi-scale: 3 levels, one frame; temporal-3:
 # the full default model on a 3-frame window; lambda-tail(-map): apply() alone on a cached
 # temporal-3 prepare, with a global λ / a per-pixel λ map; oidn: Intel Open Image Denoise alone
-# on one frame (its own threads), the yardstick. With `oidn_candidate` every full case includes
-# the OIDN call the service makes for the candidate image (what a denoise costs the product).
-CASES = ("single-frame", "multi-scale", "temporal-3", "lambda-tail", "lambda-tail-map", "oidn")
+# on one frame (its own threads), the yardstick; window-3: the checkpoint's own config on a
+# 3-frame window as a sequence job runs it (a single-frame network pools the window first,
+# models.accumulation). With `oidn_candidate` every full case includes the OIDN call the service
+# makes for the candidate image (what a denoise costs the product).
+CASES = ("single-frame", "multi-scale", "temporal-3", "lambda-tail", "lambda-tail-map", "oidn", "window-3")
 
 
 def _frame(h: int, w: int, gen: torch.Generator) -> FrameTensors:
@@ -50,14 +52,18 @@ def _case(name: str, size: int, repeats: int, threads: int, queue, base: Denoise
     # when the checkpoint is a single-frame network (speed does not depend on trained weights);
     # candidate features are single-frame only (a neighbour has no candidate), so off there.
     cfg = {"single-frame": replace(base, temporal=False, multiscale=False),
-           "multi-scale": replace(base, temporal=False)}.get(
+           "multi-scale": replace(base, temporal=False), "window-3": base}.get(
         name, replace(base, temporal=True, candidate_features=False))
     model = Denoiser(cfg).eval()
-    window = [_frame(size, size, gen) for _ in range(3 if cfg.temporal else 1)]
+    window = [_frame(size, size, gen) for _ in range(3 if cfg.temporal or name == "window-3" else 1)]
     center = len(window) // 2
     candidate = (lambda: oidn_tensor(window[center])) if cfg.oidn_candidate else (lambda: None)
     with torch.inference_mode():
-        if name == "oidn":
+        if name == "window-3":
+            def run():
+                filtered, at = model.filtered_window(window, center)
+                return model(filtered, at, 1.0, oidn_tensor(filtered[at]) if cfg.oidn_candidate else None)
+        elif name == "oidn":
             run = lambda: oidn_tensor(window[center])
         elif name.startswith("lambda-tail"):
             cache = model.prepare(window, center, candidate())

@@ -113,6 +113,12 @@ def oidn_method() -> tuple[Denoise, str]:
     return run, note
 
 
+def windowed(denoiser: Denoiser, image: EvalImage) -> Tensor:
+    """The denoiser over the image's whole window, as the loop runs a sequence (λ = 1)."""
+    window, centre = denoiser.filtered_window(image.window, image.centre)
+    return denoiser(window, centre, 1.0, candidate_for(denoiser, window[centre]))
+
+
 def make_methods(denoiser: Denoiser, use_oidn: bool) -> tuple[dict[str, Denoise], str | None]:
     """Denoise name → function of an EvalImage, in table order; and the OIDN note."""
     single = ablation(denoiser, multiscale=False, temporal=False)
@@ -120,7 +126,7 @@ def make_methods(denoiser: Denoiser, use_oidn: bool) -> tuple[dict[str, Denoise]
         NOISY: lambda im: im.frame.color,
         SINGLE: lambda im: single([im.frame], 0, 1.0, candidate_for(single, im.frame)),
         MULTISCALE: lambda im: denoiser([im.frame], 0, 1.0, candidate_for(denoiser, im.frame)),
-        TEMPORAL: lambda im: denoiser(im.window, im.centre, 1.0, candidate_for(denoiser, im.frame)),
+        TEMPORAL: lambda im: windowed(denoiser, im),
     }
     note = None
     if use_oidn:
@@ -218,9 +224,10 @@ def evaluate(images: list[EvalImage], methods: dict[str, Denoise], denoiser: Den
     outputs = []
     for n, image in enumerate(images, 1):
         results = {name: method(image) for name, method in methods.items()}
-        out = Outputs(image, results, predicted_error=predictor(image.frame, results[TEMPORAL]))
+        window, centre = denoiser.filtered_window(image.window, image.centre)
+        out = Outputs(image, results, predicted_error=predictor(window[centre], results[TEMPORAL]))
         if image.spp == HEADLINE_SPP:
-            cache = denoiser.prepare(image.window, image.centre, candidate_for(denoiser, image.frame))
+            cache = denoiser.prepare(window, centre, candidate_for(denoiser, window[centre]))
             out.lambda_results = {lam: denoiser.apply(cache, lam) for lam in lambdas}
             out.pyramid = pyramid_levels(denoiser, cache, image)
         outputs.append(out)

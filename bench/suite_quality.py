@@ -6,8 +6,8 @@ Per scene and sample count: one uniform render (its own pass, seeded), denoised 
 (single frame, λ = 1) and by OIDN on the same noisy colour, albedo and normal; SMAPE, relMSE,
 PSNR and the energy ratio (mean radiance ÷ the reference's) for noisy / KPCN / OIDN, and a
 figure of crops and error maps where our error is largest. Temporal flicker on the animated
-scene: the frame-to-frame change of the residual (denoised − reference), our temporal KPCN on
-the whole sequence against OIDN frame by frame.
+scene and on a static sequence of every still one: the frame-to-frame change of the residual
+(denoised − reference), ours over each frame's temporal window against OIDN frame by frame.
 """
 from __future__ import annotations
 
@@ -21,8 +21,10 @@ from bench.dev_references import DevScene
 from bench.quality_measures import mean_abs_change, shadow_contrast_ratio
 from models.pretrained import Networks
 from service.images import linear_to_srgb
+from service.loop.denoise_session import DenoiseSession
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
+from service.loop.tensors import to_image
 
 try:  # optional: a dev dependency; the report notes when the figures are missing
     import matplotlib
@@ -35,6 +37,7 @@ except ImportError:
 REPORT_NAME = "suite-quality.md"
 SPP_LEVELS = (16, 64, 256)
 METHODS = ("noisy", "kpcn", "oidn")
+FLICKER_METHODS = METHODS + ("oidn_pooled",)  # + OIDN on the input our network filtered (sequence_images)
 CROP = 64
 ENERGY_TOLERANCE = 0.02  # issue 13: mean radiance within 2 % of the reference on every scene
 SEED = 1
@@ -98,24 +101,40 @@ def score_scene(scene: DevScene, reference: np.ndarray, shown: dict[int, dict[st
     return quality
 
 
+def sequence_images(buffers: list, networks: Networks, oidn: OidnDenoise) -> list[dict[str, np.ndarray]]:
+    """Per frame of a sequence: the noisy mean, ours over its temporal window (as the loop runs a
+    multi-frame job: DenoiseSession, the shipped network's radius), OIDN on the frame alone, and
+    OIDN on the very input our network filtered (for a single-frame network, the window's pooled
+    samples, models.accumulation) — which separates what the window adds from what the network does."""
+    session = DenoiseSession(networks, len(buffers), networks.denoiser.config.temporal_radius)
+    ours = session.denoise(buffers, np.ones(buffers[0].shape, np.float32))
+    images = []
+    for f, buffer in enumerate(buffers):
+        pooled = session.inputs[f]
+        images.append({"noisy": buffer.mean, "kpcn": to_image(ours[f]),
+                       "oidn": oidn(buffer.mean, buffer.albedo, buffer.normal),
+                       "oidn_pooled": oidn(to_image(pooled.color), buffer.albedo, buffer.normal)})
+    return images
+
+
 def temporal_flicker(scene: DevScene, references: list[np.ndarray], networks: Networks, oidn: OidnDenoise,
-                     spp: int = SPP_LEVELS[0], first: dict[str, np.ndarray] | None = None) -> dict[str, float]:
+                     spp: int = SPP_LEVELS[0]) -> dict[str, float]:
     """Mean |Δ residual| between consecutive frames, linear radiance: 0 = the error does not
     change from frame to frame, whatever the scene's own motion. One reference per frame; a
     still scene given copies of its one reference is a static sequence (every frame its own
-    seed), where all the change is the denoisers' own. `first`: a still scene's images of the
-    seed-SEED render at `spp` when already made (`render_levels`), so frame 0 is not rendered twice."""
+    seed). Also each method's mean SMAPE over the sequence (key `smape_<method>`): steadier
+    must not mean worse."""
     if scene.frames > 1:
-        record = uniform_render(scene, spp, networks, frames=len(references))
-        per_frame = [three_images(record, f, oidn) for f in range(len(references))]
-    else:   # the service refuses frames > 1 without $frame: one render per seed, each denoised alone
-        per_frame = [first if f == 0 and first is not None
-                     else three_images(uniform_render(scene, spp, networks, seed=SEED + f), 0, oidn)
-                     for f in range(len(references))]
+        buffers = uniform_render(scene, spp, networks, frames=len(references)).buffers
+    else:   # the service refuses frames > 1 without $frame: one render per seed, one sequence
+        buffers = [uniform_render(scene, spp, networks, seed=SEED + f).buffers[0] for f in range(len(references))]
+    per_frame = sequence_images(buffers, networks, oidn)
     out = {}
-    for method in METHODS:
+    for method in FLICKER_METHODS:
         residuals = [np.nan_to_num(images[method]) - ref for images, ref in zip(per_frame, references)]
         out[method] = mean_abs_change(residuals)
+        out[f"smape_{method}"] = float(np.mean([image_metrics(images[method], ref)["smape"]
+                                                for images, ref in zip(per_frame, references)]))
     return out
 
 

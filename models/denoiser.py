@@ -8,9 +8,8 @@ Per pyramid level, every frame of the window goes through
     λ-module: kernel head with λ-dependent weights → k² logits/frame ── apply() starts here
     joint softmax over all frames' logits, filter demodulated radiance (eqs. 3–4)
 
-and the levels are merged coarse → fine by the scale compositor (eq. 5), then the albedo is
-multiplied back in. Everything λ-independent is computed once by `prepare`; `apply` is the
-cheap tail a user's λ edit re-runs.
+and the levels are merged coarse → fine by the scale compositor (eq. 5), then the albedo is multiplied
+back in. `prepare` computes everything λ-independent once; `apply` is the tail a λ edit re-runs.
 """
 from __future__ import annotations
 
@@ -24,6 +23,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from models.accumulation import accumulate_window
 from models.candidate import CandidateGate, blend, clamp_around
 from models.energy import conserve_energy, sample_energy
 from models.features import HDR_MAX, demodulate, feature_set, log_transform, remodulate, sanitize, sanitize_frame
@@ -48,7 +48,8 @@ class DenoiserConfig:
     lambda_width: int = 16         # hidden channels of the λ module: kernel head input and λ-MLP width
     lambda_rank: int = 2           # λ-dependent directions of the kernel head W(λ) = W₀ + Σ sᵣ(λ)ΔWᵣ
     composite_width: int = 8       # channels of the per-pixel α CNN (eq. 5)
-    temporal: bool = True          # False: single-frame model, neighbours ignored
+    temporal: bool = True          # False: single-frame model; a window's neighbours only add samples,
+    accumulate: bool = True        # pooled into the center where consistent (models.accumulation)
     multiscale: bool = True        # False: finest level only, no compositing
     oidn_candidate: bool = False   # an external denoiser's image joins every level's joint softmax (models.candidate)
     gate_width: int = 8            # hidden channels of the candidate gate
@@ -105,9 +106,8 @@ TILE_PIXELS = 32768
 # --- tiny verbs ---------------------------------------------------------------------------
 
 def down(x: Tensor) -> Tensor:
-    """D: 2×2 average pooling (eq. 5), as the sum of four strided views: the same means as
-    F.avg_pool2d(x, 2) (to float rounding) at a third of its CPU time on NCHW planes (0.28 vs
-    0.96 ms for 3×512², 2 threads), and the pyramid pools every buffer of every frame."""
+    """D: 2×2 average pooling (eq. 5) as four strided views: F.avg_pool2d's means at a third of
+    its CPU time (0.28 vs 0.96 ms for 3×512², 2 threads); the pyramid pools every buffer."""
     h, w = x.shape[-2] // 2 * 2, x.shape[-1] // 2 * 2
     return (x[..., 0:h:2, 0:w:2] + x[..., 1:h:2, 0:w:2] + x[..., 0:h:2, 1:w:2] + x[..., 1:h:2, 1:w:2]) * 0.25
 
@@ -299,21 +299,28 @@ class Denoiser(nn.Module):
 
     # -- prepare: everything before λ -----------------------------------------------------
 
+    def filtered_window(self, window: list[FrameTensors], center: int) -> tuple[list[FrameTensors], int]:
+        """The window as this network filters it, and its center (the candidate's and error network's
+        input): a single-frame network's is one frame, the window's consistent samples pooled in."""
+        if self.temporal is not None or len(window) == 1:
+            return window, center
+        if not self.config.accumulate:
+            return [window[center]], 0
+        return [accumulate_window([sanitize_frame(f)[0] for f in window], center % len(window))], 0
+
     def prepare(self, window: list[FrameTensors], center: int, candidate: Tensor | None = None) -> DenoiserCache:
-        """candidate: (N,3,H,W) linear radiance of an external denoiser on the center frame
-        (OIDN), required exactly when the config has `oidn_candidate`."""
+        """candidate: (N,3,H,W) linear radiance of an external denoiser on the center of
+        `filtered_window(window, center)` (OIDN), required exactly when the config has `oidn_candidate`."""
         if (candidate is None) == self.config.oidn_candidate:
             raise ValueError("this denoiser " + ("needs" if self.config.oidn_candidate else "takes no")
                              + " candidate image (DenoiserConfig.oidn_candidate)")
-        if not window:
-            raise ValueError("empty window")
-        if not -len(window) <= center < len(window):
+        if not window or not -len(window) <= center < len(window):
             raise IndexError(f"center {center} outside a window of {len(window)} frames")
         center %= len(window)
-        if self.temporal is None:
-            window, center = [window[center]], 0
         cleaned = [sanitize_frame(f) for f in window]
         frames, n_bad = [f for f, _ in cleaned], sum(n for _, n in cleaned)
+        if self.temporal is None:  # one frame filtered: the center, its neighbours' samples pooled in
+            frames, center = [accumulate_window(frames, center) if self.config.accumulate else frames[center]], 0
         size = frames[center].size
         energy = (sample_energy(frames[center].color, frames[center].variance)
                   if self.config.energy_tolerance > 0 else None)
@@ -354,8 +361,7 @@ class Denoiser(nn.Module):
         return demodulate(pad_to(clean, align), frame.albedo), frame.variance * scale * scale, n_bad
 
     def _trunk_inputs(self, frames: list[FrameTensors], guide: Tensor | None = None) -> Tensor:
-        """All frames as one channels-last batch: one pass through the shared convs. guide: the
-        demodulated candidate at this resolution (DenoiserConfig.candidate_features; one frame)."""
+        """All frames as one channels-last batch; guide: the demodulated candidate (candidate_features)."""
         if guide is not None:
             return cat_channels_last([self.features.build(frames[0]), log_transform(guide)])
         return torch.cat([self.features.build(f).permute(0, 2, 3, 1) for f in frames], 0).permute(0, 3, 1, 2)
@@ -368,8 +374,7 @@ class Denoiser(nn.Module):
 
     def _prepare_level(self, frames: list[FrameTensors], images: list[Tensor], center: int,
                        feats: tuple[Tensor, ...] | None = None, guide: Tensor | None = None) -> LevelCache:
-        """feats: this level's per-frame features from the U-Net; None: the level's own trunk
-        (reading `guide`, the level's demodulated candidate, with candidate_features)."""
+        """feats: this level's per-frame U-Net features; None: the level's own trunk (reads `guide`)."""
         n = frames[0].color.shape[0]
         if feats is None:
             inputs = self._trunk_inputs(frames, guide)

@@ -69,12 +69,13 @@ def denoise_exr(source: Path, output: Path, networks: Networks, *, lam: float = 
     window = [frame_from_exr(p, f) for p, f in zip(paths, loaded)]
     lam_map = load_lambda(lam, lambda_map, centre_frame.shape)
     with torch.no_grad():
-        candidate = candidate_for(networks.denoiser, window[centre])
-        denoised = networks.denoiser(window, centre, lam_tensor(lam_map), candidate)
+        window, centre = networks.denoiser.filtered_window(window, centre)  # a single-frame network pools it
+        filtered = window[centre]
+        denoised = networks.denoiser(window, centre, lam_tensor(lam_map), candidate_for(networks.denoiser, filtered))
         # An error network that reads sample counts needs the EXR's `spp` layer; without one the
         # file still gets its denoised image, only no error estimate.
         wants_spp = networks.error_predictor.config.sample_count_input
-        error = None if (wants_spp and window[centre].spp is None) else networks.error_predictor(window[centre], denoised)
+        error = None if (wants_spp and filtered.spp is None) else networks.error_predictor(filtered, denoised)
     centre_frame.color = to_image(denoised)
     centre_frame.error = None if error is None else to_image(error)
     centre_frame.lam = lam_map

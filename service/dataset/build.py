@@ -197,7 +197,7 @@ def _loop_branch(job: _FrameJob, start: FrameBuffer) -> None:
     session = DenoiseSession(job.networks, frames=1, temporal_radius=0)
     lam = np.ones(buffer.shape, dtype=np.float32)
     for iteration, item in enumerate(LOOP_ITEMS, start=1):
-        error = session.predict_error([buffer], session.denoise([buffer], lam))[0]  # keyed by frame index
+        error = session.predict_error(session.denoise([buffer], lam))[0]  # keyed by frame index
         counts = next_counts("error", buffer, converged_error(buffer.converged(), error),
                              iteration_budget(int(buffer.spp.sum())),
                              seed=render_seed(job.scene_seed, job.frame, LOOP_ROUNDING_STREAM + iteration))

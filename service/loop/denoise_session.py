@@ -28,6 +28,7 @@ class DenoiseSession:
         self.owned = owned if owned is not None else range(frames)
         self.lock = threading.RLock()
         self._caches: dict[int, object] = {}  # models.Denoiser.prepare output per owned frame
+        self._inputs: dict[int, FrameTensors] = {}  # the center input each owned frame was filtered from
         self.full_calls = 0  # full denoiser forward passes (prepare + apply)
         self.tail_calls = 0  # λ-only re-runs from cached features
         # Frames go where the networks are: CPU, or CUDA on a GPU worker (service.jobs.ray_actor).
@@ -35,6 +36,11 @@ class DenoiseSession:
 
     def _tensors(self, buffer: FrameBuffer) -> FrameTensors:
         return frame_tensors(buffer).to(self.device)
+
+    @property
+    def inputs(self) -> dict[int, FrameTensors]:
+        """Per owned frame, the center input the last `denoise` filtered (Denoiser.filtered_window)."""
+        return dict(self._inputs)
 
     @property
     def has_features(self) -> bool:
@@ -48,22 +54,25 @@ class DenoiseSession:
         tensors = {i: self._tensors(buffers[i]) for i in needed}
         lam = lam_tensor(lam_map)
         caches, images = {}, {}
+        denoiser = self.networks.denoiser
         for f in self.owned:
             indices, centre = temporal_window(f, len(buffers), self.temporal_radius)
-            # the candidate image (OIDN) is computed once per iteration and cached with the features
-            candidate = candidate_for(self.networks.denoiser, tensors[f])
-            caches[f] = self.networks.denoiser.prepare([tensors[i] for i in indices], centre, candidate)
-            images[f] = self.networks.denoiser.apply(caches[f], lam)
+            # what the network filters (a single-frame one: the window's samples pooled); the
+            # candidate image (OIDN) is computed on its center once per iteration, cached with the features
+            window, centre = denoiser.filtered_window([tensors[i] for i in indices], centre)
+            self._inputs[f] = window[centre]
+            caches[f] = denoiser.prepare(window, centre, candidate_for(denoiser, window[centre]))
+            images[f] = denoiser.apply(caches[f], lam)
         with self.lock:
             self._caches = caches
             self.full_calls += len(caches)
         return images
 
     @torch.no_grad()
-    def predict_error(self, buffers: list[FrameBuffer], images: dict[int, torch.Tensor]) -> dict[int, np.ndarray]:
-        """Per-pixel predicted SMAPE of each denoised (owned) frame, (H, W) each."""
-        return {f: to_image(self.networks.error_predictor(self._tensors(buffers[f]), image))
-                for f, image in images.items()}
+    def predict_error(self, images: dict[int, torch.Tensor]) -> dict[int, np.ndarray]:
+        """Per-pixel predicted SMAPE of each denoised (owned) frame, (H, W) each, read from the
+        inputs the denoiser filtered (those of the last `denoise`, which made `images`)."""
+        return {f: to_image(self.networks.error_predictor(self._inputs[f], image)) for f, image in images.items()}
 
     @torch.no_grad()
     def relambda(self, lam_map: np.ndarray) -> dict[int, np.ndarray]:

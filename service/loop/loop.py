@@ -217,7 +217,7 @@ class RenderLoop:
             lam_map = self.state.lam_map.copy()
         images = self.session.denoise(self.state.buffers, lam_map)
         t1 = time.perf_counter()
-        errors = self.session.predict_error(self.state.buffers, images)
+        errors = self.session.predict_error(images)
         t2 = time.perf_counter()
         with self.lock:
             for f in self.owned:

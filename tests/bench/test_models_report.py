@@ -9,12 +9,18 @@ def test_benchmark_reports_time_and_memory_per_case():
     assert row["ms_median"] > 0 and row["cpu_ms_median"] >= 0 and row["peak_rss_growth_mb"] >= 0
 
 
+def test_the_window_case_times_a_single_frame_network_pooling_three_frames():
+    single = DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True)
+    (row,) = benchmark_models(sizes=(8,), repeats=1, threads=1, cases=("window-3",), config=single)
+    assert row["model"] == "window-3" and row["ms_median"] > 0
+
+
 def test_bench_main_reads_its_own_arguments_and_writes_the_report(monkeypatch, tmp_path):
     """`renderloop bench --models` calls main() with sys.argv = [renderloop, bench, --models]."""
     monkeypatch.setattr("sys.argv", ["renderloop", "bench", "--models"])
     path = main(["8", "--threads", "1", "--repeats", "1", "--width", "8", "--spatial-blocks", "1"], out=tmp_path)
     text = path.read_text()
-    assert "width=8" in text and "| temporal-3 | 8² | 1 |" in text
+    assert "width=8" in text and "| temporal-3 | 8² | 1 |" in text and "| window-3 | 8² | 1 |" in text
     assert "Command: `renderloop bench --models`" in text and "Date:" in text
 
 

@@ -8,11 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import bench.suite_quality as suite_quality
 from bench.common import load_bench_networks, oidn_denoiser
 from bench.dev_references import DEFAULT_REFERENCE_DIR, dev_scenes, load_reference
 from bench.quality_measures import mean_abs_change
-from bench.suite_quality import CROP, STATIC_FRAMES, _hardest_crop, render_levels, temporal_flicker
+from bench.suite_quality import CROP, STATIC_FRAMES, _hardest_crop, temporal_flicker
 from bench.suite_quality_report import run_suite_quality_report
 
 
@@ -41,23 +40,17 @@ def test_suite_quality_report_scores_noisy_ours_and_oidn_at_every_sample_count(t
     assert "Static sequences: ours at most OIDN's flicker on" in text
 
 
-def test_static_flicker_takes_the_quality_renders_first_frame_instead_of_rendering_it_again(monkeypatch):
+def test_a_static_sequence_is_denoised_over_its_window_and_flickers_less_than_oidn_per_frame():
+    """Issue 13: flicker on a static sequence ≤ OIDN's. Denoised frame by frame, the shipped
+    network flickered 1 % more than OIDN on hard_shadows (0.00448 vs 0.00444); over its window
+    (models.accumulation) it must flicker less, with no more error."""
     pytest.importorskip("pyoidn")
-    scene = dev_scenes(["point_object"])[0]
+    scene = dev_scenes(["hard_shadows"])[0]
     reference, _ = load_reference(DEFAULT_REFERENCE_DIR, scene)
     networks, (oidn, _) = load_bench_networks(None).networks, oidn_denoiser()
-    first = render_levels(scene, networks, oidn, (16,))[16]
-    seeds: list[int] = []
-    render = suite_quality.uniform_render
-    monkeypatch.setattr(suite_quality, "uniform_render",
-                        lambda *a, **k: seeds.append(k.get("seed", suite_quality.SEED)) or render(*a, **k))
-    given = temporal_flicker(scene, [reference] * STATIC_FRAMES, networks, oidn, first=first)
-    assert seeds == [suite_quality.SEED + f for f in range(1, STATIC_FRAMES)]
-    seeds.clear()
-    again = temporal_flicker(scene, [reference] * STATIC_FRAMES, networks, oidn)
-    assert seeds == [suite_quality.SEED + f for f in range(STATIC_FRAMES)]
-    for method in ("noisy", "kpcn", "oidn"):   # the same seeds, so the same sequence within render noise
-        assert given[method] == pytest.approx(again[method], rel=0.05)
+    result = temporal_flicker(scene, [reference] * STATIC_FRAMES, networks, oidn)
+    assert result["kpcn"] < 0.8 * result["oidn"] and result["smape_kpcn"] <= result["smape_oidn"]
+    assert result["oidn_pooled"] < result["oidn"] < result["noisy"]   # the pooled input itself is steadier
 
 
 def test_flicker_is_zero_for_identical_frames_and_the_mean_step_otherwise():

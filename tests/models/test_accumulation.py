@@ -1,0 +1,105 @@
+"""Temporal accumulation: a single-frame denoiser pools a window's consistent samples (models/accumulation.py)."""
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from models.accumulation import accumulate_window, consistent_pixels
+from models.denoiser import Denoiser
+from models.frames import FrameTensors
+
+from .conftest import TINY, make_frame
+
+H, W = 10, 14
+
+
+def still_frame(seed: int, spp: float | None = 16.0, level: float = 1.0) -> FrameTensors:
+    """One seed's render of a still view: the same surfaces, radiance `level` ± its noise."""
+    g = torch.Generator().manual_seed(seed)
+    geometry = make_frame(H, W, motion=False, seed=99)   # shared guides: the same surfaces every frame
+    noise = (torch.rand(1, 3, H, W, generator=g) - 0.5) * 0.2
+    return dataclasses.replace(geometry, color=level + noise, variance=torch.full((1, 3, H, W), 0.01),
+                               spp=None if spp is None else torch.full((1, 1, H, W), spp))
+
+
+def test_a_one_frame_window_comes_back_unchanged():
+    frame = still_frame(0)
+    assert accumulate_window([frame], 0) is frame
+
+
+def test_a_still_window_pools_every_sample_with_its_count():
+    window = [still_frame(1, 16.0), still_frame(2, 32.0), still_frame(3, 16.0)]
+    pooled = accumulate_window(window, 1)
+    expected = (16 * window[0].color + 32 * window[1].color + 16 * window[2].color) / 64
+    torch.testing.assert_close(pooled.color, expected)
+    # Var of a weighted mean: Σ n² Var / (Σ n)² = (256 + 1024 + 256) · 0.01 / 64²
+    torch.testing.assert_close(pooled.variance, torch.full_like(pooled.variance, 1536 * 0.01 / 4096))
+    torch.testing.assert_close(pooled.spp, torch.full_like(pooled.spp, 64.0))
+    assert pooled.albedo is window[1].albedo and pooled.normal is window[1].normal
+
+
+def test_frames_without_counts_pool_as_equals_and_keep_no_count_map():
+    window = [still_frame(s, spp=None) for s in (4, 5, 6)]
+    pooled = accumulate_window(window, 0)
+    torch.testing.assert_close(pooled.color, sum(f.color for f in window) / 3)
+    assert pooled.spp is None
+
+
+def test_a_disoccluded_neighbour_pixel_is_left_out():
+    center, other = still_frame(7), still_frame(8)
+    albedo = other.albedo.clone()
+    albedo[..., :, :5] = 1.0 - albedo[..., :, :5]                # another surface in the left columns
+    other = dataclasses.replace(other, albedo=albedo)
+    pooled = accumulate_window([center, other], 0)
+    moved = (albedo - center.albedo).abs().amax(1, keepdim=True) > 0.1
+    assert moved.any()
+    torch.testing.assert_close(pooled.color[moved.expand_as(pooled.color)], center.color[moved.expand_as(center.color)])
+    torch.testing.assert_close(pooled.spp[~moved], torch.full_like(pooled.spp[~moved], 32.0))
+
+
+def test_a_light_change_beyond_the_noise_is_left_out_but_noise_is_pooled():
+    center, brighter = still_frame(9), still_frame(10, level=3.0)   # 2.0 apart, noise σ ≈ 0.14 per frame
+    assert not consistent_pixels(center, brighter).any()
+    assert consistent_pixels(center, still_frame(11)).all()
+    torch.testing.assert_close(accumulate_window([brighter, center], 1).color, center.color)
+
+
+def test_a_moving_neighbour_is_pooled_where_its_motion_points():
+    past = still_frame(12)
+    shift = 2
+    # frame t shows frame t-1 moved right by `shift`: pixel x of t was at x - shift in t-1
+    current = past.map(lambda _, t: torch.roll(t, shifts=shift, dims=-1))
+    motion = torch.zeros(1, 2, H, W)
+    motion[:, 0] = -shift
+    current = dataclasses.replace(current, color=current.color + 0.01, motion=motion)
+    pooled = accumulate_window([past, current], 1)
+    inside = torch.zeros(1, 1, H, W, dtype=torch.bool)
+    inside[..., shift:] = True                                      # columns whose source is on screen
+    torch.testing.assert_close(pooled.spp[inside], torch.full_like(pooled.spp[inside], 32.0))
+    torch.testing.assert_close(pooled.spp[~inside], torch.full_like(pooled.spp[~inside], 16.0))
+    torch.testing.assert_close(pooled.color[..., shift:], current.color[..., shift:] - 0.005)
+
+
+def test_pooled_radiance_stays_within_the_frames_samples():
+    window = [still_frame(s) for s in (13, 14, 15)]
+    pooled = accumulate_window(window, 1).color
+    stack = torch.stack([f.color for f in window])
+    assert bool((pooled >= stack.amin(0) - 1e-6).all()) and bool((pooled <= stack.amax(0) + 1e-6).all())
+
+
+@torch.no_grad()
+def test_a_single_frame_denoiser_filters_its_windows_pooled_center():
+    model = Denoiser(dataclasses.replace(TINY, temporal=False)).eval()
+    window = [still_frame(s) for s in (16, 17, 18)]
+    filtered, center = model.filtered_window(window, 1)
+    assert center == 0 and len(filtered) == 1
+    torch.testing.assert_close(filtered[0].color, accumulate_window(window, 1).color)
+    torch.testing.assert_close(model(window, 1), model(filtered, 0))
+    alone = Denoiser(dataclasses.replace(TINY, temporal=False, accumulate=False)).eval()
+    alone.load_state_dict(model.state_dict())
+    torch.testing.assert_close(alone(window, 1), model([window[1]], 0))
+    kept, center = alone.filtered_window(window, 1)
+    assert center == 0 and len(kept) == 1 and kept[0] is window[1]
+    kept, center = Denoiser(TINY).eval().filtered_window(window, 1)
+    assert center == 1 and kept is window   # a temporal network weighs its neighbours itself
