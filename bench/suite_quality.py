@@ -25,6 +25,7 @@ from service.loop.denoise_session import DenoiseSession
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
 from service.loop.tensors import to_image
+from service.render.framebuffer import FrameBuffer
 
 try:  # optional: a dev dependency; the report notes when the figures are missing
     import matplotlib
@@ -101,7 +102,7 @@ def score_scene(scene: DevScene, reference: np.ndarray, shown: dict[int, dict[st
     return quality
 
 
-def sequence_images(buffers: list, networks: Networks, oidn: OidnDenoise) -> list[dict[str, np.ndarray]]:
+def sequence_images(buffers: list[FrameBuffer], networks: Networks, oidn: OidnDenoise) -> list[dict[str, np.ndarray]]:
     """Per frame of a sequence: the noisy mean, ours over its temporal window (as the loop runs a
     multi-frame job: DenoiseSession, the shipped network's radius), OIDN on the frame alone, and
     OIDN on the very input our network filtered (for a single-frame network, the window's pooled

@@ -53,18 +53,18 @@ class DenoiseSession:
         needed = sorted({i for f in self.owned for i in temporal_window(f, len(buffers), self.temporal_radius)[0]})
         tensors = {i: self._tensors(buffers[i]) for i in needed}
         lam = lam_tensor(lam_map)
-        caches, images = {}, {}
+        caches, images, inputs = {}, {}, {}
         denoiser = self.networks.denoiser
         for f in self.owned:
             indices, centre = temporal_window(f, len(buffers), self.temporal_radius)
             # what the network filters (a single-frame one: the window's samples pooled); the
             # candidate image (OIDN) is computed on its center once per iteration, cached with the features
             window, centre = denoiser.filtered_window([tensors[i] for i in indices], centre)
-            self._inputs[f] = window[centre]
+            inputs[f] = window[centre]
             caches[f] = denoiser.prepare(window, centre, candidate_for(denoiser, window[centre]))
             images[f] = denoiser.apply(caches[f], lam)
         with self.lock:
-            self._caches = caches
+            self._caches, self._inputs = caches, inputs
             self.full_calls += len(caches)
         return images
 
