@@ -12,15 +12,19 @@ over the center (always in) and every consistent neighbour j, n_j its samples pe
 still sequence this is exactly the render of all the window's samples, so consecutive outputs
 share most of their inputs and flicker less; the center frame's own albedo, normal and depth
 stay the guides. A neighbour pixel is left out where the reprojection fell off screen, where its
-albedo, normal or depth differ from the center's (a disocclusion: another surface), or where its
-radiance differs from the center's by more than the noise of both explains (lighting changed:
-a moving light, a shadow passing) — the rejection tests of temporal accumulation in real-time
-denoisers (Schied et al. 2017, SVGF §4.1), with the rendered variance as the noise scale.
-Every output pixel stays a convex combination of real samples.
+albedo, normal or depth fall outside what the center's 3×3 neighbourhood shows (a disocclusion:
+another surface), or where its radiance differs from the center's by more than the noise of
+both explains (lighting changed: a moving light, a shadow passing) — the rejection tests of
+temporal accumulation in real-time denoisers (Schied et al. 2017, SVGF §4.1), with the rendered
+variance as the noise scale. Every output pixel stays a convex combination of sample means
+(bilinear taps included). The rule was chosen on validation
+material (`python -m bench.experiments.accumulation_rules`, docs/models.md): pooling moved pixels
+too, and guides tested against the center's 3×3 range, won there.
 """
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from models.frames import FrameTensors
@@ -31,10 +35,26 @@ from models.warp import flow_to_center, warp
 # Gaussian noise about once in 16 000 pixels.
 RADIANCE_SIGMAS = 4.0
 RADIANCE_RELATIVE = 0.02     # plus 2 % of the pair's mean: a variance estimate of few samples runs low
-ALBEDO_TOLERANCE = 0.1       # per channel, absolute (albedo lies in [0, 1])
-NORMAL_TOLERANCE = 0.25      # Euclidean distance of the two normals (≈ 14° between unit vectors)
-DEPTH_RELATIVE = 0.05        # |Δ depth| ≤ 5 % of the larger depth
+# The guides are pixel means too: where a pixel straddles an edge or a sub-pixel texture their
+# value moves with the seed. So, as temporal anti-aliasing clamps history to the current frame's
+# 3×3 neighbourhood (Karis 2014), a neighbour's guide must lie within the range the center's
+# 3×3 neighbourhood spans, widened by a tolerance; another surface moving in falls outside it.
+ALBEDO_TOLERANCE = 0.05      # per channel, absolute (albedo lies in [0, 1])
+NORMAL_TOLERANCE = 0.1       # per component (components lie in [-1, 1])
+DEPTH_RELATIVE = 0.05        # 5 % beyond the neighbourhood's depth range
 _FIELDS = ("color", "variance", "albedo", "normal", "depth")
+
+
+def neighbourhood_range(x: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-channel minimum and maximum over each pixel's 3×3 neighbourhood (edges replicated)."""
+    padded = F.pad(x, (1, 1, 1, 1), mode="replicate")
+    return -F.max_pool2d(-padded, 3, stride=1), F.max_pool2d(padded, 3, stride=1)
+
+
+def within_range(value: Tensor, center: Tensor, tolerance: float) -> Tensor:
+    """(N,1,H,W): every channel of `value` inside `center`'s 3×3 range widened by `tolerance`."""
+    lo, hi = neighbourhood_range(center)
+    return ((value >= lo - tolerance) & (value <= hi + tolerance)).all(dim=1, keepdim=True)
 
 
 def consistent_pixels(center: FrameTensors, other: FrameTensors) -> Tensor:
@@ -44,48 +64,43 @@ def consistent_pixels(center: FrameTensors, other: FrameTensors) -> Tensor:
     noise = RADIANCE_SIGMAS * (other.variance.clamp_min(0) + center.variance.clamp_min(0)).sqrt()
     scale = RADIANCE_RELATIVE * 0.5 * (other.color.abs() + center.color.abs()) + 1e-6
     same_light = (diff <= noise + scale).all(dim=1, keepdim=True)
-    same_albedo = ((other.albedo - center.albedo).abs() <= ALBEDO_TOLERANCE).all(dim=1, keepdim=True)
-    same_normal = (other.normal - center.normal).norm(dim=1, keepdim=True) <= NORMAL_TOLERANCE
-    larger = torch.maximum(other.depth.abs(), center.depth.abs())
-    same_depth = (other.depth - center.depth).abs() <= DEPTH_RELATIVE * larger + 1e-6
+    same_albedo = within_range(other.albedo, center.albedo, ALBEDO_TOLERANCE)
+    same_normal = within_range(other.normal, center.normal, NORMAL_TOLERANCE)
+    lo, hi = neighbourhood_range(center.depth)
+    same_depth = (other.depth >= lo * (1 - DEPTH_RELATIVE) - 1e-6) & (other.depth <= hi * (1 + DEPTH_RELATIVE) + 1e-6)
     return same_light & same_albedo & same_normal & same_depth
 
 
 def aligned_to_center(window: list[FrameTensors], center: int, j: int) -> tuple[FrameTensors, Tensor]:
-    """Frame j reprojected onto the center frame, and where that reprojection is valid (N,1,H,W).
-    A window without motion vectors is still: frames are aligned as they are."""
+    """Frame j reprojected onto the center frame along the motion vectors (bilinear; an integer
+    shift, a still pixel included, moves values exactly), and where that reprojection is valid
+    (N,1,H,W) bool. A window without motion vectors is still: frames are aligned as they are."""
     frame = window[j]
     flow, valid = flow_to_center([f.motion for f in window], center, j)
     if flow is None:
         return frame, torch.ones_like(frame.depth, dtype=torch.bool)
-    sizes = [getattr(frame, name).shape[1] for name in _FIELDS]
-    stacked = torch.cat([getattr(frame, name) for name in _FIELDS] + ([frame.spp] if frame.spp is not None else []), 1)
-    warped, on_screen = warp(stacked, flow)
-    parts = list(torch.split(warped, sizes + ([1] if frame.spp is not None else []), dim=1))
-    fields = dict(zip(_FIELDS, parts))
-    aligned = FrameTensors(**fields, motion=None, spp=parts[-1] if frame.spp is not None else None)
+    extra = [frame.spp] if frame.spp is not None else []
+    sizes = [getattr(frame, name).shape[1] for name in _FIELDS] + [1] * len(extra)
+    warped, on_screen = warp(torch.cat([getattr(frame, name) for name in _FIELDS] + extra, 1), flow)
+    parts = torch.split(warped, sizes, dim=1)
+    aligned = FrameTensors(**dict(zip(_FIELDS, parts)), spp=parts[-1] if extra else None)
     return aligned, (valid * on_screen) > 0.5
 
 
-def accumulate_window(window: list[FrameTensors], center: int) -> FrameTensors:
-    """The center frame with the samples of its window's consistent neighbours pooled in (see
-    the module docstring); a one-frame window comes back unchanged. Frames must be sanitised
-    (finite) and of one size; a frame without a count map counts as one unit per pixel."""
-    target = window[center]
-    if len(window) == 1:
-        return target
+def sample_counts(frame: FrameTensors) -> Tensor:
+    """(N,1,H,W) samples per pixel; a frame without a count map counts one unit per pixel."""
+    return frame.spp if frame.spp is not None else torch.ones_like(frame.depth)
 
-    def counts(frame: FrameTensors) -> Tensor:
-        return frame.spp if frame.spp is not None else torch.ones_like(frame.depth)
 
-    total = counts(target).clone()
+def pool(target: FrameTensors, neighbours: list[tuple[FrameTensors, Tensor]]) -> FrameTensors:
+    """`target` with each (aligned neighbour, mask) pooled in, weighted by its sample counts × the
+    mask (bool, or a share in [0, 1]): the module docstring's c̄, Var c̄, n̄. Guides and motion
+    stay the target's."""
+    total = sample_counts(target).clone()
     color_sum = target.color * total
     variance_sum = target.variance * total.square()
-    for j in range(len(window)):
-        if j == center:
-            continue
-        other, valid = aligned_to_center(window, center, j)
-        weight = counts(other) * (valid & consistent_pixels(target, other))
+    for other, mask in neighbours:
+        weight = sample_counts(other) * mask
         total += weight
         color_sum += other.color * weight
         variance_sum += other.variance * weight.square()
@@ -93,3 +108,18 @@ def accumulate_window(window: list[FrameTensors], center: int) -> FrameTensors:
     return FrameTensors(color=color_sum / safe, variance=variance_sum / safe.square(), albedo=target.albedo,
                         normal=target.normal, depth=target.depth, motion=target.motion,
                         spp=total if target.spp is not None else None)
+
+
+def accumulate_window(window: list[FrameTensors], center: int) -> FrameTensors:
+    """The center frame with the samples of its window's consistent neighbour pixels pooled in
+    (see the module docstring); a one-frame window comes back unchanged. Frames must be sanitised
+    (finite) and of one size."""
+    target = window[center]
+    if len(window) == 1:
+        return target
+    neighbours = []
+    for j in range(len(window)):
+        if j != center:
+            other, valid = aligned_to_center(window, center, j)
+            neighbours.append((other, valid & consistent_pixels(target, other)))
+    return pool(target, neighbours)

@@ -15,12 +15,16 @@ H, W = 10, 14
 
 
 def still_frame(seed: int, spp: float | None = 16.0, level: float = 1.0) -> FrameTensors:
-    """One seed's render of a still view: the same surfaces, radiance `level` ± its noise."""
+    """One seed's render of a still view: the same surfaces (albedo and depth ramps across x), the
+    radiance `level` ± its noise."""
     g = torch.Generator().manual_seed(seed)
-    geometry = make_frame(H, W, motion=False, seed=99)   # shared guides: the same surfaces every frame
+    ramp = torch.linspace(0.0, 1.0, W).view(1, 1, 1, W).expand(1, 1, H, W)
     noise = (torch.rand(1, 3, H, W, generator=g) - 0.5) * 0.2
-    return dataclasses.replace(geometry, color=level + noise, variance=torch.full((1, 3, H, W), 0.01),
-                               spp=None if spp is None else torch.full((1, 1, H, W), spp))
+    normal = torch.zeros(1, 3, H, W)
+    normal[:, 2] = 1.0
+    return FrameTensors(color=level + noise, variance=torch.full((1, 3, H, W), 0.01),
+                        albedo=(0.2 + 0.4 * ramp).expand(1, 3, H, W).clone(), normal=normal, depth=2.0 + ramp,
+                        spp=None if spp is None else torch.full((1, 1, H, W), spp))
 
 
 def test_a_one_frame_window_comes_back_unchanged():
@@ -49,13 +53,27 @@ def test_frames_without_counts_pool_as_equals_and_keep_no_count_map():
 def test_a_disoccluded_neighbour_pixel_is_left_out():
     center, other = still_frame(7), still_frame(8)
     albedo = other.albedo.clone()
-    albedo[..., :, :5] = 1.0 - albedo[..., :, :5]                # another surface in the left columns
+    albedo[..., 2:6, 3:8] = 0.95                                   # another surface moved in here
     other = dataclasses.replace(other, albedo=albedo)
     pooled = accumulate_window([center, other], 0)
-    moved = (albedo - center.albedo).abs().amax(1, keepdim=True) > 0.1
-    assert moved.any()
+    moved = torch.zeros(1, 1, H, W, dtype=torch.bool)
+    moved[..., 2:6, 3:8] = True
     torch.testing.assert_close(pooled.color[moved.expand_as(pooled.color)], center.color[moved.expand_as(center.color)])
     torch.testing.assert_close(pooled.spp[~moved], torch.full_like(pooled.spp[~moved], 32.0))
+
+
+def test_a_guide_that_moves_with_the_seed_on_an_edge_is_still_pooled():
+    """A pixel straddling an edge averages both sides, in a proportion each seed draws anew: the
+    neighbour's mixed albedo lies within the center's 3×3 range there, but not on a flat patch."""
+    center, other = still_frame(19), still_frame(20)
+    edge = center.albedo.clone()
+    edge[..., 7:] = 0.9                                             # a sharp edge between columns 6 and 7
+    center = dataclasses.replace(center, albedo=edge)
+    mixed = edge.clone()
+    mixed[..., 7] = 0.6                                             # the other seed saw some of the left side
+    mixed[..., 11] = 0.6                                            # and a patch that is not there
+    ok = consistent_pixels(center, dataclasses.replace(other, albedo=mixed))[0, 0]
+    assert bool(ok[:, 7].all()) and not bool(ok[:, 11].any())
 
 
 def test_a_light_change_beyond_the_noise_is_left_out_but_noise_is_pooled():

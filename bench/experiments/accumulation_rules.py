@@ -1,0 +1,152 @@
+"""Which neighbour pixels should a single-frame denoiser pool from its window? (docs/models.md,
+"Sequences with a single-frame network"; models/accumulation.py)
+
+Chosen on validation material only, never the development suite:
+- the eight validation scenes (scenes/val) as static sequences: FRAMES renders of the same view
+  at SPP, each its own seed, against their committed references;
+- the built-in `cornell-box-orbit` (the camera orbits: every pixel moves) at SIZE², FRAMES frames,
+  against a REFERENCE_SPP render of each frame.
+
+Per rule, every frame is pooled over its 3-frame window and denoised by the shipped network (one
+frame, its OIDN candidate on the pooled input); printed: the mean SMAPE over the sequence and the
+flicker (mean |Δ residual| between consecutive frames) of ours, and the share of neighbour pixels
+pooled.
+
+    python -m bench.experiments.accumulation_rules [--orbit-only]
+"""
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from bench.common import image_metrics, load_bench_networks, pinned_torch_threads
+from bench.dev_references import SUITES, dev_scenes, load_reference
+from bench.quality_measures import mean_abs_change
+from bench.suite_quality import SEED, uniform_render
+from models.accumulation import (DEPTH_RELATIVE, RADIANCE_RELATIVE,
+                                 RADIANCE_SIGMAS, aligned_to_center, consistent_pixels, pool, sample_counts)
+from models.features import sanitize_frame
+from models.frames import FrameTensors
+from models.warp import flow_to_center
+from service.loop.loop import RenderLoop
+from service.loop.oidn import candidate_for
+from service.loop.spec import LoopSpec
+from service.loop.tensors import frame_tensors, to_image
+
+FRAMES = 5
+SPP = 16
+SIZE = 128
+REFERENCE_SPP = 2048
+Rule = Callable[[list[FrameTensors], int], tuple[FrameTensors, float]]
+
+
+def still_pixels(window: list[FrameTensors], center: int, j: int) -> Tensor:
+    """(N,1,H,W) bool: where frame j's pixel shows the center's without moving (|flow| ≤ 1e-3 px)."""
+    flow, valid = flow_to_center([f.motion for f in window], center, j)
+    if flow is None:
+        return torch.ones_like(window[j].depth, dtype=torch.bool)
+    return (flow.abs().amax(dim=1, keepdim=True) <= 1e-3) & (valid > 0.5)
+
+
+def fixed_guides(center: FrameTensors, other: FrameTensors) -> Tensor:
+    """The first rule's guide test: fixed tolerances per pixel, no neighbourhood range."""
+    diff = (other.color - center.color).abs()
+    noise = RADIANCE_SIGMAS * (other.variance + center.variance).sqrt()
+    light = (diff <= noise + RADIANCE_RELATIVE * 0.5 * (other.color + center.color) + 1e-6).all(1, keepdim=True)
+    albedo = ((other.albedo - center.albedo).abs() <= 0.1).all(1, keepdim=True)
+    normal = (other.normal - center.normal).norm(dim=1, keepdim=True) <= 0.25
+    depth = (other.depth - center.depth).abs() <= DEPTH_RELATIVE * torch.maximum(other.depth, center.depth) + 1e-6
+    return light & albedo & normal & depth
+
+
+def rule(moving: str, guides: Callable[[FrameTensors, FrameTensors], Tensor]) -> Rule:
+    """moving: "no" pools still pixels only; "yes" also reprojected ones (bilinear, along motion)."""
+    def pooled(window: list[FrameTensors], center: int) -> tuple[FrameTensors, float]:
+        target, neighbours = window[center], []
+        for j in range(len(window)):
+            if j == center:
+                continue
+            if moving == "yes":
+                other, valid = aligned_to_center(window, center, j)
+            else:
+                other, valid = window[j], still_pixels(window, center, j)
+            neighbours.append((other, valid & guides(target, other)))
+        share = float(np.mean([m.float().mean().item() for _, m in neighbours])) if neighbours else 0.0
+        return pool(target, neighbours), share
+    return pooled
+
+
+def symmetric_moved(window: list[FrameTensors], center: int) -> tuple[FrameTensors, float]:
+    """Still pixels as shipped; a moved pixel only from both sides at once, with equal counts, so a
+    change that is linear in time (shading sliding over a turning object) cancels to first order."""
+    target, neighbours, masks = window[center], [], {}
+    for j in range(len(window)):
+        if j != center:
+            other, valid = aligned_to_center(window, center, j)
+            still = still_pixels(window, center, j)
+            masks[j] = (other, valid & consistent_pixels(target, other), still)
+    if len(masks) == 2:
+        (prev, ok_p, still_p), (nxt, ok_n, still_n) = masks[center - 1], masks[center + 1]
+        both = ok_p & ok_n & ~still_p & ~still_n
+        counts = torch.minimum(sample_counts(prev), sample_counts(nxt))
+        for other, ok, still in ((prev, ok_p, still_p), (nxt, ok_n, still_n)):
+            factor = torch.where(still, ok.float(), both.float() * counts / sample_counts(other).clamp_min(1e-12))
+            neighbours.append((other, factor))
+    else:
+        neighbours = [(o, ok & still) for o, ok, still in masks.values()]
+    share = float(np.mean([(m > 0).float().mean().item() for _, m in neighbours]))
+    return pool(target, neighbours), share
+
+
+RULES: dict[str, Rule | None] = {
+    "center alone": None,
+    "still, 3×3-range guides": rule("no", consistent_pixels),
+    "still, fixed guides": rule("no", fixed_guides),
+    "moved too, 3×3-range guides (shipped)": rule("yes", consistent_pixels),
+    "moved too, fixed guides": rule("yes", fixed_guides),
+    "moved only from both sides": symmetric_moved,
+}
+
+
+def evaluate(buffers: list, references: list[np.ndarray], networks, name: str) -> None:
+    frames = [sanitize_frame(frame_tensors(b))[0] for b in buffers]
+    denoiser = networks.denoiser
+    for label, chosen in RULES.items():
+        images, share = [], []
+        for f in range(len(frames)):
+            lo, hi = max(0, f - 1), min(len(frames), f + 2)
+            pooled, s = chosen(frames[lo:hi], f - lo) if chosen else (frames[f], 0.0)
+            share.append(s)
+            images.append(to_image(denoiser([pooled], 0, 1.0, candidate_for(denoiser, pooled))))
+        smape = np.mean([image_metrics(i, r)["smape"] for i, r in zip(images, references)])
+        flicker = mean_abs_change([np.nan_to_num(i) - r for i, r in zip(images, references)])
+        print(f"| {name} | {label} | {smape:.4f} | {flicker:.5f} | {np.mean(share):.2f} |", flush=True)
+
+
+def orbit(spp: int, seed: int) -> list:
+    spec = LoopSpec(scene="cornell-box-orbit", width=SIZE, height=SIZE, frames=FRAMES, spp_first=spp,
+                    max_iterations=1, allocator="uniform", denoise=False, seed=seed)
+    return next(iter(RenderLoop(spec, None).run())).buffers
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--orbit-only", action="store_true", help="skip the validation scenes' static sequences")
+    args = parser.parse_args()
+    nets = load_bench_networks(None).networks
+    print("| sequence | rule | SMAPE (mean over frames) | flicker | neighbour pixels pooled |\n|---|---|---:|---:|---:|")
+    with pinned_torch_threads(2), torch.no_grad():
+        references = [b.mean for b in orbit(REFERENCE_SPP, 99)]
+        evaluate(orbit(SPP, SEED), references, nets, f"cornell-box-orbit {SIZE}², {FRAMES} frames")
+        for scene in [] if args.orbit_only else dev_scenes(None, SUITES["val"].root):
+            reference, _ = load_reference(SUITES["val"].references, scene, None)
+            buffers = [uniform_render(scene, SPP, nets, seed=SEED + f).buffers[0] for f in range(FRAMES)]
+            evaluate(buffers, [reference] * FRAMES, nets, f"{scene.name} (static)")
+
+
+if __name__ == "__main__":
+    main()
