@@ -4,8 +4,9 @@ from __future__ import annotations
 import dataclasses
 
 import torch
+import torch.nn.functional as F
 
-from models.accumulation import accumulate_window, consistent_pixels
+from models.accumulation import accumulate_window, consistent_pixels, neighbourhood_range
 from models.denoiser import Denoiser
 from models.frames import FrameTensors
 
@@ -25,6 +26,20 @@ def still_frame(seed: int, spp: float | None = 16.0, level: float = 1.0) -> Fram
     return FrameTensors(color=level + noise, variance=torch.full((1, 3, H, W), 0.01),
                         albedo=(0.2 + 0.4 * ramp).expand(1, 3, H, W).clone(), normal=normal, depth=2.0 + ramp,
                         spp=None if spp is None else torch.full((1, 1, H, W), spp))
+
+
+def test_neighbourhood_range_is_the_min_and_max_of_each_3x3_window():
+    x = torch.rand(2, 4, 9, 7, generator=torch.Generator().manual_seed(3))
+    padded = F.pad(x, (1, 1, 1, 1), mode="replicate")
+    lo, hi = neighbourhood_range(x)
+    torch.testing.assert_close(hi, F.max_pool2d(padded, 3, stride=1), rtol=0, atol=0)
+    torch.testing.assert_close(lo, -F.max_pool2d(-padded, 3, stride=1), rtol=0, atol=0)
+
+
+def test_a_still_window_with_zero_motion_pools_like_one_without_motion():
+    window = [still_frame(s) for s in (21, 22, 23)]
+    zero = [dataclasses.replace(f, motion=torch.zeros(1, 2, H, W)) for f in window]
+    torch.testing.assert_close(accumulate_window(zero, 1).color, accumulate_window(window, 1).color)
 
 
 def test_a_one_frame_window_comes_back_unchanged():
