@@ -17,9 +17,9 @@ another surface), or where its radiance differs from the center's by more than t
 both explains (lighting changed: a moving light, a shadow passing) — the rejection tests of
 temporal accumulation in real-time denoisers (Schied et al. 2017, SVGF §4.1), with the rendered
 variance as the noise scale. Every output pixel stays a convex combination of sample means
-(bilinear taps included). The rule was chosen on validation
-material (`python -m bench.experiments.accumulation_rules`, docs/models.md): pooling moved pixels
-too, and guides tested against the center's 3×3 range, won there.
+(bilinear taps included). The rule was chosen on validation material (`python -m
+bench.experiments.accumulation_rules`, docs/models.md): pooling moved pixels too, and guides
+tested against the center's 3×3 range, won there.
 """
 from __future__ import annotations
 
@@ -71,17 +71,22 @@ def guide_bounds(center: FrameTensors) -> tuple[Tensor, Tensor]:
     return lo - absolute - relative * lo.abs(), hi + absolute + relative * hi.abs()
 
 
+def same_light(center: FrameTensors, other: FrameTensors) -> Tensor:
+    """(N,1,H,W) bool: every channel of the two means within RADIANCE_SIGMAS standard errors of
+    their difference (plus RADIANCE_RELATIVE of their mean) of each other."""
+    diff = (other.color - center.color).abs()
+    noise = RADIANCE_SIGMAS * (other.variance.clamp_min(0) + center.variance.clamp_min(0)).sqrt()
+    scale = RADIANCE_RELATIVE * 0.5 * (other.color.abs() + center.color.abs()) + 1e-6
+    return (diff <= noise + scale).all(dim=1, keepdim=True)
+
+
 def consistent_pixels(center: FrameTensors, other: FrameTensors,
                       bounds: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """(N,1,H,W) bool: where `other` (already aligned with `center`) shows the same surface
     under the same light, within the noise of both. `bounds`: `guide_bounds(center)` if known."""
-    diff = (other.color - center.color).abs()
-    noise = RADIANCE_SIGMAS * (other.variance.clamp_min(0) + center.variance.clamp_min(0)).sqrt()
-    scale = RADIANCE_RELATIVE * 0.5 * (other.color.abs() + center.color.abs()) + 1e-6
-    same_light = (diff <= noise + scale).all(dim=1, keepdim=True)
     lo, hi = bounds if bounds is not None else guide_bounds(center)
     guides = _guides(other)
-    return same_light & ((guides >= lo) & (guides <= hi)).all(dim=1, keepdim=True)
+    return same_light(center, other) & ((guides >= lo) & (guides <= hi)).all(dim=1, keepdim=True)
 
 
 def aligned_to_center(window: list[FrameTensors], center: int, j: int) -> tuple[FrameTensors, Tensor]:

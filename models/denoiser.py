@@ -48,8 +48,8 @@ class DenoiserConfig:
     lambda_width: int = 16         # hidden channels of the λ module: kernel head input and λ-MLP width
     lambda_rank: int = 2           # λ-dependent directions of the kernel head W(λ) = W₀ + Σ sᵣ(λ)ΔWᵣ
     composite_width: int = 8       # channels of the per-pixel α CNN (eq. 5)
-    temporal: bool = True          # False: single-frame model; a window's neighbours only add samples,
-    accumulate: bool = True        # pooled into the center where consistent (models.accumulation)
+    temporal: bool = True          # False: single-frame model (a window's neighbours only add samples)
+    accumulate: bool = True        # single-frame: pool the window's consistent samples in (models.accumulation)
     multiscale: bool = True        # False: finest level only, no compositing
     oidn_candidate: bool = False   # an external denoiser's image joins every level's joint softmax (models.candidate)
     gate_width: int = 8            # hidden channels of the candidate gate

@@ -27,15 +27,17 @@ from bench.common import image_metrics, load_bench_networks, pinned_torch_thread
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.quality_measures import mean_abs_change
 from bench.suite_quality import SEED, uniform_render
-from models.accumulation import (DEPTH_RELATIVE, RADIANCE_RELATIVE,
-                                 RADIANCE_SIGMAS, aligned_to_center, consistent_pixels, pool, sample_counts)
+from models.accumulation import (DEPTH_RELATIVE, aligned_to_center, consistent_pixels, pool, same_light,
+                                 sample_counts)
 from models.features import sanitize_frame
 from models.frames import FrameTensors
+from models.pretrained import Networks
 from models.warp import flow_to_center
 from service.loop.loop import RenderLoop
 from service.loop.oidn import candidate_for
 from service.loop.spec import LoopSpec
 from service.loop.tensors import frame_tensors, to_image
+from service.render.framebuffer import FrameBuffer
 
 FRAMES = 5
 SPP = 16
@@ -53,24 +55,23 @@ def still_pixels(window: list[FrameTensors], center: int, j: int) -> Tensor:
 
 
 def fixed_guides(center: FrameTensors, other: FrameTensors) -> Tensor:
-    """The first rule's guide test: fixed tolerances per pixel, no neighbourhood range."""
-    diff = (other.color - center.color).abs()
-    noise = RADIANCE_SIGMAS * (other.variance + center.variance).sqrt()
-    light = (diff <= noise + RADIANCE_RELATIVE * 0.5 * (other.color + center.color) + 1e-6).all(1, keepdim=True)
+    """The first rule's guide test: the same light test, fixed guide tolerances per pixel (no
+    neighbourhood range)."""
+    light = same_light(center, other)
     albedo = ((other.albedo - center.albedo).abs() <= 0.1).all(1, keepdim=True)
     normal = (other.normal - center.normal).norm(dim=1, keepdim=True) <= 0.25
     depth = (other.depth - center.depth).abs() <= DEPTH_RELATIVE * torch.maximum(other.depth, center.depth) + 1e-6
     return light & albedo & normal & depth
 
 
-def rule(moving: str, guides: Callable[[FrameTensors, FrameTensors], Tensor]) -> Rule:
-    """moving: "no" pools still pixels only; "yes" also reprojected ones (bilinear, along motion)."""
+def rule(moved: bool, guides: Callable[[FrameTensors, FrameTensors], Tensor]) -> Rule:
+    """moved: also pool pixels reprojected along the motion (bilinear); else still pixels only."""
     def pooled(window: list[FrameTensors], center: int) -> tuple[FrameTensors, float]:
         target, neighbours = window[center], []
         for j in range(len(window)):
             if j == center:
                 continue
-            if moving == "yes":
+            if moved:
                 other, valid = aligned_to_center(window, center, j)
             else:
                 other, valid = window[j], still_pixels(window, center, j)
@@ -81,8 +82,8 @@ def rule(moving: str, guides: Callable[[FrameTensors, FrameTensors], Tensor]) ->
 
 
 def symmetric_moved(window: list[FrameTensors], center: int) -> tuple[FrameTensors, float]:
-    """Still pixels as shipped; a moved pixel only from both sides at once, with equal counts, so a
-    change that is linear in time (shading sliding over a turning object) cancels to first order."""
+    """Still pixels from either side; a moved pixel only from both sides at once, with equal counts,
+    so a change that is linear in time (shading sliding over a turning object) cancels to first order."""
     target, neighbours, masks = window[center], [], {}
     for j in range(len(window)):
         if j != center:
@@ -104,15 +105,15 @@ def symmetric_moved(window: list[FrameTensors], center: int) -> tuple[FrameTenso
 
 RULES: dict[str, Rule | None] = {
     "center alone": None,
-    "still, 3×3-range guides": rule("no", consistent_pixels),
-    "still, fixed guides": rule("no", fixed_guides),
-    "moved too, 3×3-range guides (shipped)": rule("yes", consistent_pixels),
-    "moved too, fixed guides": rule("yes", fixed_guides),
+    "still, 3×3-range guides": rule(False, consistent_pixels),
+    "still, fixed guides": rule(False, fixed_guides),
+    "moved too, 3×3-range guides (shipped)": rule(True, consistent_pixels),
+    "moved too, fixed guides": rule(True, fixed_guides),
     "moved only from both sides": symmetric_moved,
 }
 
 
-def evaluate(buffers: list, references: list[np.ndarray], networks, name: str) -> None:
+def evaluate(buffers: list[FrameBuffer], references: list[np.ndarray], networks: Networks, name: str) -> None:
     frames = [sanitize_frame(frame_tensors(b))[0] for b in buffers]
     denoiser = networks.denoiser
     for label, chosen in RULES.items():
@@ -127,7 +128,7 @@ def evaluate(buffers: list, references: list[np.ndarray], networks, name: str) -
         print(f"| {name} | {label} | {smape:.4f} | {flicker:.5f} | {np.mean(share):.2f} |", flush=True)
 
 
-def orbit(spp: int, seed: int) -> list:
+def orbit(spp: int, seed: int) -> list[FrameBuffer]:
     spec = LoopSpec(scene="cornell-box-orbit", width=SIZE, height=SIZE, frames=FRAMES, spp_first=spp,
                     max_iterations=1, allocator="uniform", denoise=False, seed=seed)
     return next(iter(RenderLoop(spec, None).run())).buffers
