@@ -136,3 +136,22 @@ def test_a_single_frame_denoiser_filters_its_windows_pooled_center():
     assert center == 0 and len(kept) == 1 and kept[0] is window[1]
     kept, center = Denoiser(TINY).eval().filtered_window(window, 1)
     assert center == 1 and kept is window   # a temporal network weighs its neighbours itself
+
+
+@torch.no_grad()
+def test_a_neighbour_of_nan_inf_and_fireflies_leaves_the_pooled_center_finite():
+    """Sanitised first (NaN → 0, ±Inf → the range's ends): a neighbour's NaN pixel then disagrees
+    with the center's light and is left out; the whole denoise stays finite and ≥ 0."""
+    bad = still_frame(24)
+    color, variance = bad.color.clone(), bad.variance.clone()
+    color[0, :, 1, 1] = float("nan")
+    color[0, :, 2, 2] = float("inf")
+    color[0, 0, 3, 3] = 1e6
+    variance[0, :, 4, 4] = float("nan")
+    window = [dataclasses.replace(bad, color=color, variance=variance), still_frame(25), still_frame(26)]
+    model = Denoiser(dataclasses.replace(TINY, temporal=False)).eval()
+    (pooled,), _ = model.filtered_window(window, 1)
+    assert torch.isfinite(pooled.color).all() and torch.isfinite(pooled.variance).all()
+    assert float(pooled.spp[0, 0, 1, 1]) == 32.0                   # the NaN pixel was left out
+    out = model(window, 1)
+    assert torch.isfinite(out).all() and float(out.min()) >= 0
