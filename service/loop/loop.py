@@ -23,8 +23,9 @@ from service.loop.spec import IterationRecord, LoopSpec, LoopSpecError, lambda_p
 from service.loop.state import LoopState
 from service.render.effects import inspect_frames, load_frames, make_integrator
 from service.render.framebuffer import FrameBuffer
+from service.render.object_motion import shape_motion
 from service.render.renderer import render_samples
-from service.render.runtime import active_variant
+from service.render.runtime import active_variant, mitsuba
 
 
 def next_counts(allocator: str, buffer: FrameBuffer, predicted_error: np.ndarray | None, budget: int,
@@ -77,6 +78,9 @@ class RenderLoop:
                              root=scene_root)
         self.effects = inspect_frames(loaded)
         self.scenes = [frame.scene for frame in loaded]
+        # Per frame, how its moving shapes were placed one frame earlier (object motion vectors).
+        self.shape_motions = [None] + [shape_motion(mitsuba(), self.scenes[f], self.scenes[f - 1])
+                                       if self.effects.animated_shapes else None for f in range(1, len(self.scenes))]
         self.integrator = make_integrator(self.effects)
         width, height = self.scenes[0].sensors()[0].film().crop_size()
         self.state = state or LoopState.new(spec.frames, int(height), int(width), spec.lam)
@@ -200,7 +204,8 @@ class RenderLoop:
                 break  # a scene without `$frame` is one frame (load_frames)
             prev = self.scenes[f - 1].sensors()[0] if (f > 0 and self.effects.motion_vectors) else None
             render_samples(self.scenes[f], frame_counts, self.state.buffers[f], integrator=self.integrator,
-                           seed=self.spec.seed * 7919 + f, prev_sensor=prev, progress=check)
+                           seed=self.spec.seed * 7919 + f, prev_sensor=prev, prev_shapes=self.shape_motions[f],
+                           progress=check)
         timings["render"] = time.perf_counter() - t0
 
     def denoise_step(self, timings: dict) -> None:

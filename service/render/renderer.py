@@ -15,9 +15,11 @@ import drjit as dr
 import numpy as np
 
 from service.render.direct_shared_hit import DirectSettings, direct_settings, sample_direct
+from service.render.film_projection import FilmProjection, film_position, film_projection
 from service.render.filters import PixelFilter
 from service.render.framebuffer import FrameBuffer
 from service.render.integrators import instance_refusal, sample_lane, to_rgb
+from service.render.object_motion import ShapeMotion, previous_position
 from service.render.runtime import mitsuba
 from service.render.scenes import SceneError
 
@@ -62,7 +64,7 @@ class _Setup:
     scene: object
     integrator: object
     sensor: object
-    prev_sensor: object
+    prev_sensor: FilmProjection | None   # the previous frame's camera, when motion vectors are wanted
     pixel_filter: PixelFilter
     width: int
     pixel_count: int
@@ -70,6 +72,8 @@ class _Setup:
     diff_scale: float
     # Set when the integrator is a `direct` whose primary hit can also feed the features.
     direct: DirectSettings | None = None
+    # Set when shapes move between the previous frame and this one (object motion vectors).
+    shape_motion: ShapeMotion | None = None
 
 
 def _first_hit_flags(mi):
@@ -138,12 +142,11 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.n
     motion = None
     if setup.prev_sensor is not None:
         world = dr.select(hit, si.p, ray.o + ray.d * BACKGROUND_DISTANCE)
-        it = dr.zeros(mi.Interaction3f)
-        it.p = world
-        ds, _ = setup.prev_sensor.sample_direction(it, mi.Point2f(0.5), True)
-        seen = ds.pdf > 0
-        # ds.uv is the film position (pixels) of `world` in the previous frame.
-        motion = dr.select(seen, ds.uv - position, 0.0)
+        if setup.shape_motion is not None:   # a point on a moving shape was elsewhere a frame ago
+            world = dr.select(hit, previous_position(mi, setup.shape_motion, si, hit), world)
+        # the film position (pixels) of `world` in the previous frame
+        before, seen = film_position(mi, setup.prev_sensor, world)
+        motion = dr.select(seen, before - position, 0.0)
 
     # Sanitise per sample: one NaN/Inf lane must not poison a pixel's running sums.
     finite = dr.all(dr.isfinite(radiance))
@@ -215,6 +218,7 @@ def render_samples(
     integrator=None,
     seed: int = 0,
     prev_sensor=None,
+    prev_shapes: ShapeMotion | None = None,
     max_wavefront: int = DEFAULT_MAX_WAVEFRONT,
     progress: Callable[[int], None] | None = None,
 ) -> RenderPass:
@@ -222,7 +226,9 @@ def render_samples(
 
     `integrator`: the one the effects report chose (None: the scene's own, as declared). `prev_sensor`:
     the previous frame's sensor when the scene moves — then motion vectors are accumulated
-    too. `progress(n)` is called with the samples finished after each chunk.
+    too; `prev_shapes`: how its moving shapes were placed then (object_motion.shape_motion),
+    without which motion vectors follow the camera alone. `progress(n)` is called with the
+    samples finished after each chunk.
     """
     mi = mitsuba()
     start = perf_counter()
@@ -248,13 +254,15 @@ def render_samples(
         buffer.motion_sum = np.zeros((height, width, 2))
     film = sensor.film()
     setup = _Setup(
-        scene=scene, integrator=integrator, sensor=sensor, prev_sensor=prev_sensor,
+        scene=scene, integrator=integrator, sensor=sensor,
+        prev_sensor=film_projection(mi, prev_sensor) if prev_sensor is not None else None,
         pixel_filter=PixelFilter(mi, film.rfilter(), width, height, film.sample_border()),
         width=width, pixel_count=height * width, aov_count=len(aov_names),
         # Ray differentials describe the footprint of one sample: shrink them with the mean
         # per-pixel rate as mi.render does with 1/sqrt(spp).
         diff_scale=1.0 / np.sqrt(max(buffer.spp.mean() + counts.mean(), 1.0)),
         direct=direct_settings(mi, integrator),
+        shape_motion=prev_shapes if prev_sensor is not None else None,
     )
     chunks = max(1, -(-total // max_wavefront))
     for chunk in range(chunks if total else 0):
