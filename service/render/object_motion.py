@@ -10,7 +10,7 @@ shapes of two loaded frames and keeps, per moving shape, how to take a point bac
   deformation alike, as long as the mesh keeps its topology;
 - an analytic shape (sphere, disk, cylinder, …): the affine map T_prev · T⁻¹ of its to_world.
 
-Shapes are paired by position in `scene.shapes()`, checked by kind, vertex and face counts;
+Shapes are paired by kind, vertex and face counts and the nearest bounding box (`pair_shapes`);
 a shape without a partner keeps camera-only motion. `previous_position` runs inside the render
 kernel (service/render/renderer.py) on the primary hit.
 """
@@ -55,17 +55,34 @@ def _signature(shape) -> tuple:
     return ("shape", type(shape).__name__)
 
 
+def _box(shape) -> np.ndarray:
+    box = shape.bbox()
+    return np.asarray([*box.min, *box.max], dtype=np.float64)
+
+
+def pair_shapes(shapes: list, previous: list) -> list[tuple]:
+    """(shape, its previous-frame self) pairs. Mitsuba does not promise one load order (mesh
+    merging may reorder), so each shape takes, among the unpaired previous shapes of its kind and
+    vertex/face counts, the one whose bounding box is nearest; a shape with none stays unpaired."""
+    free = list(range(len(previous)))
+    pairs = []
+    for shape in shapes:
+        candidates = [i for i in free if _signature(previous[i]) == _signature(shape)]
+        if not candidates:
+            continue
+        here = _box(shape)
+        best = min(candidates, key=lambda i: float(np.abs(_box(previous[i]) - here).sum()))
+        free.remove(best)
+        pairs.append((shape, previous[best]))
+    return pairs
+
+
 def shape_motion(mi, scene, prev_scene) -> ShapeMotion | None:
     """The motion of `scene`'s shapes since `prev_scene`; None when no shape moved."""
-    shapes, previous = list(scene.shapes()), list(prev_scene.shapes())
-    if len(shapes) != len(previous):
-        return None
     slots_kind, slots_affine, slots_face = [STATIC], [np.zeros(12)], [0]
     ids, faces, vertices, prev_vertices = {}, [], [], []
     vertex_base = face_base = 0
-    for shape, prev in zip(shapes, previous):
-        if _signature(shape) != _signature(prev):
-            continue
+    for shape, prev in pair_shapes(list(scene.shapes()), list(prev_scene.shapes())):
         if shape.is_mesh():
             now = np.asarray(shape.vertex_positions_buffer(), dtype=np.float32)
             before = np.asarray(prev.vertex_positions_buffer(), dtype=np.float32)

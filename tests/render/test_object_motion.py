@@ -10,7 +10,7 @@ import pytest
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
 from service.render.effects import load_frames
-from service.render.object_motion import shape_motion
+from service.render.object_motion import pair_shapes, shape_motion
 from service.render.runtime import mitsuba
 
 SIZE = 32
@@ -70,3 +70,21 @@ def test_shape_motion_is_none_for_a_still_sequence_and_pairs_only_like_shapes(tm
     assert motion is not None and motion.moving == 1
     # a frame whose shapes do not pair up (another shape list) gets no object motion
     assert shape_motion(mi, moving[1].scene, frames[0].scene) is None
+
+
+def test_shapes_pair_by_kind_counts_and_nearest_box_whatever_their_order(tmp_path: Path):
+    """Two 4-vertex rectangles listed in the opposite order in the previous frame still pair with
+    themselves (Mitsuba promises no load order); a sphere pairs with no mesh."""
+    mi = mitsuba()
+    panel = ('<shape type="rectangle"><transform name="to_world"><scale value="0.3"/><translate x="1.5" y="1.5"/>'
+             '</transform><bsdf type="diffuse"><rgb name="reflectance" value="0.2"/></bsdf></shape>')
+    frames = load_frames(str(write_scene(tmp_path, SHAPES["analytic sphere"] + panel)), frames=2)
+    now, before = list(frames[1].scene.shapes()), list(frames[0].scene.shapes())
+    assert sum(s.is_mesh() for s in now) == 2                       # the wall and the panel: 4 vertices each
+    pairs = pair_shapes(now, list(reversed(before)))
+    assert len(pairs) == len(now)
+    for shape, prev in pairs:
+        assert shape.is_mesh() == prev.is_mesh()
+        if shape.is_mesh():   # both still: each pairs with the very same box
+            np.testing.assert_array_equal(np.asarray(shape.bbox().max), np.asarray(prev.bbox().max))
+    assert shape_motion(mi, frames[1].scene, frames[0].scene).moving == 1
