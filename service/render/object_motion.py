@@ -35,7 +35,7 @@ class ShapeMotion:
     faces: object           # mi.UInt32, 3 per face: global vertex indices into the two arrays below
     vertices: object        # mi.Float, 3 per vertex: this frame's positions
     prev_vertices: object   # mi.Float, 3 per vertex: the previous frame's positions
-    moving: int             # how many shapes move (for the effects report and tests)
+    moving: int             # how many shapes move
 
 
 def _registry_id(mi, shape) -> int:
@@ -52,7 +52,8 @@ def _to_world(mi, shape) -> np.ndarray | None:
 def _signature(shape) -> tuple:
     if shape.is_mesh():
         return ("mesh", shape.vertex_count(), shape.face_count())
-    return ("shape", type(shape).__name__)
+    # the Python type of every analytic shape is `Shape`; its description names the plugin
+    return ("shape", str(shape).split("[", 1)[0])
 
 
 def _box(shape) -> np.ndarray:
