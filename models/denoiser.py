@@ -266,7 +266,7 @@ class DenoiserCache:
     levels: list[LevelCache]       # finest first
     albedo: Tensor                 # padded center albedo for remodulation
     size: tuple[int, int]          # original (H, W) to crop back to
-    n_bad: int = 0                 # NaN/Inf values replaced while sanitising the window
+    n_bad: int = 0                 # NaN/Inf values replaced while sanitising the filtered window
     energy: tuple[Tensor, Tensor] | None = None   # the center's sample mean radiance and its rse (models.energy)
 
 
@@ -317,10 +317,10 @@ class Denoiser(nn.Module):
         if not window or not -len(window) <= center < len(window):
             raise IndexError(f"center {center} outside a window of {len(window)} frames")
         center %= len(window)
+        if self.temporal is None:  # one frame filtered: the center, its neighbours' samples pooled in
+            window, center = self.filtered_window(window, center)
         cleaned = [sanitize_frame(f) for f in window]
         frames, n_bad = [f for f, _ in cleaned], sum(n for _, n in cleaned)
-        if self.temporal is None:  # one frame filtered: the center, its neighbours' samples pooled in
-            frames, center = [accumulate_window(frames, center) if self.config.accumulate else frames[center]], 0
         size = frames[center].size
         energy = (sample_energy(frames[center].color, frames[center].variance)
                   if self.config.energy_tolerance > 0 else None)

@@ -64,7 +64,7 @@ class _Setup:
     scene: object
     integrator: object
     sensor: object
-    prev_sensor: FilmProjection | None   # the previous frame's camera, when motion vectors are wanted
+    prev_projection: FilmProjection | None   # the previous frame's camera, when motion vectors are wanted
     pixel_filter: PixelFilter
     width: int
     pixel_count: int
@@ -140,12 +140,12 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.n
     depth = dr.select(hit, si.t, 0.0)
 
     motion = None
-    if setup.prev_sensor is not None:
+    if setup.prev_projection is not None:
         world = dr.select(hit, si.p, ray.o + ray.d * BACKGROUND_DISTANCE)
         if setup.shape_motion is not None:   # a point on a moving shape was elsewhere a frame ago
             world = dr.select(hit, previous_position(mi, setup.shape_motion, si, hit), world)
         # the film position (pixels) of `world` in the previous frame
-        before, seen = film_position(mi, setup.prev_sensor, world)
+        before, seen = film_position(mi, setup.prev_projection, world)
         motion = dr.select(seen, before - position, 0.0)
 
     # Sanitise per sample: one NaN/Inf lane must not poison a pixel's running sums.
@@ -255,7 +255,7 @@ def render_samples(
     film = sensor.film()
     setup = _Setup(
         scene=scene, integrator=integrator, sensor=sensor,
-        prev_sensor=film_projection(mi, prev_sensor) if prev_sensor is not None else None,
+        prev_projection=film_projection(mi, prev_sensor) if prev_sensor is not None else None,
         pixel_filter=PixelFilter(mi, film.rfilter(), width, height, film.sample_border()),
         width=width, pixel_count=height * width, aov_count=len(aov_names),
         # Ray differentials describe the footprint of one sample: shrink them with the mean
