@@ -78,8 +78,7 @@ class DenoiserConfig:
     def without_post_training_settings(self) -> "DenoiserConfig":
         """This config with the settings chosen after training (on validation scenes, for given
         weights) back at their defaults: what a fine-tuning run starts from and trains through."""
-        return dataclasses.replace(self, energy_tolerance=0.0, gate_offset=0.0, coarse_gate_offset=None,
-                                   candidate_cap=False, kernel_clamp=None)
+        return dataclasses.replace(self, **{name: getattr(DenoiserConfig, name) for name in POST_TRAINING_SETTINGS})
 
     def level_gate_offset(self, level: int) -> float:
         """The logit offset of pyramid level `level` (0 = finest)."""
@@ -97,6 +96,8 @@ class DenoiserConfig:
 
 
 TRUNKS = ("levels", "unet")
+# The config fields chosen after training, on validation scenes, for given weights (above).
+POST_TRAINING_SETTINGS = ("energy_tolerance", "gate_offset", "coarse_gate_offset", "candidate_cap", "kernel_clamp")
 CANDIDATE_CHANNELS = 3   # trunk input channels DenoiserConfig.candidate_features adds (log demodulated RGB)
 
 # Inference bands of rows for the λ tail: a band's F·k² weight planes and its 3-channel output

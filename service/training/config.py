@@ -83,6 +83,10 @@ class TrainConfig:
     # Validate on this data set's held-back scenes (every 8th) instead of `data`'s own; those
     # scenes are then left out of training wherever `data` holds them too.
     val_data: Path | None = None
+    # Write --init's post-training settings (models.denoiser.POST_TRAINING_SETTINGS: gate offsets,
+    # caps, clamp, energy tolerance) into the trained denoiser: a fine-tune trains without them,
+    # and they were chosen on validation scenes for the weights it starts from.
+    keep_settings: bool = False
 
     @property
     def data_roots(self) -> tuple[Path, ...]:
@@ -110,6 +114,9 @@ class TrainConfig:
         if self.noisy_targets and self.stage in NEEDS_CLEAN_REFERENCES:
             raise TrainConfigError(f"--noisy-targets trains the denoiser at λ = 1; --stage {self.stage} needs clean "
                                    "references (eq. 6's λ weighting and the error network's SMAPE target)")
+        if self.keep_settings and (self.init is None or self.stage in ("error", "staged", "all")):
+            raise TrainConfigError("--keep-settings carries --init's settings into a fine-tuned denoiser: name it with "
+                                   "--init, and a denoiser stage (not staged, all or error)")
         if self.gate_firefly and not self.oidn_candidate:
             raise TrainConfigError("--gate-firefly adds statistics to the OIDN candidate's gate: add --oidn-candidate")
         if self.candidate_features and not (self.oidn_candidate and not self.temporal):

@@ -20,7 +20,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
-from models.denoiser import Denoiser, DenoiserConfig
+from models.denoiser import POST_TRAINING_SETTINGS, Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.losses import smape_map
 from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, denoiser_smape, error_predictor_loss,
@@ -220,8 +220,22 @@ def train_denoiser(config, device, stage: str = "denoiser", plan: StagePlan = St
     # a λ phase follows, the kept one must come from it.
     keep_from = symmetric_steps if symmetric_steps < config.steps else 0
     out_name = "denoiser.pt" if stage in ("denoiser", "lambda", *FINE_TUNE_STAGES) else f"stage_{stage}.pt"
-    return _fit(stage, model, loss_fn, val_fn, config, device, _provenance(config.command_line, stage, config.init),
-                keep_from, out_name)
+    result = _fit(stage, model, loss_fn, val_fn, config, device, _provenance(config.command_line, stage, config.init),
+                  keep_from, out_name)
+    if config.keep_settings:
+        carry_post_training_settings(config.init, Path(result["checkpoint"]))
+    return result
+
+
+def carry_post_training_settings(source: Path, target: Path) -> None:
+    """Rewrite `target` (a denoiser checkpoint) with `source`'s post-training settings; its
+    weights and provenance stay as trained."""
+    stored = read_checkpoint(source)["config"]
+    settings = {name: stored.get(name, getattr(DenoiserConfig, name)) for name in POST_TRAINING_SETTINGS}
+    trained = load_checkpoint(target, expected_kind="denoiser")
+    model = Denoiser(dataclasses.replace(trained.config, **settings))
+    model.load_state_dict(trained.state_dict())
+    save_checkpoint(target, model, {**trained.checkpoint_extra, "settings_from": str(source)})
 
 
 def start_at_typical_error(model, denoiser, batch, device) -> None:

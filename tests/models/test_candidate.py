@@ -9,9 +9,9 @@ import torch.nn.functional as F
 
 from models.candidate import N_FIREFLY_STATS, N_STATS, box_mean, clamp_around, gate_statistics, relative_variance
 from models.checkpoint import load_checkpoint, save_checkpoint
-from models.denoiser import CANDIDATE_CHANNELS, Denoiser, lambda_code
-from service.training.config import TrainConfig
-from service.training.trainer import _denoiser_to_train
+from models.denoiser import CANDIDATE_CHANNELS, POST_TRAINING_SETTINGS, Denoiser, DenoiserConfig, lambda_code
+from service.training.config import TrainConfig, TrainConfigError
+from service.training.trainer import _denoiser_to_train, carry_post_training_settings
 
 from .conftest import TINY, make_frame
 
@@ -283,3 +283,33 @@ def test_kernel_clamp_is_a_post_training_setting_that_moves_the_output_towards_t
     pinned = model([frame], 0, 1.0, candidate)
     assert (pinned - candidate).abs().mean() < 0.01 * (free - candidate).abs().mean()
     assert model.config.without_post_training_settings().kernel_clamp is None
+
+
+SHIPPED_SETTINGS = {"energy_tolerance": 0.03, "gate_offset": 2.0, "coarse_gate_offset": 10.0, "candidate_cap": True,
+                    "kernel_clamp": 0.5}
+
+
+def test_a_fine_tune_trains_without_the_post_training_settings_and_keep_settings_writes_them_back(tmp_path):
+    chosen = Denoiser(dataclasses.replace(CANDIDATE, **SHIPPED_SETTINGS))
+    save_checkpoint(tmp_path / "shipped.pt", chosen, {"command": "renderloop train … (shipped)"})
+    config = TrainConfig(data=tmp_path, init=tmp_path / "shipped.pt", stage="multiscale", oidn_candidate=True,
+                         keep_settings=True)
+    config.validate()
+    trained = _denoiser_to_train(config, "cpu", {})
+    assert all(getattr(trained.config, name) == getattr(DenoiserConfig, name) for name in POST_TRAINING_SETTINGS)
+    with torch.no_grad():
+        trained.gate.hidden.weight.add_(0.25)   # the fine-tune moved the weights
+    save_checkpoint(tmp_path / "denoiser.pt", trained, {"command": "renderloop train … (fine-tune)"})
+    carry_post_training_settings(tmp_path / "shipped.pt", tmp_path / "denoiser.pt")
+    reloaded = load_checkpoint(tmp_path / "denoiser.pt", expected_kind="denoiser")
+    assert {name: getattr(reloaded.config, name) for name in POST_TRAINING_SETTINGS} == SHIPPED_SETTINGS
+    torch.testing.assert_close(reloaded.gate.hidden.weight, trained.gate.hidden.weight)   # the weights as trained
+    assert reloaded.checkpoint_extra["command"] == "renderloop train … (fine-tune)"
+    assert reloaded.checkpoint_extra["settings_from"] == str(tmp_path / "shipped.pt")
+
+
+@pytest.mark.parametrize("changes", [{"init": None}, {"stage": "error"}, {"stage": "staged"}])
+def test_keep_settings_is_refused_without_a_denoiser_to_take_them_from(tmp_path, changes):
+    config = TrainConfig(data=tmp_path, init=tmp_path / "shipped.pt", stage="multiscale", keep_settings=True)
+    with pytest.raises(TrainConfigError, match="--keep-settings"):
+        dataclasses.replace(config, **changes).validate()
