@@ -5,7 +5,7 @@ import sys
 import pytest
 import torch
 
-from models.checkpoint import load_checkpoint
+from models.checkpoint import load_checkpoint, save_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.training import denoiser_loss, sample_lambda
 from service.dataset.loader import DenoiserDataset, collate_samples
@@ -70,3 +70,21 @@ def test_train_command_trains_on_noisy_targets_and_validates_on_clean_references
     denoiser = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser")
     assert denoiser.config.trunk == "unet" and "--noisy-targets" in denoiser.checkpoint_extra["command"]
     assert "best validation SMAPE" in result.stdout
+
+
+def test_a_fine_tune_with_keep_settings_writes_the_init_settings_into_its_checkpoint(sequence_dataset, tmp_path):
+    settings = {"energy_tolerance": 0.03, "gate_offset": 2.0, "coarse_gate_offset": 10.0, "candidate_cap": True,
+                "kernel_clamp": 0.5}
+    init = tmp_path / "shipped.pt"
+    save_checkpoint(init, Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True,
+                                                  **settings)))
+    out = tmp_path / "fine-tuned"
+    result = subprocess.run(
+        [sys.executable, "-m", "service.cli", "train", "--data", str(sequence_dataset), "--stage", "multiscale",
+         "--init", str(init), "--oidn-candidate", "--single-frame", "--keep-settings", "-o", str(out),
+         "--steps", "2", "--val-every", "1", "--batch", "2", "--crop", "16", "--quiet"],
+        capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr
+    tuned = load_checkpoint(out / "stage_multiscale.pt", expected_kind="denoiser")
+    assert {name: getattr(tuned.config, name) for name in settings} == settings
+    assert tuned.checkpoint_extra["settings_from"] == str(init) and "--keep-settings" in tuned.checkpoint_extra["command"]
