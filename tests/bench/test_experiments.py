@@ -10,6 +10,7 @@ import service.loop.allocate as allocate
 import service.loop.loop as loop
 from bench.common import denoiser_settings, image_metrics
 from bench.experiments.allocation_variants import allocator_variant, equal_gain_samples
+from bench.experiments.disagreement_map import ModulatedErrorMap, disagreement, modulate
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
                                              ranking_row)
 from bench.experiments.energy_tolerance import UNTOUCHED, outputs_per_tolerance
@@ -154,3 +155,33 @@ def test_trunk_speed_times_both_trunks_on_the_same_frame():
     frame = random_frame(16)
     for trunk in ("levels", "unet"):
         assert median_seconds(DenoiserConfig(width=4, temporal=False, trunk=trunk), frame, repeats=1) > 0
+
+
+def test_disagreement_is_zero_where_the_denoisers_agree_and_bounded_where_they_do_not():
+    image = torch.rand(1, 3, 12, 9) * 4
+    assert disagreement(image, image).abs().max() == 0
+    other = image.clone()
+    other[..., 6, 4] = -1e30   # a wild value in one pixel: bounded, and only its 5×5 box moves
+    d = disagreement(image, other)
+    assert d.shape == (1, 1, 12, 9) and float(d.max()) <= 1.0 and d[..., 6, 4] > 0
+    assert d[..., :3, :].abs().max() == 0
+
+
+def test_modulation_moves_the_ranking_but_keeps_the_mean_prediction():
+    predicted = torch.full((1, 1, 4, 4), 0.02)
+    dis = torch.linspace(0.01, 0.3, 16).reshape(1, 1, 4, 4)
+    for gamma in (0.25, 1.0):
+        out = modulate(predicted, dis, gamma)
+        torch.testing.assert_close(out.mean(), predicted.mean())
+        assert bool((out.flatten().diff() > 0).all())   # more disagreement, more predicted error
+    assert modulate(predicted, dis, 0.0) is predicted
+
+
+def test_the_modulated_error_map_at_gamma_0_is_the_error_network_itself():
+    class Constant(torch.nn.Module):
+        def forward(self, frame, denoised):
+            return torch.full_like(denoised[:, :1], 0.03)
+
+    denoised = torch.rand(1, 3, 8, 8)
+    out = ModulatedErrorMap(Constant(), Denoiser(DenoiserConfig(width=8)), 0.0)(None, denoised)
+    torch.testing.assert_close(out, torch.full((1, 1, 8, 8), 0.03))
