@@ -39,16 +39,6 @@ run() {
   if [ -z "${DRY_RUN:-}" ]; then "$@"; fi
 }
 
-# A stage whose checkpoint exists is done (delete it to train again).
-stage() {
-  local checkpoint=$1; shift
-  if [ -z "${DRY_RUN:-}" ] && [ -f "$checkpoint" ]; then
-    echo "train-weights: $checkpoint exists, skipping"
-  else
-    run "$@"
-  fi
-}
-
 # 1. Data (each build resumes where it stopped; the seeds are the shipped data's).
 run renderloop dataset -o "$DATA/ens128" --scenes $((400 * SCALE)) --size 128 --frames 1 --seed 0 --split train \
   --reference-spp 512
@@ -57,18 +47,18 @@ run renderloop dataset -o "$DATA/shaded128" --scenes $((40 * SCALE)) --size 128 
 run renderloop dataset -o "$DATA/window128d" --scenes $((60 * SCALE)) --size 128 --frames 1 --seed 7 --split train \
   --reference-spp 1024 --layout window
 
+# --resume: a stage stopped part-way continues from its saved state, and a finished one only
+# writes its checkpoint's settings again (a best-so-far checkpoint exists long before the end).
 TRAIN=(--data "$DATA/ens128" --data "$DATA/shaded128" --data "$DATA/window128d"
-       --oidn-candidate --single-frame --candidate-features --batch "$BATCH" --crop 64 --quiet)
+       --oidn-candidate --single-frame --candidate-features --batch "$BATCH" --crop 64 --resume --quiet)
 
 # 2. Every weight at λ = 1 (trunk, kernels, gate, compositor), from the shipped network.
-stage "$OUT/multiscale/stage_multiscale.pt" \
-  renderloop train "${TRAIN[@]}" --stage multiscale --init "$INIT" --keep-settings -o "$OUT/multiscale" \
+run renderloop train "${TRAIN[@]}" --stage multiscale --init "$INIT" --keep-settings -o "$OUT/multiscale" \
   --steps $((8000 * STEP_SCALE)) --val-every 500 --lr 5e-4
 
 # 3. The λ directions again, on the new trunk. Both stages carry $INIT's post-training settings
 #    (gate offsets, caps, clamp, energy tolerance: chosen on the validation scenes) through.
-stage "$OUT/final/denoiser.pt" \
-  renderloop train "${TRAIN[@]}" --stage lambda --init "$OUT/multiscale/stage_multiscale.pt" --keep-settings \
+run renderloop train "${TRAIN[@]}" --stage lambda --init "$OUT/multiscale/stage_multiscale.pt" --keep-settings \
   -o "$OUT/final" --steps $((1500 * STEP_SCALE)) --val-every 250 --lr 1e-3
 
 # The shipped error network beside it, so the folder is a whole --weights directory.
