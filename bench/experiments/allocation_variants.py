@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import argparse
 from contextlib import contextmanager
+from typing import Iterator
 
 import numpy as np
 
 import service.loop.allocate as allocate
 import service.loop.loop as loop
 from bench.common import image_metrics, load_bench_networks, pinned_torch_threads
-from bench.dev_references import SUITES, dev_scenes, load_reference
+from bench.dev_references import SUITES, DevScene, dev_scenes, load_reference
 from bench.loop_run import TrueErrorMap
 from models.pretrained import Networks
 from service.loop.loop import RenderLoop
@@ -92,6 +93,16 @@ def final_smape(scene_path: str, networks: Networks, allocator: str, reference: 
     return image_metrics(list(RenderLoop(spec, networks).run())[-1].denoised[0], reference)["smape"]
 
 
+def uniform_baselines(suite: str, networks: Networks, seed: int) -> Iterator[tuple[DevScene, np.ndarray, float]]:
+    """Each still scene of `suite`, its reference, and uniform (b)'s SMAPE at 128 spp: what every
+    variant's loop is divided by."""
+    for scene in dev_scenes(None, SUITES[suite].root):
+        if scene.frames > 1:
+            continue
+        reference, _ = load_reference(SUITES[suite].references, scene, None)
+        yield scene, reference, final_smape(str(scene.path), networks, "uniform", reference, seed)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--suite", choices=sorted(SUITES), default="val")
@@ -101,11 +112,7 @@ def main() -> None:
     nets = load_bench_networks(None)
     print("| scene | " + " | ".join(VARIANTS) + " |\n|---|" + "---:|" * len(VARIANTS))
     with pinned_torch_threads(2):
-        for scene in dev_scenes(None, SUITES[args.suite].root):
-            if scene.frames > 1:
-                continue
-            reference, _ = load_reference(SUITES[args.suite].references, scene, None)
-            uniform = final_smape(str(scene.path), nets.networks, "uniform", reference, args.seed)
+        for scene, reference, uniform in uniform_baselines(args.suite, nets.networks, args.seed):
             error_map = TrueErrorMap(reference) if args.map == "true" else nets.networks.error_predictor
             networks = Networks(nets.networks.denoiser, error_map)
             ratios = []

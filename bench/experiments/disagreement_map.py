@@ -23,7 +23,7 @@ from scipy.stats import spearmanr
 
 from bench.common import load_bench_networks, pinned_torch_threads, true_error_map
 from bench.dev_references import SUITES, dev_scenes, load_reference
-from bench.experiments.allocation_variants import final_smape
+from bench.experiments.allocation_variants import final_smape, uniform_baselines
 from bench.suite_quality import uniform_render
 from models.denoiser import Denoiser
 from models.pretrained import Networks
@@ -114,11 +114,7 @@ def loop(args, nets) -> None:
     rows = []
     denoiser = nets.networks.denoiser
     with pinned_torch_threads(2):
-        for scene in dev_scenes(None, SUITES[args.suite].root):
-            if scene.frames > 1:
-                continue
-            reference, _ = load_reference(SUITES[args.suite].references, scene, None)
-            uniform = final_smape(str(scene.path), nets.networks, "uniform", reference, args.seed)
+        for scene, reference, uniform in uniform_baselines(args.suite, nets.networks, args.seed):
             row = []
             for gamma in [0.0, *args.gamma]:
                 networks = Networks(denoiser, ModulatedErrorMap(nets.networks.error_predictor, denoiser, gamma))
