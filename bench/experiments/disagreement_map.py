@@ -24,24 +24,15 @@ from scipy.stats import spearmanr
 from bench.common import load_bench_networks, pinned_torch_threads, true_error_map
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.experiments.allocation_variants import final_smape, uniform_baselines
+from bench.experiments.gate_bound import kernels_and_candidate
 from bench.suite_quality import uniform_render
 from models.denoiser import Denoiser
 from models.pretrained import Networks
-from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, to_image
 
 EPSILON = 0.01   # SMAPE's ε
 BOX = 5          # the disagreement's box filter, pixels
 TILE = 8         # tile size of the tile Spearman (the allocator's scale after dilation)
-
-
-def kernels_and_candidate(denoiser: Denoiser, frame) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The shipped output at λ = 1, its kernels' image alone, and OIDN's image (each (1, 3, H, W))."""
-    candidate = candidate_for(denoiser, frame)
-    cache = denoiser.prepare([frame], 0, candidate)
-    kernel_levels: list[torch.Tensor] = []
-    output = denoiser.merge_levels(cache, denoiser.filter_levels(cache, 1.0, kernel_levels))
-    return output, denoiser.merge_levels(cache, kernel_levels), candidate
 
 
 def disagreement(kernels: torch.Tensor, candidate: torch.Tensor) -> torch.Tensor:

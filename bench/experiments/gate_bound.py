@@ -17,10 +17,20 @@ from scipy.ndimage import uniform_filter
 from bench.common import image_metrics, load_bench_networks, pinned_torch_threads, true_error_map
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.suite_quality import uniform_render
+from models.denoiser import Denoiser
 from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, to_image
 
 NEIGHBOURHOOD = 8
+
+
+def kernels_and_candidate(denoiser: Denoiser, frame) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The shipped output at λ = 1, its kernels' image alone, and OIDN's image (each (1, 3, H, W))."""
+    candidate = candidate_for(denoiser, frame)
+    cache = denoiser.prepare([frame], 0, candidate)
+    kernel_levels: list[torch.Tensor] = []
+    output = denoiser.merge_levels(cache, denoiser.filter_levels(cache, 1.0, kernel_levels))
+    return output, denoiser.merge_levels(cache, kernel_levels), candidate
 
 
 def main() -> None:
@@ -36,11 +46,7 @@ def main() -> None:
         for scene in dev_scenes(None, SUITES[args.suite].root):
             reference, _ = load_reference(SUITES[args.suite].references, scene, None if scene.frames == 1 else 0)
             frame = frame_tensors(uniform_render(scene, args.spp, nets.networks).buffers[0])
-            candidate = candidate_for(denoiser, frame)
-            cache = denoiser.prepare([frame], 0, candidate)
-            kernel_levels: list[torch.Tensor] = []
-            ours = to_image(denoiser.merge_levels(cache, denoiser.filter_levels(cache, 1.0, kernel_levels)))
-            kernels, oidn = to_image(denoiser.merge_levels(cache, kernel_levels)), to_image(candidate)
+            ours, kernels, oidn = (to_image(image) for image in kernels_and_candidate(denoiser, frame))
             error_k, error_o = true_error_map(kernels, reference), true_error_map(oidn, reference)
             per_pixel = np.where((error_k < error_o)[..., None], kernels, oidn)
             smooth_k, smooth_o = (uniform_filter(e, NEIGHBOURHOOD) for e in (error_k, error_o))

@@ -14,11 +14,13 @@ from bench.experiments.disagreement_map import ModulatedErrorMap, disagreement, 
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
                                              ranking_row)
 from bench.experiments.energy_tolerance import UNTOUCHED, outputs_per_tolerance
+from bench.experiments.gate_bound import kernels_and_candidate
 from bench.experiments.gate_offset import offset_ratios
 from bench.experiments.target_cost import INPUT_SPP, scene_costs
 from bench.experiments.trunk_speed import median_seconds, random_frame
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
+from service.loop.oidn import candidate_for
 from service.loop.tensors import to_image
 
 
@@ -185,3 +187,13 @@ def test_the_modulated_error_map_at_gamma_0_is_the_error_network_itself():
     denoised = torch.rand(1, 3, 8, 8)
     out = ModulatedErrorMap(Constant(), Denoiser(DenoiserConfig(width=8)), 0.0)(None, denoised)
     torch.testing.assert_close(out, torch.full((1, 1, 8, 8), 0.03))
+
+
+@torch.no_grad()
+def test_kernels_and_candidate_returns_the_shipped_output_its_kernels_and_oidns_image():
+    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True)).eval()
+    frame = random_frame(16)
+    output, kernels, candidate = kernels_and_candidate(denoiser, frame)
+    torch.testing.assert_close(candidate, candidate_for(denoiser, frame))
+    torch.testing.assert_close(output, denoiser([frame], 0, 1.0, candidate))
+    assert kernels.shape == output.shape and not torch.equal(kernels, candidate)
