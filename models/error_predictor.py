@@ -1,12 +1,13 @@
 """Error predictor (Vogels et al. 2018 §7): per-pixel SMAPE of the denoised image, estimated
 without a reference, so the adaptive sampler can send samples where the error is.
 
-    [encoder features of the noisy frame, log demodulated denoised (, log2 samples per pixel)]
-        → conv3x3 → 6 residual blocks → conv3x3 → softplus (errors are ≥ 0)
+    [encoder features of the noisy frame, log demodulated denoised (, log2 samples per pixel)
+     (, √ the kernels/candidate disagreement)] → conv3x3 → 6 residual blocks → conv3x3 → softplus (errors are ≥ 0)
 
 The sample-count channel (`sample_count_input`) tells the network how far each pixel has
 converged under the loop's non-uniform counts; relative variance is already among the encoder
-features.
+features. The disagreement channel (`disagreement_input`) is where the denoiser's kernels' image
+and its OIDN candidate differ (models/kernel_disagreement.py).
 
 Trained with L1 against models.losses.smape_map(denoised, reference).
 """
@@ -23,6 +24,7 @@ from torch import Tensor
 from models.features import (HDR_MAX, demodulate, feature_set, log_transform, sample_count_feature, sanitize,
                              sanitize_frame)
 from models.frames import FrameTensors
+from models.kernel_disagreement import disagreement_feature
 from models.layers import channels_last, conv3x3, res_blocks, trunk_in_bfloat16
 
 
@@ -32,6 +34,7 @@ class ErrorPredictorConfig:
     width: int = 16               # narrow: it runs every sampling iteration, and only has to rank pixels
     blocks: int = 6               # paper: six residual blocks
     sample_count_input: bool = False  # + log2(1 + spp) per pixel (weights trained on the loop's own counts)
+    disagreement_input: bool = False  # + √D, D = the kernels' image against the candidate's (needs a candidate)
     # Calibration: the prediction times this. Procedural training scenes are easier for the
     # denoiser than hand-written ones, so the mean prediction runs low on them by a roughly
     # constant factor; fitted on the validation scenes (`renderloop bench --calibration --suite
@@ -46,12 +49,19 @@ class ErrorPredictor(nn.Module):
         super().__init__()
         self.config = cfg = config or ErrorPredictorConfig()
         self.features = feature_set(cfg.source)              # unknown source fails here
-        self.head = conv3x3(self.features.channels + 3 + int(cfg.sample_count_input), cfg.width)
+        self.head = conv3x3(self.input_channels, cfg.width)
         self.blocks = res_blocks(cfg.width, cfg.blocks)
         self.out = conv3x3(cfg.width, 1)
 
-    def forward(self, frame: FrameTensors, denoised: Tensor) -> Tensor:
-        """frame: the noisy input; denoised (N,3,H,W) → (N,1,H,W) predicted SMAPE ≥ 0."""
+    @property
+    def input_channels(self) -> int:
+        cfg = self.config
+        return self.features.channels + 3 + int(cfg.sample_count_input) + int(cfg.disagreement_input)
+
+    def forward(self, frame: FrameTensors, denoised: Tensor, disagreement: Tensor | None = None) -> Tensor:
+        """frame: the noisy input; denoised (N,3,H,W) → (N,1,H,W) predicted SMAPE ≥ 0.
+        disagreement (N,1,H,W): models.kernel_disagreement's D, read only by a network with
+        `disagreement_input` (and then required)."""
         f, _ = sanitize_frame(frame)
         d, _ = sanitize(denoised.float(), 0.0, HDR_MAX)
         inputs = [self.features.build(f), log_transform(demodulate(d, f.albedo))]
@@ -59,8 +69,18 @@ class ErrorPredictor(nn.Module):
             if f.spp is None:
                 raise ValueError("this error network reads the per-pixel sample count: the frame has no spp map")
             inputs.append(sample_count_feature(f.spp))
+        if self.config.disagreement_input:
+            if disagreement is None:
+                raise ValueError("this error network reads the kernels/candidate disagreement: none was given")
+            inputs.append(disagreement_feature(sanitize(disagreement.float(), 0.0, 1.0)[0]))
         x = channels_last(torch.cat(inputs, 1))
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=trunk_in_bfloat16(x)):
             raw = self.out(self.blocks(F.relu_(self.head(x)))).float()
         error = F.softplus(raw)
         return (error * self.config.output_scale).contiguous()
+
+
+def reads_disagreement(error_network: object) -> bool:
+    """Whether the loop must hand this error map the kernels/candidate disagreement (stand-ins
+    such as the benchmark's true-error map read only the frame and the denoised image)."""
+    return isinstance(error_network, ErrorPredictor) and error_network.config.disagreement_input

@@ -17,6 +17,7 @@ from models.denoiser import LAMBDA_MAX, Denoiser, DenoiserCache, down, pad_to
 from models.error_predictor import ErrorPredictor
 from models.features import demodulate
 from models.frames import FrameTensors
+from models.kernel_disagreement import apply_for_error_network
 from models.losses import asymmetric_loss, l1, noisy_target_loss, smape, smape_map
 
 LAMBDA_BLOCK = 8  # per-pixel λ maps are drawn on a coarse grid: painted maps are piecewise smooth
@@ -102,9 +103,16 @@ def coarse_levels_loss(model: Denoiser, cache: DenoiserCache, levels: list[Tenso
 def error_predictor_loss(model: ErrorPredictor, denoiser: Denoiser, frame: FrameTensors,
                          reference: Tensor, candidate: Tensor | None = None) -> Tensor:
     with torch.no_grad():
-        denoised = denoiser([frame], 0, 1.0, candidate)
+        denoised, disagreement = denoise_for_error_network(model, denoiser, frame, candidate)
         target = smape_map(denoised, reference)
-    return l1(model(frame, denoised), target)
+    return l1(model(frame, denoised, disagreement), target)
+
+
+def denoise_for_error_network(model: ErrorPredictor, denoiser: Denoiser, frame: FrameTensors,
+                              candidate: Tensor | None) -> tuple[Tensor, Tensor | None]:
+    """The denoised image at λ = 1, and the kernels/candidate disagreement if `model` reads it."""
+    cache = denoiser.prepare([frame], 0, candidate)
+    return apply_for_error_network(denoiser, cache, candidate, 1.0, model.config.disagreement_input)
 
 
 @torch.no_grad()

@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from models.error_predictor import reads_disagreement
 from models.frames import FrameTensors
+from models.kernel_disagreement import apply_for_error_network
 from models.pretrained import Networks
 from service.exr import ExrError, ExrFrame, read_exr, write_exr
 from service.loop.oidn import candidate_for
@@ -71,11 +73,16 @@ def denoise_exr(source: Path, output: Path, networks: Networks, *, lam: float = 
     with torch.no_grad():
         window, centre = networks.denoiser.filtered_window(window, centre)  # a single-frame network pools it
         filtered = window[centre]
-        denoised = networks.denoiser(window, centre, lam_tensor(lam_map), candidate_for(networks.denoiser, filtered))
+        candidate = candidate_for(networks.denoiser, filtered)
+        with_disagreement = reads_disagreement(networks.error_predictor)
+        denoised, disagreement = apply_for_error_network(networks.denoiser,
+                                                         networks.denoiser.prepare(window, centre, candidate),
+                                                         candidate, lam_tensor(lam_map), with_disagreement)
         # An error network that reads sample counts needs the EXR's `spp` layer; without one the
         # file still gets its denoised image, only no error estimate.
         wants_spp = networks.error_predictor.config.sample_count_input
-        error = None if (wants_spp and filtered.spp is None) else networks.error_predictor(filtered, denoised)
+        error = None if (wants_spp and filtered.spp is None) else networks.error_predictor(filtered, denoised,
+                                                                                            disagreement)
     centre_frame.color = to_image(denoised)
     centre_frame.error = None if error is None else to_image(error)
     centre_frame.lam = lam_map

@@ -66,6 +66,9 @@ def add_parser(sub) -> None:
     p.add_argument("--keep-settings", action="store_true",
                    help="write --init's post-training settings (gate offsets, caps, kernel clamp, energy tolerance, "
                         "chosen on validation scenes) into the fine-tuned denoiser; it trains without them")
+    p.add_argument("--error-disagreement", action="store_true",
+                   help="the error network also reads where the denoiser's kernels' image and its OIDN candidate "
+                        "disagree (an --init network without that input gets it with zero weights)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(handler=run_train)
 
@@ -82,7 +85,7 @@ def train_config(args) -> TrainConfig:
         gate_firefly=args.gate_firefly, candidate_features=args.candidate_features,
         temporal=not args.single_frame, init=args.init, resume=args.resume, device=args.device,
         quiet=args.quiet, error_levels=args.error_levels, noisy_targets=args.noisy_targets, val_data=args.val_data,
-        keep_settings=args.keep_settings,
+        keep_settings=args.keep_settings, error_disagreement=args.error_disagreement,
         command_line="renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
     )
 

@@ -18,7 +18,6 @@ import argparse
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from scipy.stats import spearmanr
 
 from bench.common import load_bench_networks, pinned_torch_threads, true_error_map
@@ -27,19 +26,11 @@ from bench.experiments.allocation_variants import final_smape, uniform_baselines
 from bench.experiments.gate_bound import kernels_and_candidate
 from bench.suite_quality import uniform_render
 from models.denoiser import Denoiser
+from models.kernel_disagreement import kernel_disagreement
 from models.pretrained import Networks
 from service.loop.tensors import frame_tensors, to_image
 
-EPSILON = 0.01   # SMAPE's ε
-BOX = 5          # the disagreement's box filter, pixels
 TILE = 8         # tile size of the tile Spearman (the allocator's scale after dilation)
-
-
-def disagreement(kernels: torch.Tensor, candidate: torch.Tensor) -> torch.Tensor:
-    """(1, 1, H, W): the two images' per-pixel SMAPE, box-filtered (zero-padded, count-normalised)."""
-    d = ((kernels - candidate).abs() / (kernels.abs() + candidate.abs() + EPSILON)).mean(1, keepdim=True)
-    d = torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0)
-    return F.avg_pool2d(d, BOX, 1, BOX // 2, count_include_pad=False)
 
 
 def modulate(predicted: torch.Tensor, dis: torch.Tensor, gamma: float) -> torch.Tensor:
@@ -63,7 +54,7 @@ class ModulatedErrorMap(torch.nn.Module):
         if self.gamma == 0:
             return predicted
         _, kernels, candidate = kernels_and_candidate(self.denoiser, frame)
-        return modulate(predicted, disagreement(kernels, candidate), self.gamma)
+        return modulate(predicted, kernel_disagreement(kernels, candidate), self.gamma)
 
 
 def tiles(m: np.ndarray, k: int = TILE) -> np.ndarray:
@@ -90,7 +81,7 @@ def rank(args, nets) -> None:
                 output, kernels, candidate = kernels_and_candidate(denoiser, frame)
                 true = true_error_map(to_image(output), reference)
                 predicted = nets.networks.error_predictor(frame, output)
-                dis = disagreement(kernels, candidate)
+                dis = kernel_disagreement(kernels, candidate)
                 maps = [predicted, dis, modulate(predicted, dis, 0.5), modulate(predicted, dis, 1.0)]
                 row = [spearman_pair(to_image(m).squeeze(), true) for m in maps]
                 rows.append(row)

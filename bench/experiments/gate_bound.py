@@ -18,6 +18,7 @@ from bench.common import image_metrics, load_bench_networks, pinned_torch_thread
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.suite_quality import uniform_render
 from models.denoiser import Denoiser
+from models.kernel_disagreement import apply_with_kernels_image
 from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, to_image
 
@@ -27,10 +28,8 @@ NEIGHBOURHOOD = 8
 def kernels_and_candidate(denoiser: Denoiser, frame) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The shipped output at λ = 1, its kernels' image alone, and OIDN's image (each (1, 3, H, W))."""
     candidate = candidate_for(denoiser, frame)
-    cache = denoiser.prepare([frame], 0, candidate)
-    kernel_levels: list[torch.Tensor] = []
-    output = denoiser.merge_levels(cache, denoiser.filter_levels(cache, 1.0, kernel_levels))
-    return output, denoiser.merge_levels(cache, kernel_levels), candidate
+    output, kernels = apply_with_kernels_image(denoiser, denoiser.prepare([frame], 0, candidate))
+    return output, kernels, candidate
 
 
 def main() -> None:

@@ -12,7 +12,9 @@ import threading
 import numpy as np
 import torch
 
+from models.error_predictor import reads_disagreement
 from models.frames import FrameTensors
+from models.kernel_disagreement import apply_for_error_network
 from models.pretrained import Networks
 from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, lam_tensor, temporal_window, to_image
@@ -29,6 +31,8 @@ class DenoiseSession:
         self.lock = threading.RLock()
         self._caches: dict[int, object] = {}  # models.Denoiser.prepare output per owned frame
         self._inputs: dict[int, FrameTensors] = {}  # the center input each owned frame was filtered from
+        # per owned frame, the kernels/candidate disagreement, kept for an error network that reads it
+        self._disagreement: dict[int, torch.Tensor] = {}
         self.full_calls = 0  # full denoiser forward passes (prepare + apply)
         self.tail_calls = 0  # λ-only re-runs from cached features
         # Frames go where the networks are: CPU, or CUDA on a GPU worker (service.jobs.ray_actor).
@@ -53,18 +57,20 @@ class DenoiseSession:
         needed = sorted({i for f in self.owned for i in temporal_window(f, len(buffers), self.temporal_radius)[0]})
         tensors = {i: self._tensors(buffers[i]) for i in needed}
         lam = lam_tensor(lam_map)
-        caches, images, inputs = {}, {}, {}
+        caches, images, inputs, disagreement = {}, {}, {}, {}
         denoiser = self.networks.denoiser
+        with_disagreement = reads_disagreement(self.networks.error_predictor)
         for f in self.owned:
             indices, centre = temporal_window(f, len(buffers), self.temporal_radius)
             # what the network filters (a single-frame one: the window's samples pooled); the
             # candidate image (OIDN) is computed on its center once per iteration, cached with the features
             window, centre = denoiser.filtered_window([tensors[i] for i in indices], centre)
             inputs[f] = window[centre]
-            caches[f] = denoiser.prepare(window, centre, candidate_for(denoiser, window[centre]))
-            images[f] = denoiser.apply(caches[f], lam)
+            candidate = candidate_for(denoiser, window[centre])
+            caches[f] = denoiser.prepare(window, centre, candidate)
+            images[f], disagreement[f] = apply_for_error_network(denoiser, caches[f], candidate, lam, with_disagreement)
         with self.lock:
-            self._caches, self._inputs = caches, inputs
+            self._caches, self._inputs, self._disagreement = caches, inputs, disagreement
             self.full_calls += len(caches)
         return images
 
@@ -72,7 +78,10 @@ class DenoiseSession:
     def predict_error(self, images: dict[int, torch.Tensor]) -> dict[int, np.ndarray]:
         """Per-pixel predicted SMAPE of each denoised (owned) frame, (H, W) each, read from the
         inputs the denoiser filtered (those of the last `denoise`, which made `images`)."""
-        return {f: to_image(self.networks.error_predictor(self._inputs[f], image)) for f, image in images.items()}
+        network = self.networks.error_predictor
+        if not reads_disagreement(network):
+            return {f: to_image(network(self._inputs[f], image)) for f, image in images.items()}
+        return {f: to_image(network(self._inputs[f], image, self._disagreement[f])) for f, image in images.items()}
 
     @torch.no_grad()
     def relambda(self, lam_map: np.ndarray) -> dict[int, np.ndarray]:

@@ -87,6 +87,9 @@ class TrainConfig:
     # caps, clamp, energy tolerance) into the trained denoiser: a fine-tune trains without them,
     # and they were chosen on validation scenes for the weights it starts from.
     keep_settings: bool = False
+    # The error network also reads where the denoiser's kernels' image and its OIDN candidate
+    # disagree (models/kernel_disagreement.py); the denoiser in `out` must have the candidate.
+    error_disagreement: bool = False
 
     @property
     def data_roots(self) -> tuple[Path, ...]:
@@ -117,6 +120,9 @@ class TrainConfig:
         if self.keep_settings and (self.init is None or self.stage in ("error", "staged", "all")):
             raise TrainConfigError("--keep-settings carries --init's settings into a fine-tuned denoiser: name it with "
                                    "--init, and a denoiser stage (not staged, all or error)")
+        if self.error_disagreement and self.stage not in ("error", "staged", "all"):
+            raise TrainConfigError("--error-disagreement is an input of the error network: use it with --stage error "
+                                   "(or staged, all)")
         if self.gate_firefly and not self.oidn_candidate:
             raise TrainConfigError("--gate-firefly adds statistics to the OIDN candidate's gate: add --oidn-candidate")
         if self.candidate_features and not (self.oidn_candidate and not self.temporal):

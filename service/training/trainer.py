@@ -27,7 +27,8 @@ from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, de
                              sample_lambda)
 from service.dataset.build import INPUT_ITEMS, DatasetError
 from service.dataset.loader import DenoiserDataset, collate_samples
-from service.training.config import DENOISER_STAGES, FINE_TUNE_STAGES, STAGE_PLANS, StagePlan, TrainConfig
+from service.training.config import (DENOISER_STAGES, FINE_TUNE_STAGES, STAGE_PLANS, StagePlan, TrainConfig,
+                                     TrainConfigError)
 
 VALIDATION_EVERY_NTH_SCENE = 8  # scenes with index % 8 == 7 are held back for validation
 
@@ -254,17 +255,23 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
         model.out.bias.fill_(median + torch.log(-torch.expm1(torch.tensor(-median))).item())
 
 
-def _error_network_to_train(init: Path | None, device) -> ErrorPredictor:
+def _error_network_to_train(init: Path | None, device, disagreement: bool = False) -> ErrorPredictor:
     """A fresh error network, or `init`'s weights with its calibration scale back at 1: the scale
     is fitted after training, on validation scenes (`renderloop bench --calibration
-    --fit-scale`), so a fine-tuning run must not train through it."""
+    --fit-scale`), so a fine-tuning run must not train through it. `disagreement` adds the
+    kernels/candidate disagreement channel; an `init` without it gets a zero-weighted one, so
+    training starts from exactly that network."""
     if init is None:
         # The sample count tells the network how converged each pixel is under the loop's
         # non-uniform counts (every data set's EXRs carry their spp layer).
-        return ErrorPredictor(ErrorPredictorConfig(sample_count_input=True)).to(device)
+        return ErrorPredictor(ErrorPredictorConfig(sample_count_input=True, disagreement_input=disagreement)).to(device)
     trained = load_checkpoint(init, expected_kind="error_predictor", device=device)
-    model = ErrorPredictor(dataclasses.replace(trained.config, output_scale=1.0)).to(device)
-    model.load_state_dict(trained.state_dict())
+    wanted = disagreement or trained.config.disagreement_input
+    model = ErrorPredictor(dataclasses.replace(trained.config, output_scale=1.0, disagreement_input=wanted)).to(device)
+    weights = trained.state_dict()
+    if weights["head.weight"].shape != model.head.weight.shape:
+        weights["head.weight"] = widen_input_channels(weights["head.weight"], model.input_channels)
+    model.load_state_dict(weights)
     return model
 
 
@@ -275,7 +282,10 @@ def train_error_predictor(config, device) -> dict:
         p.requires_grad_(False)
     # --init names an error network only with --stage error (staged and all runs: the denoiser's)
     init = config.init if config.stage == "error" else None
-    model = _error_network_to_train(init, device)
+    if config.error_disagreement and not denoiser.config.oidn_candidate:
+        raise TrainConfigError(f"--error-disagreement reads the kernels' image against the OIDN candidate's: "
+                               f"{config.out / 'denoiser.pt'} has no candidate")
+    model = _error_network_to_train(init, device, config.error_disagreement)
     train, val = _datasets(config, 0, denoiser.config.oidn_candidate, config.error_levels or INPUT_ITEMS)
     batches = _batches(train, config.batch, config.seed + 1)
     if init is None:

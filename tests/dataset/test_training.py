@@ -88,3 +88,18 @@ def test_a_fine_tune_with_keep_settings_writes_the_init_settings_into_its_checkp
     tuned = load_checkpoint(out / "stage_multiscale.pt", expected_kind="denoiser")
     assert {name: getattr(tuned.config, name) for name in settings} == settings
     assert tuned.checkpoint_extra["settings_from"] == str(init) and "--keep-settings" in tuned.checkpoint_extra["command"]
+
+
+def test_an_error_network_trained_with_error_disagreement_reads_it_and_loads_for_the_loop(sequence_dataset, tmp_path):
+    out = tmp_path / "with-d"
+    out.mkdir()
+    save_checkpoint(out / "denoiser.pt", Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False,
+                                                                 oidn_candidate=True)))
+    result = subprocess.run(
+        [sys.executable, "-m", "service.cli", "train", "--data", str(sequence_dataset), "--stage", "error",
+         "--error-disagreement", "-o", str(out), "--steps", "2", "--val-every", "1", "--batch", "2", "--crop", "16",
+         "--quiet"],
+        capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr
+    network = load_checkpoint(out / "error_predictor.pt", expected_kind="error_predictor")
+    assert network.config.disagreement_input and "--error-disagreement" in network.checkpoint_extra["command"]

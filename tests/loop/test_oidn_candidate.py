@@ -45,3 +45,20 @@ def test_the_oidn_candidate_is_what_pyoidn_returns_on_the_frame(candidate_networ
     buffer = list(loop.run())[-1].buffers[0]
     candidate = candidate_for(candidate_networks.denoiser, frame_tensors(buffer))
     np.testing.assert_allclose(to_image(candidate), oidn_image(buffer.mean, buffer.albedo, buffer.normal), atol=1e-6)
+
+
+def test_an_error_network_reading_the_disagreement_steers_the_loop_and_the_exr_denoiser(candidate_networks, tmp_path):
+    from service.exr import read_exr, result_frame, write_exr
+    from service.exr_denoise import denoise_exr
+
+    reader = ErrorPredictor(ErrorPredictorConfig(width=8, sample_count_input=True, disagreement_input=True)).eval()
+    networks = Networks(candidate_networks.denoiser, reader)
+    loop = RenderLoop(LoopSpec(scene="cornell-box", width=SIZE, height=SIZE, max_iterations=2), networks)
+    last = list(loop.run())[-1]
+    error = last.error[0]
+    assert error.shape == (SIZE, SIZE) and np.isfinite(error).all() and (error >= 0).all()
+    assert loop.session._disagreement[0].shape == (1, 1, SIZE, SIZE)
+    path = write_exr(tmp_path / "frame.exr", result_frame(last.buffers[0], last.buffers[0].mean, error=None, lam=None,
+                                                          header={}))
+    written = denoise_exr(path, tmp_path / "out.exr", networks)
+    assert written.error is not None and np.isfinite(read_exr(tmp_path / "out.exr").error).all()

@@ -1,0 +1,35 @@
+"""How `renderloop train --stage error` builds the network it trains (fast: no data set)."""
+import pytest
+import torch
+
+from models.checkpoint import save_checkpoint
+from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from service.training.config import TrainConfig, TrainConfigError
+from service.training.trainer import _error_network_to_train
+from tests.models.conftest import make_frame
+
+
+def test_an_init_network_widened_for_the_disagreement_predicts_what_it_did_with_its_scale_reset(tmp_path):
+    torch.manual_seed(0)
+    shipped = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, output_scale=1.25))
+    save_checkpoint(tmp_path / "error_predictor.pt", shipped)
+    widened = _error_network_to_train(tmp_path / "error_predictor.pt", "cpu", disagreement=True)
+    assert widened.config.disagreement_input and widened.config.output_scale == 1.0
+    frame, denoised = make_frame(8, 8), torch.rand(1, 3, 8, 8)
+    with torch.no_grad():
+        before = shipped(frame, denoised) / 1.25
+        for d in (torch.zeros(1, 1, 8, 8), torch.rand(1, 1, 8, 8)):
+            torch.testing.assert_close(widened(frame, denoised, d), before)   # zero weights on the new channel
+
+
+def test_a_fresh_error_network_gets_the_inputs_asked_for():
+    net = _error_network_to_train(None, "cpu", disagreement=True)
+    assert net.config.sample_count_input and net.config.disagreement_input
+
+
+@pytest.mark.parametrize("stage", ["multiscale", "lambda", "gate"])
+def test_error_disagreement_is_refused_for_a_denoiser_stage(tmp_path, stage):
+    config = TrainConfig(data=tmp_path, stage=stage, init=tmp_path / "d.pt", oidn_candidate=True,
+                         error_disagreement=True)
+    with pytest.raises(TrainConfigError, match="error-disagreement"):
+        config.validate()
