@@ -57,7 +57,12 @@ def load_error_predictor(directory: str | Path | None = None, device: str | torc
 
 def load_networks(directory: str | Path | None = None, device: str | torch.device = "cpu") -> Networks:
     """Both networks from one folder (see `weights_dir` for which), in eval mode."""
-    return Networks(
+    networks = Networks(
         denoiser=load_denoiser(directory, device).eval(),
         error_predictor=load_error_predictor(directory, device).eval(),
     )
+    if networks.error_predictor.config.disagreement_input and not networks.denoiser.config.oidn_candidate:
+        # refused at start-up, not at a job's first iteration
+        raise CheckpointError(f"{weights_dir(directory) / ERROR_PREDICTOR_FILE} reads where the denoiser's kernels "
+                              f"and its OIDN candidate disagree, but {DENOISER_FILE} beside it has no candidate")
+    return networks

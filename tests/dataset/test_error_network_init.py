@@ -2,8 +2,10 @@
 import pytest
 import torch
 
-from models.checkpoint import save_checkpoint
+from models.checkpoint import CheckpointError, save_checkpoint
+from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from models.pretrained import load_networks
 from service.training.config import TrainConfig, TrainConfigError
 from service.training.trainer import _error_network_to_train
 from tests.models.conftest import make_frame
@@ -33,3 +35,11 @@ def test_error_disagreement_is_refused_for_a_denoiser_stage(tmp_path, stage):
                          error_disagreement=True)
     with pytest.raises(TrainConfigError, match="error-disagreement"):
         config.validate()
+
+
+def test_weights_whose_error_network_reads_a_candidate_the_denoiser_lacks_are_refused_at_load(tmp_path):
+    save_checkpoint(tmp_path / "denoiser.pt", Denoiser(DenoiserConfig(width=8, spatial_blocks=1)))
+    save_checkpoint(tmp_path / "error_predictor.pt",
+                    ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, disagreement_input=True)))
+    with pytest.raises(CheckpointError, match="no candidate"):
+        load_networks(tmp_path)
