@@ -24,6 +24,10 @@ from string import Template
 import numpy as np
 import torch
 
+from models.denoiser import Denoiser
+from models.error_predictor import ErrorPredictor, reads_disagreement
+from models.frames import FrameTensors
+from models.kernel_disagreement import apply_for_error_network
 from models.losses import SMAPE_EPS, smape, smape_map
 from models.metrics import psnr, relmse, ssim
 from models.pretrained import DENOISER_FILE, ERROR_PREDICTOR_FILE, Networks, load_networks, weights_dir
@@ -35,7 +39,7 @@ from service.render.framebuffer import FrameBuffer
 from service.render.renderer import render_samples
 from service.render.runtime import active_variant
 from service.render.scenes import load_scene
-from service.loop.oidn import OIDN_SETTINGS, oidn_image
+from service.loop.oidn import OIDN_SETTINGS, candidate_for, oidn_image
 from service.loop.tensors import nchw
 
 # Every reference render draws from its own stream: a reference that shared samples with an
@@ -240,6 +244,19 @@ def image_metrics(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
 def true_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """(H, W) per-pixel SMAPE of `image` against `reference`, both sanitised as `score` does."""
     return smape_map(sanitize(nchw(image)), sanitize(nchw(reference)))[0, 0].numpy()
+
+
+@torch.no_grad()
+def predict_error(denoiser: Denoiser, error_network: ErrorPredictor, window: list[FrameTensors], centre: int,
+                  denoised: torch.Tensor) -> torch.Tensor:
+    """The error network's map of `denoised` (the window's centre at λ = 1), given what the loop
+    gives it: for a network that reads the kernels/OIDN disagreement, that too (one more prepare)."""
+    disagreement = None
+    if reads_disagreement(error_network):
+        candidate = candidate_for(denoiser, window[centre])
+        cache = denoiser.prepare(window, centre, candidate)
+        _, disagreement = apply_for_error_network(denoiser, cache, candidate, 1.0, True)
+    return error_network(window[centre], denoised, disagreement)
 
 
 # --- Intel Open Image Denoise -----------------------------------------------------------------

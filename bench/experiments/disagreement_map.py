@@ -26,6 +26,7 @@ from bench.experiments.allocation_variants import final_smape, uniform_baselines
 from bench.experiments.gate_bound import kernels_and_candidate
 from bench.suite_quality import uniform_render
 from models.denoiser import Denoiser
+from models.error_predictor import reads_disagreement
 from models.kernel_disagreement import kernel_disagreement
 from models.pretrained import Networks
 from service.loop.tensors import frame_tensors, to_image
@@ -50,11 +51,13 @@ class ModulatedErrorMap(torch.nn.Module):
         self.error_predictor, self.denoiser, self.gamma = error_predictor, denoiser, gamma
 
     def forward(self, frame, denoised: torch.Tensor) -> torch.Tensor:
-        predicted = self.error_predictor(frame, denoised)
-        if self.gamma == 0:
-            return predicted
+        reads = reads_disagreement(self.error_predictor)
+        if self.gamma == 0 and not reads:
+            return self.error_predictor(frame, denoised)
         _, kernels, candidate = kernels_and_candidate(self.denoiser, frame)
-        return modulate(predicted, kernel_disagreement(kernels, candidate), self.gamma)
+        dis = kernel_disagreement(kernels, candidate)
+        predicted = self.error_predictor(frame, denoised, dis) if reads else self.error_predictor(frame, denoised)
+        return modulate(predicted, dis, self.gamma)
 
 
 def tiles(m: np.ndarray, k: int = TILE) -> np.ndarray:
@@ -80,8 +83,8 @@ def rank(args, nets) -> None:
                 frame = frame_tensors(uniform_render(scene, spp, nets.networks).buffers[0])
                 output, kernels, candidate = kernels_and_candidate(denoiser, frame)
                 true = true_error_map(to_image(output), reference)
-                predicted = nets.networks.error_predictor(frame, output)
                 dis = kernel_disagreement(kernels, candidate)
+                predicted = nets.networks.error_predictor(frame, output, dis)
                 maps = [predicted, dis, modulate(predicted, dis, 0.5), modulate(predicted, dis, 1.0)]
                 row = [spearman_pair(to_image(m).squeeze(), true) for m in maps]
                 rows.append(row)

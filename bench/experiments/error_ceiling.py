@@ -28,7 +28,7 @@ import math
 import numpy as np
 import torch
 
-from bench.common import load_bench_networks, pinned_torch_threads, true_error_map
+from bench.common import load_bench_networks, pinned_torch_threads, predict_error, true_error_map
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.quality_measures import block_means, spearman
 from bench.suite_quality import uniform_render
@@ -76,7 +76,8 @@ def scene_maps(scene, reference: np.ndarray, networks: Networks, spp: int, rende
         candidate = candidate_for(denoiser, frame) if denoiser.config.oidn_candidate else None
         denoised = denoiser([frame], 0, 1.0, candidate)
         true.append(true_error_map(to_image(denoised), reference))
-        predicted.append(converged_error(buffer.converged(), to_image(error_network(frame, denoised))))
+        predicted.append(converged_error(buffer.converged(),
+                                         to_image(predict_error(denoiser, error_network, [frame], 0, denoised))))
     return np.stack(true), np.stack(predicted)
 
 

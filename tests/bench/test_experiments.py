@@ -8,7 +8,7 @@ import torch
 
 import service.loop.allocate as allocate
 import service.loop.loop as loop
-from bench.common import denoiser_settings, image_metrics
+from bench.common import denoiser_settings, image_metrics, predict_error
 from bench.experiments.allocation_variants import allocator_variant, equal_gain_samples
 from bench.experiments.disagreement_map import ModulatedErrorMap, modulate
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
@@ -19,7 +19,9 @@ from bench.experiments.gate_offset import offset_ratios
 from bench.experiments.target_cost import INPUT_SPP, scene_costs
 from bench.experiments.trunk_speed import median_seconds, random_frame
 from models.denoiser import Denoiser, DenoiserConfig
+from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.frames import FrameTensors
+from models.kernel_disagreement import kernel_disagreement
 from service.loop.oidn import candidate_for
 from service.loop.tensors import to_image
 
@@ -187,3 +189,17 @@ def test_kernels_and_candidate_returns_the_shipped_output_its_kernels_and_oidns_
     torch.testing.assert_close(candidate, candidate_for(denoiser, frame))
     torch.testing.assert_close(output, denoiser([frame], 0, 1.0, candidate))
     assert kernels.shape == output.shape and not torch.equal(kernels, candidate)
+
+
+@torch.no_grad()
+def test_predict_error_hands_a_disagreement_reading_network_what_the_loop_gives_it():
+    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True)).eval()
+    reader = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, disagreement_input=True)).eval()
+    plain = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1)).eval()
+    frame = random_frame(16)
+    output, kernels, candidate = kernels_and_candidate(denoiser, frame)
+    torch.testing.assert_close(predict_error(denoiser, reader, [frame], 0, output),
+                               reader(frame, output, kernel_disagreement(kernels, candidate)))
+    torch.testing.assert_close(predict_error(denoiser, plain, [frame], 0, output), plain(frame, output))
+    modulated = ModulatedErrorMap(reader, denoiser, 0.0)(frame, output)   # γ = 0: the network's own map
+    torch.testing.assert_close(modulated, reader(frame, output, kernel_disagreement(kernels, candidate)))
