@@ -24,7 +24,7 @@ from string import Template
 import numpy as np
 import torch
 
-from models.denoiser import Denoiser
+from models.denoiser import Denoiser, DenoiserCache
 from models.error_predictor import ErrorPredictor, reads_disagreement
 from models.frames import FrameTensors
 from models.kernel_disagreement import apply_for_error_network
@@ -247,16 +247,16 @@ def true_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 
 @torch.no_grad()
-def predict_error(denoiser: Denoiser, error_network: ErrorPredictor, window: list[FrameTensors], centre: int,
-                  denoised: torch.Tensor) -> torch.Tensor:
-    """The error network's map of `denoised` (the window's centre at λ = 1), given what the loop
-    gives it: for a network that reads the kernels/OIDN disagreement, that too (one more prepare)."""
-    disagreement = None
-    if reads_disagreement(error_network):
-        candidate = candidate_for(denoiser, window[centre])
-        cache = denoiser.prepare(window, centre, candidate)
-        _, disagreement = apply_for_error_network(denoiser, cache, candidate, 1.0, True)
-    return error_network(window[centre], denoised, disagreement)
+def denoise_and_predict(denoiser: Denoiser, error_network: ErrorPredictor, window: list[FrameTensors],
+                        centre: int) -> tuple[DenoiserCache, torch.Tensor, torch.Tensor]:
+    """One prepare of the window's centre frame, as the loop runs it: the cache (for further λ
+    tails), the denoised image at λ = 1, and the error network's map of it, with the
+    kernels/OIDN disagreement for a network that reads it."""
+    candidate = candidate_for(denoiser, window[centre])
+    cache = denoiser.prepare(window, centre, candidate)
+    denoised, disagreement = apply_for_error_network(denoiser, cache, candidate, 1.0,
+                                                     reads_disagreement(error_network))
+    return cache, denoised, error_network(window[centre], denoised, disagreement)
 
 
 # --- Intel Open Image Denoise -----------------------------------------------------------------

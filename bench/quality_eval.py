@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from torch import Tensor
 
-from bench.common import oidn_denoiser, predict_error, sanitize as clean, scene_reference, score
+from bench.common import denoise_and_predict, oidn_denoiser, sanitize as clean, scene_reference, score
 from bench.quality_measures import flicker, lambda_measures, nanstats, pearson, spearman
 from models.denoiser import Denoiser, DenoiserCache, down, pad_to
 from models.error_predictor import ErrorPredictor
@@ -225,9 +225,10 @@ def evaluate(images: list[EvalImage], methods: dict[str, Denoise], denoiser: Den
     for n, image in enumerate(images, 1):
         results = {name: method(image) for name, method in methods.items()}
         window, centre = denoiser.filtered_window(image.window, image.centre)
-        out = Outputs(image, results, predicted_error=predict_error(denoiser, predictor, window, centre, results[TEMPORAL]))
+        # the error network's map of the TEMPORAL result (the same image), and the cache of the λ sweep
+        cache, _, predicted = denoise_and_predict(denoiser, predictor, window, centre)
+        out = Outputs(image, results, predicted_error=predicted)
         if image.spp == HEADLINE_SPP:
-            cache = denoiser.prepare(window, centre, candidate_for(denoiser, window[centre]))
             out.lambda_results = {lam: denoiser.apply(cache, lam) for lam in lambdas}
             out.pyramid = pyramid_levels(denoiser, cache, image)
         outputs.append(out)

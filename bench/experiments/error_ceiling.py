@@ -28,13 +28,12 @@ import math
 import numpy as np
 import torch
 
-from bench.common import load_bench_networks, pinned_torch_threads, predict_error, true_error_map
+from bench.common import denoise_and_predict, load_bench_networks, pinned_torch_threads, true_error_map
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.quality_measures import block_means, spearman
 from bench.suite_quality import uniform_render
 from models.pretrained import Networks
 from service.loop.loop import converged_error
-from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, to_image
 
 RANKING_BLOCK = 8   # the calibration report's tile size
@@ -73,11 +72,9 @@ def scene_maps(scene, reference: np.ndarray, networks: Networks, spp: int, rende
     for k in range(renders):
         buffer = uniform_render(scene, spp, networks, seed=FIRST_SEED + k).buffers[0]
         frame = frame_tensors(buffer)
-        candidate = candidate_for(denoiser, frame) if denoiser.config.oidn_candidate else None
-        denoised = denoiser([frame], 0, 1.0, candidate)
+        _, denoised, error = denoise_and_predict(denoiser, error_network, [frame], 0)
         true.append(true_error_map(to_image(denoised), reference))
-        predicted.append(converged_error(buffer.converged(),
-                                         to_image(predict_error(denoiser, error_network, [frame], 0, denoised))))
+        predicted.append(converged_error(buffer.converged(), to_image(error)))
     return np.stack(true), np.stack(predicted)
 
 

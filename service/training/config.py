@@ -38,6 +38,7 @@ FINE_TUNE_STAGES: dict[str, StagePlan] = {
 }
 STAGE_PLANS = {**DENOISER_STAGES, **FINE_TUNE_STAGES}
 STAGES = (*STAGE_PLANS, "staged", "denoiser", "error", "all")
+ERROR_NETWORK_STAGES = ("error", "staged", "all")  # the stages that train an error network
 # models.denoiser.TRUNKS, restated: this module imports no torch (the CLI checks a config before
 # loading the trainer); a test keeps the two equal.
 TRUNK_NAMES = ("levels", "unet")
@@ -117,10 +118,10 @@ class TrainConfig:
         if self.noisy_targets and self.stage in NEEDS_CLEAN_REFERENCES:
             raise TrainConfigError(f"--noisy-targets trains the denoiser at λ = 1; --stage {self.stage} needs clean "
                                    "references (eq. 6's λ weighting and the error network's SMAPE target)")
-        if self.keep_settings and (self.init is None or self.stage in ("error", "staged", "all")):
+        if self.keep_settings and (self.init is None or self.stage in ERROR_NETWORK_STAGES):
             raise TrainConfigError("--keep-settings carries --init's settings into a fine-tuned denoiser: name it with "
                                    "--init, and a denoiser stage (not staged, all or error)")
-        if self.error_disagreement and self.stage not in ("error", "staged", "all"):
+        if self.error_disagreement and self.stage not in ERROR_NETWORK_STAGES:
             raise TrainConfigError("--error-disagreement is an input of the error network: use it with --stage error "
                                    "(or staged, all)")
         if self.gate_firefly and not self.oidn_candidate:

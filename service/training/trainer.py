@@ -27,7 +27,7 @@ from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, de
                              sample_lambda)
 from service.dataset.build import INPUT_ITEMS, DatasetError
 from service.dataset.loader import DenoiserDataset, collate_samples
-from service.training.config import (DENOISER_STAGES, FINE_TUNE_STAGES, STAGE_PLANS, StagePlan, TrainConfig,
+from service.training.config import (DENOISER_STAGES, ERROR_NETWORK_STAGES, FINE_TUNE_STAGES, STAGE_PLANS, StagePlan, TrainConfig,
                                      TrainConfigError)
 
 VALIDATION_EVERY_NTH_SCENE = 8  # scenes with index % 8 == 7 are held back for validation
@@ -337,7 +337,7 @@ def run_training(config: TrainConfig, report: Callable[[str], None] = lambda lin
         metric = "eq. 6 loss at λ = 2, 4, 10" if plan.schedule == "random" else "SMAPE"
         lines.append(report_line(f"stage {stage}: best validation {metric} {result['best_val']:.4f} → {result['checkpoint']}"))
         config = dataclasses.replace(config, init=Path(result["checkpoint"]), resume=False)  # the next stage starts here
-    if config.stage in ("error", "all", "staged"):
+    if config.stage in ERROR_NETWORK_STAGES:
         result = train_error_predictor(config, device)
         lines.append(report_line(f"error predictor: best validation L1 {result['best_val']:.4f} → {result['checkpoint']}"))
     lines.append(report_line(f"trained in {time.perf_counter() - started:.0f} s on {device}"))

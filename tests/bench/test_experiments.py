@@ -8,7 +8,7 @@ import torch
 
 import service.loop.allocate as allocate
 import service.loop.loop as loop
-from bench.common import denoiser_settings, image_metrics, predict_error
+from bench.common import denoise_and_predict, denoiser_settings, image_metrics
 from bench.experiments.allocation_variants import allocator_variant, equal_gain_samples
 from bench.experiments.disagreement_map import ModulatedErrorMap, modulate
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
@@ -192,14 +192,16 @@ def test_kernels_and_candidate_returns_the_shipped_output_its_kernels_and_oidns_
 
 
 @torch.no_grad()
-def test_predict_error_hands_a_disagreement_reading_network_what_the_loop_gives_it():
+def test_denoise_and_predict_hands_a_disagreement_reading_network_what_the_loop_gives_it():
     denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True)).eval()
     reader = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, disagreement_input=True)).eval()
     plain = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1)).eval()
     frame = random_frame(16)
     output, kernels, candidate = kernels_and_candidate(denoiser, frame)
-    torch.testing.assert_close(predict_error(denoiser, reader, [frame], 0, output),
-                               reader(frame, output, kernel_disagreement(kernels, candidate)))
-    torch.testing.assert_close(predict_error(denoiser, plain, [frame], 0, output), plain(frame, output))
+    cache, denoised, error = denoise_and_predict(denoiser, reader, [frame], 0)
+    torch.testing.assert_close(denoised, output)
+    torch.testing.assert_close(denoiser.apply(cache, 1.0), output)   # the cache serves further λ tails
+    torch.testing.assert_close(error, reader(frame, output, kernel_disagreement(kernels, candidate)))
+    torch.testing.assert_close(denoise_and_predict(denoiser, plain, [frame], 0)[2], plain(frame, output))
     modulated = ModulatedErrorMap(reader, denoiser, 0.0)(frame, output)   # γ = 0: the network's own map
     torch.testing.assert_close(modulated, reader(frame, output, kernel_disagreement(kernels, candidate)))

@@ -47,7 +47,7 @@ def test_the_oidn_candidate_is_what_pyoidn_returns_on_the_frame(candidate_networ
     np.testing.assert_allclose(to_image(candidate), oidn_image(buffer.mean, buffer.albedo, buffer.normal), atol=1e-6)
 
 
-def test_an_error_network_reading_the_disagreement_steers_the_loop_and_the_exr_denoiser(candidate_networks, tmp_path):
+def test_an_error_network_reading_the_disagreement_runs_in_the_loop_and_the_exr_denoiser(candidate_networks, tmp_path):
     from service.exr import read_exr, result_frame, write_exr
     from service.exr_denoise import denoise_exr
 
