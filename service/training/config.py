@@ -91,6 +91,8 @@ class TrainConfig:
     # The error network also reads where the denoiser's kernels' image and its OIDN candidate
     # disagree (models/kernel_disagreement.py); the denoiser in `out` must have the candidate.
     error_disagreement: bool = False
+    # A fresh error network's feature width (None: ErrorPredictorConfig's default, 16).
+    error_width: int | None = None
 
     @property
     def data_roots(self) -> tuple[Path, ...]:
@@ -102,7 +104,7 @@ class TrainConfig:
         if self.stage not in STAGES:
             raise TrainConfigError(f"unknown stage {self.stage!r}; choose one of {', '.join(STAGES)}")
         for name, least in (("steps", 1), ("batch", 1), ("crop", 1), ("val_every", 1), ("width", 1),
-                            ("spatial_blocks", 0)):
+                            ("spatial_blocks", 0), ("error_width", 1)):
             value = getattr(self, name)
             if value is not None and value < least:
                 raise TrainConfigError(f"--{name.replace('_', '-')} must be >= {least}")
@@ -124,6 +126,10 @@ class TrainConfig:
         if self.error_disagreement and self.stage not in ERROR_NETWORK_STAGES:
             raise TrainConfigError("--error-disagreement is an input of the error network: use it with --stage error "
                                    "(or staged, all)")
+        if self.error_width is not None and (self.stage not in ERROR_NETWORK_STAGES or self.init is not None
+                                             and self.stage == "error"):
+            raise TrainConfigError("--error-width sets the width of a fresh error network: use it with --stage error "
+                                   "(or staged, all) and without --init (an --init network keeps its own width)")
         if self.gate_firefly and not self.oidn_candidate:
             raise TrainConfigError("--gate-firefly adds statistics to the OIDN candidate's gate: add --oidn-candidate")
         if self.candidate_features and not (self.oidn_candidate and not self.temporal):

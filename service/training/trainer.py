@@ -255,16 +255,19 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
         model.out.bias.fill_(median + torch.log(-torch.expm1(torch.tensor(-median))).item())
 
 
-def _error_network_to_train(init: Path | None, device, disagreement: bool = False) -> ErrorPredictor:
+def _error_network_to_train(init: Path | None, device, disagreement: bool = False,
+                            width: int | None = None) -> ErrorPredictor:
     """A fresh error network, or `init`'s weights with its calibration scale back at 1: the scale
     is fitted after training, on validation scenes (`renderloop bench --calibration
     --fit-scale`), so a fine-tuning run must not train through it. `disagreement` adds the
     kernels/candidate disagreement channel; an `init` without it gets a zero-weighted one, so
-    training starts from exactly that network."""
+    training starts from exactly that network. `width`: a fresh network's (None: the default)."""
     if init is None:
         # The sample count tells the network how converged each pixel is under the loop's
         # non-uniform counts (every data set's EXRs carry their spp layer).
-        return ErrorPredictor(ErrorPredictorConfig(sample_count_input=True, disagreement_input=disagreement)).to(device)
+        sizes = {} if width is None else {"width": width}
+        return ErrorPredictor(ErrorPredictorConfig(sample_count_input=True, disagreement_input=disagreement,
+                                                   **sizes)).to(device)
     trained = load_checkpoint(init, expected_kind="error_predictor", device=device)
     wanted = disagreement or trained.config.disagreement_input
     model = ErrorPredictor(dataclasses.replace(trained.config, output_scale=1.0, disagreement_input=wanted)).to(device)
@@ -285,7 +288,7 @@ def train_error_predictor(config, device) -> dict:
     if config.error_disagreement and not denoiser.config.oidn_candidate:
         raise TrainConfigError(f"--error-disagreement reads the kernels' image against the OIDN candidate's: "
                                f"{config.out / 'denoiser.pt'} has no candidate")
-    model = _error_network_to_train(init, device, config.error_disagreement)
+    model = _error_network_to_train(init, device, config.error_disagreement, config.error_width)
     train, val = _datasets(config, 0, denoiser.config.oidn_candidate, config.error_levels or INPUT_ITEMS)
     batches = _batches(train, config.batch, config.seed + 1)
     if init is None:

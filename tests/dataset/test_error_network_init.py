@@ -29,6 +29,23 @@ def test_a_fresh_error_network_gets_the_inputs_asked_for():
     assert net.config.sample_count_input and net.config.disagreement_input
 
 
+def test_a_fresh_error_network_takes_the_width_asked_for():
+    assert _error_network_to_train(None, "cpu", width=24).config.width == 24
+    assert _error_network_to_train(None, "cpu").config.width == ErrorPredictorConfig().width
+
+
+@pytest.mark.parametrize("stage,init", [("multiscale", "d.pt"), ("error", "e.pt")])
+def test_error_width_is_refused_where_no_fresh_error_network_is_built(tmp_path, stage, init):
+    config = TrainConfig(data=tmp_path, stage=stage, init=tmp_path / init, error_width=32)
+    with pytest.raises(TrainConfigError, match="error-width"):
+        config.validate()
+
+
+def test_error_width_is_accepted_for_a_fresh_error_network_and_beside_a_denoiser_init(tmp_path):
+    TrainConfig(data=tmp_path, stage="error", error_width=32).validate()
+    TrainConfig(data=tmp_path, stage="all", init=tmp_path / "d.pt", error_width=32).validate()
+
+
 @pytest.mark.parametrize("stage", ["multiscale", "lambda", "gate"])
 def test_error_disagreement_is_refused_for_a_denoiser_stage(tmp_path, stage):
     config = TrainConfig(data=tmp_path, stage=stage, init=tmp_path / "d.pt", oidn_candidate=True,
