@@ -69,6 +69,9 @@ def add_parser(sub) -> None:
     p.add_argument("--error-disagreement", action="store_true",
                    help="the error network also reads where the denoiser's kernels' image and its OIDN candidate "
                         "disagree (an --init network without that input gets it with zero weights)")
+    p.add_argument("--error-residual", action="store_true",
+                   help="the error network also reads what the denoiser removed in units of the samples' noise "
+                        "(≈ 1 where it removed only noise; an --init network without it gets it with zero weights)")
     p.add_argument("--error-width", type=int, default=d.error_width,
                    help="feature width of a fresh error network (default: the model's, 16); not with an --init network")
     p.add_argument("--quiet", action="store_true")
@@ -88,7 +91,8 @@ def train_config(args) -> TrainConfig:
         temporal=not args.single_frame, init=args.init, resume=args.resume, device=args.device,
         quiet=args.quiet, error_levels=args.error_levels, noisy_targets=args.noisy_targets, val_data=args.val_data,
         keep_settings=args.keep_settings, error_disagreement=args.error_disagreement,
-        error_width=args.error_width, command_line="renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        error_width=args.error_width, error_residual=args.error_residual,
+        command_line="renderloop " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
     )
 
 

@@ -91,6 +91,8 @@ class TrainConfig:
     # The error network also reads where the denoiser's kernels' image and its OIDN candidate
     # disagree (models/kernel_disagreement.py); the denoiser in `out` must have the candidate.
     error_disagreement: bool = False
+    # The error network also reads the residual test (models.error_predictor.residual_feature).
+    error_residual: bool = False
     # A fresh error network's feature width (None: ErrorPredictorConfig's default, 16).
     error_width: int | None = None
 
@@ -125,6 +127,9 @@ class TrainConfig:
                                    "--init, and a denoiser stage (not staged, all or error)")
         if self.error_disagreement and self.stage not in ERROR_NETWORK_STAGES:
             raise TrainConfigError("--error-disagreement is an input of the error network: use it with --stage error "
+                                   "(or staged, all)")
+        if self.error_residual and self.stage not in ERROR_NETWORK_STAGES:
+            raise TrainConfigError("--error-residual is an input of the error network: use it with --stage error "
                                    "(or staged, all)")
         if self.error_width is not None and (self.stage not in ERROR_NETWORK_STAGES or self.init is not None
                                              and self.stage == "error"):

@@ -256,26 +256,42 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
 
 
 def _error_network_to_train(init: Path | None, device, disagreement: bool = False,
-                            width: int | None = None) -> ErrorPredictor:
+                            width: int | None = None, residual: bool = False) -> ErrorPredictor:
     """A fresh error network, or `init`'s weights with its calibration scale back at 1: the scale
     is fitted after training, on validation scenes (`renderloop bench --calibration
     --fit-scale`), so a fine-tuning run must not train through it. `disagreement` adds the
     kernels/candidate disagreement channel; an `init` without it gets a zero-weighted one, so
-    training starts from exactly that network. `width`: a fresh network's (None: the default)."""
+    training starts from exactly that network; `residual` adds the residual test the same way
+    (after it). `width`: a fresh network's (None: the default)."""
     if init is None:
         # The sample count tells the network how converged each pixel is under the loop's
         # non-uniform counts (every data set's EXRs carry their spp layer).
         sizes = {} if width is None else {"width": width}
         return ErrorPredictor(ErrorPredictorConfig(sample_count_input=True, disagreement_input=disagreement,
-                                                   **sizes)).to(device)
+                                                   residual_input=residual, **sizes)).to(device)
     trained = load_checkpoint(init, expected_kind="error_predictor", device=device)
-    wanted = disagreement or trained.config.disagreement_input
-    model = ErrorPredictor(dataclasses.replace(trained.config, output_scale=1.0, disagreement_input=wanted)).to(device)
+    model = ErrorPredictor(dataclasses.replace(
+        trained.config, output_scale=1.0, disagreement_input=disagreement or trained.config.disagreement_input,
+        residual_input=residual or trained.config.residual_input)).to(device)
     weights = trained.state_dict()
-    if weights["head.weight"].shape != model.head.weight.shape:
-        weights["head.weight"] = widen_input_channels(weights["head.weight"], model.input_channels)
+    weights["head.weight"] = _head_for_inputs(weights["head.weight"], trained.config, model.config)
     model.load_state_dict(weights)
     return model
+
+
+def _head_for_inputs(weight: torch.Tensor, old: ErrorPredictorConfig, new: ErrorPredictorConfig) -> torch.Tensor:
+    """The first conv's weight for `new`'s inputs: `old`'s columns where it had the channel, zero
+    columns for the optional channels it gains (each sits at its own place in the input order)."""
+    optional = ("disagreement_input", "residual_input")   # ErrorPredictor.forward's order, after the base
+    base = weight.shape[1] - sum(int(getattr(old, name)) for name in optional)
+    columns, at = [weight[:, :base]], base
+    for name in optional:
+        if getattr(old, name):
+            columns.append(weight[:, at:at + 1])
+            at += 1
+        elif getattr(new, name):
+            columns.append(widen_input_channels(weight[:, :0], 1))
+    return torch.cat(columns, 1)
 
 
 def train_error_predictor(config, device) -> dict:
@@ -288,7 +304,8 @@ def train_error_predictor(config, device) -> dict:
     if config.error_disagreement and not denoiser.config.oidn_candidate:
         raise TrainConfigError(f"--error-disagreement reads the kernels' image against the OIDN candidate's: "
                                f"{config.out / 'denoiser.pt'} has no candidate")
-    model = _error_network_to_train(init, device, config.error_disagreement, config.error_width)
+    model = _error_network_to_train(init, device, config.error_disagreement, config.error_width,
+                                    config.error_residual)
     train, val = _datasets(config, 0, denoiser.config.oidn_candidate, config.error_levels or INPUT_ITEMS)
     batches = _batches(train, config.batch, config.seed + 1)
     if init is None:

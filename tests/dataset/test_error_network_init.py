@@ -24,9 +24,24 @@ def test_an_init_network_widened_for_the_disagreement_predicts_what_it_did_with_
             torch.testing.assert_close(widened(frame, denoised, d), before)   # zero weights on the new channel
 
 
+@pytest.mark.parametrize("had,added", [({}, {"residual": True}), ({}, {"disagreement": True, "residual": True}),
+                                       ({"residual_input": True}, {"disagreement": True}),
+                                       ({"disagreement_input": True}, {"residual": True})])
+def test_an_init_network_given_more_inputs_predicts_what_it_did(tmp_path, had, added):
+    torch.manual_seed(0)
+    shipped = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, **had))
+    save_checkpoint(tmp_path / "error_predictor.pt", shipped)
+    widened = _error_network_to_train(tmp_path / "error_predictor.pt", "cpu", **added)
+    assert widened.config.residual_input == (added.get("residual", False) or had.get("residual_input", False))
+    frame, denoised, d = make_frame(8, 8), torch.rand(1, 3, 8, 8), torch.rand(1, 1, 8, 8)
+    with torch.no_grad():
+        before = shipped(frame, denoised, d if shipped.config.disagreement_input else None)
+        torch.testing.assert_close(widened(frame, denoised, d if widened.config.disagreement_input else None), before)
+
+
 def test_a_fresh_error_network_gets_the_inputs_asked_for():
-    net = _error_network_to_train(None, "cpu", disagreement=True)
-    assert net.config.sample_count_input and net.config.disagreement_input
+    net = _error_network_to_train(None, "cpu", disagreement=True, residual=True)
+    assert net.config.sample_count_input and net.config.disagreement_input and net.config.residual_input
 
 
 def test_a_fresh_error_network_takes_the_width_asked_for():
@@ -39,6 +54,11 @@ def test_error_width_is_refused_where_no_fresh_error_network_is_built(tmp_path, 
     config = TrainConfig(data=tmp_path, stage=stage, init=tmp_path / init, error_width=32)
     with pytest.raises(TrainConfigError, match="error-width"):
         config.validate()
+
+
+def test_error_residual_is_refused_for_a_denoiser_stage(tmp_path):
+    with pytest.raises(TrainConfigError, match="error-residual"):
+        TrainConfig(data=tmp_path, stage="multiscale", init=tmp_path / "d.pt", error_residual=True).validate()
 
 
 def test_error_width_is_accepted_for_a_fresh_error_network_and_beside_a_denoiser_init(tmp_path):
