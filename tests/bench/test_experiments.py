@@ -16,6 +16,7 @@ from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one
 from bench.experiments.energy_tolerance import UNTOUCHED, outputs_per_tolerance
 from bench.experiments.gate_bound import kernels_and_candidate
 from bench.experiments.gate_offset import offset_ratios
+from bench.experiments.sample_cost import scene_cost, spread_over
 from bench.experiments.target_cost import INPUT_SPP, scene_costs
 from bench.experiments.trunk_speed import median_seconds, random_frame
 from models.denoiser import Denoiser, DenoiserConfig
@@ -153,6 +154,33 @@ def test_target_cost_times_the_inputs_sample_count_the_build_renders_and_every_c
     assert INPUT_SPP == 176   # spp16 → spp128 uniformly (128), then adaptive32 (+16) and adaptive64 (+32)
     costs = scene_costs(scenes=1, size=8, spp_counts=(1, 4))
     assert set(costs) == {1, 4} and all(seconds > 0 for seconds in costs.values())
+
+
+def test_spread_over_puts_exactly_the_total_on_the_masked_pixels_as_evenly_as_it_can():
+    mask = np.zeros((4, 5), bool)
+    mask[1:3, 1:4] = True
+    counts = spread_over(mask, 20)
+    assert counts.sum() == 20 and (counts[~mask] == 0).all()
+    assert set(np.unique(counts[mask])) == {3, 4}
+    assert spread_over(mask, 0).sum() == 0
+    with pytest.raises(ValueError, match="no pixel"):
+        spread_over(np.zeros((2, 2), bool), 5)
+
+
+def test_sample_cost_times_a_scene_whose_object_leaves_background_to_miss(tmp_path):
+    scene = tmp_path / "ball.xml"
+    scene.write_text("""<scene version="3.0.0">
+  <integrator type="path"/>
+  <sensor type="perspective"><float name="fov" value="40"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+  </sensor>
+  <shape type="sphere"><float name="radius" value="0.5"/></shape>
+  <emitter type="point"><point name="position" value="0, 2, 3"/><rgb name="intensity" value="10"/></emitter>
+</scene>""")
+    row = scene_cost(str(scene), spp=2, repeats=1)
+    assert 0.0 < row["hit_fraction"] < 0.5   # the ball covers the centre, the rest is missed
+    assert all(row[key] > 0 for key in ("uniform", "hit", "miss"))
 
 
 def test_trunk_speed_times_both_trunks_on_the_same_frame():
