@@ -131,8 +131,8 @@ class TrainConfig:
         if self.error_residual and self.stage not in ERROR_NETWORK_STAGES:
             raise TrainConfigError("--error-residual is an input of the error network: use it with --stage error "
                                    "(or staged, all)")
-        if self.error_width is not None and (self.stage not in ERROR_NETWORK_STAGES or self.init is not None
-                                             and self.stage == "error"):
+        if self.error_width is not None and (self.stage not in ERROR_NETWORK_STAGES
+                                             or (self.init is not None and self.stage == "error")):
             raise TrainConfigError("--error-width sets the width of a fresh error network: use it with --stage error "
                                    "(or staged, all) and without --init (an --init network keeps its own width)")
         if self.gate_firefly and not self.oidn_candidate:

@@ -290,7 +290,7 @@ def _head_for_inputs(weight: torch.Tensor, old: ErrorPredictorConfig, new: Error
             columns.append(weight[:, at:at + 1])
             at += 1
         elif getattr(new, name):
-            columns.append(widen_input_channels(weight[:, :0], 1))
+            columns.append(weight.new_zeros(weight.shape[0], 1, *weight.shape[2:]))
     return torch.cat(columns, 1)
 
 
