@@ -18,12 +18,12 @@ import argparse
 
 import numpy as np
 import torch
-from scipy.stats import spearmanr
 
 from bench.common import load_bench_networks, pinned_torch_threads, true_error_map
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.experiments.allocation_variants import final_smape, uniform_baselines
 from bench.experiments.gate_bound import kernels_and_candidate
+from bench.quality_measures import block_means, spearman
 from bench.suite_quality import uniform_render
 from models.denoiser import Denoiser
 from models.error_predictor import reads_disagreement
@@ -60,14 +60,9 @@ class ModulatedErrorMap(torch.nn.Module):
         return modulate(predicted, dis, self.gamma)
 
 
-def tiles(m: np.ndarray, k: int = TILE) -> np.ndarray:
-    h, w = (m.shape[0] // k) * k, (m.shape[1] // k) * k
-    return m[:h, :w].reshape(h // k, k, w // k, k).mean((1, 3))
-
-
 def spearman_pair(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """Spearman per pixel and of the 8×8 tile means."""
-    return spearmanr(a.ravel(), b.ravel())[0], spearmanr(tiles(a).ravel(), tiles(b).ravel())[0]
+    return spearman(a, b), spearman(block_means(a, TILE), block_means(b, TILE))
 
 
 def rank(args, nets) -> None:
