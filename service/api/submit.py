@@ -89,7 +89,7 @@ def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, reque
                   limits: bundle.BundleLimits = bundle.BundleLimits(), job_limits: JobLimits = SERVICE_LIMITS) -> dict:
     """Store the upload under the job's folder and return the stored spec (scene relative to
     the bundle); on any problem the folder is removed and the error propagates."""
-    root = files.bundle_dir
+    root = files.bundle_dir.resolve()  # the bundle's checks compare resolved paths
     root.mkdir(parents=True, exist_ok=True)
     try:
         if archive:
@@ -97,7 +97,7 @@ def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, reque
         else:
             bundle.save_files(((u.filename or "", u.file) for u in items), root, limits)
         entry = bundle.prepare_bundle(root, request.scene, params=request.params)
-        relative = entry.relative_to(root.resolve()).as_posix()
+        relative = entry.relative_to(root).as_posix()
         spec = request.loop_spec(str(entry))
         check_effective_job(spec, root, job_limits)
     except BaseException:

@@ -29,8 +29,10 @@ def free_port() -> int:
 
 
 class Server:
-    def __init__(self, data_dir: Path, log_path: Path, env: dict[str, str] | None = None) -> None:
+    def __init__(self, data_dir: Path, log_path: Path, env: dict[str, str] | None = None,
+                 cwd: Path = REPO) -> None:
         self.env = env or {}
+        self.cwd = cwd  # the server's working directory: a relative data_dir is relative to it
         self.data_dir = data_dir
         self.log_path = log_path
         self.port = free_port()
@@ -44,7 +46,7 @@ class Server:
         env = {**os.environ, "RENDERLOOP_DATA_DIR": str(self.data_dir), "PYTHONUNBUFFERED": "1", **self.env}
         command = [sys.executable, str(LAUNCHER), str(self.port)]
         log = open(self.log_path, "ab")
-        self.process = subprocess.Popen(command, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+        self.process = subprocess.Popen(command, cwd=self.cwd, env=env, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + STARTUP_SECONDS
         while time.monotonic() < deadline:
             if self.process.poll() is not None:

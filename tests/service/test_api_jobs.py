@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import json
 import threading
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -277,11 +278,13 @@ def test_lambda_during_the_run_is_used_by_later_iterations(client, tmp_path):
     assert np.all(frame.lam == 6.0)
 
 
+TINY_SCENE = ('<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm"><integer name="width" '
+              'value="8"/><integer name="height" value="8"/></film></sensor><shape type="sphere"/>'
+              '<emitter type="constant"/></scene>')
+
+
 def test_result_header_names_a_bundle_scene_relative_to_the_bundle(client, tmp_path):
-    scene = ('<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm"><integer name="width" '
-             'value="8"/><integer name="height" value="8"/></film></sensor><shape type="sphere"/>'
-             '<emitter type="constant"/></scene>')
-    archive = zip_bytes({"shots/a.xml": scene, "notes.txt": "two top-level entries: no folder is stripped"})
+    archive = zip_bytes({"shots/a.xml": TINY_SCENE, "notes.txt": "two top-level entries: no folder is stripped"})
     response = client.post("/jobs", data={"spec": json.dumps({"scene": "shots/a.xml", "max_iterations": 1})},
                            files={"bundle": ("s.zip", archive, "application/zip")})
     assert response.status_code == 202, response.text
@@ -289,3 +292,18 @@ def test_result_header_names_a_bundle_scene_relative_to_the_bundle(client, tmp_p
     assert wait_for(client, job_id, finished)["state"] == "completed"
     frame = exr_from(client.get(f"/jobs/{job_id}/result.exr"), tmp_path)
     assert frame.header["scene"] == "shots/a.xml"  # not the server's path to the job folder
+
+
+def test_bundle_job_completes_when_the_data_dir_is_relative(start_server, tmp_path):
+    """`make run` serves `--data-dir data`, relative to the working directory: an upload must not
+    trip over comparing that relative folder with resolved paths (it was a 500)."""
+    server = start_server(data_dir=Path("data"), cwd=tmp_path)
+    archive = zip_bytes({"shot/scene.xml": TINY_SCENE})
+    with httpx.Client(base_url=server.url, timeout=60) as client:
+        response = client.post("/jobs", data={"spec": json.dumps({"scene": "scene.xml", "max_iterations": 1})},
+                               files={"bundle": ("shot.zip", archive, "application/zip")})
+        assert response.status_code == 202, response.text
+        job_id = response.json()["id"]
+        assert wait_for(client, job_id, finished)["state"] == "completed"
+        assert client.get(f"/jobs/{job_id}/result.exr").status_code == 200
+    assert (tmp_path / "data" / "jobs" / job_id).is_dir()
