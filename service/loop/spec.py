@@ -151,6 +151,10 @@ def validate_spec(spec: LoopSpec) -> None:
         value = getattr(spec, name)
         if value is not None and (not _is_number(value) or not math.isfinite(value) or not value > 0):
             raise LoopSpecError(f"{name} must be a finite number > 0, got {value!r}")
+    if spec.spp_budget is not None and _is_number(spec.spp_budget) and spec.spp_budget < spec.spp_first:
+        # the first iteration renders spp_first everywhere before any budget check can stop it
+        raise LoopSpecError(f"spp_budget ({spec.spp_budget:g}) is below spp_first ({spec.spp_first}): the first "
+                            "iteration alone renders spp_first samples per pixel; lower spp_first or raise the budget")
     if spec.allocator not in ALLOCATORS:
         raise LoopSpecError(f"unknown allocator {spec.allocator!r}; choose one of {', '.join(ALLOCATORS)}")
     if not isinstance(spec.denoise, bool):

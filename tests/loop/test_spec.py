@@ -51,6 +51,12 @@ def test_bad_scene_parameters_are_refused(params, message):
         validate_spec(LoopSpec(scene="cornell-box", params=params))
 
 
+def test_a_budget_below_the_first_iteration_is_refused_not_overspent():
+    with pytest.raises(LoopSpecError, match="below spp_first"):
+        validate_spec(LoopSpec(scene="cornell-box", spp_first=16, spp_budget=8.0))
+    validate_spec(LoopSpec(scene="cornell-box", spp_first=16, spp_budget=16.0))  # exactly the first pass: fine
+
+
 def test_the_stored_spec_parses_back_into_the_same_loop_spec():
     spec = LoopSpec(scene="cornell-box", width=32, height=24, frames=2, max_iterations=None, spp_budget=64.0,
                     allocator="variance", lam=2.5, seed=7, params={"a": "1"})

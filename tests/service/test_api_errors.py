@@ -55,6 +55,7 @@ def test_unknown_job_is_404(client):
         ({"colour": "red"}, "colour"),
         ({"max_iterations": None}, "stopping rule"),
         ({"max_iterations": None, "time_limit": 10}, "max_iterations or spp_budget"),
+        ({"spp_budget": 8}, "below spp_first"),
         ({"width": "32"}, "width"),
         ({"denoise": "yes"}, "denoise"),
         ({"lambda": 11}, "[1, 10]"),
