@@ -25,7 +25,7 @@ from torch import Tensor
 
 from models.accumulation import accumulate_window
 from models.candidate import CandidateGate, blend, clamp_around
-from models.energy import conserve_energy, sample_energy
+from models.energy import SampleEnergy, measure_energy, restore_energy
 from models.features import HDR_MAX, demodulate, feature_set, log_transform, remodulate, sanitize, sanitize_frame
 from models.frames import FrameTensors
 from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
@@ -55,6 +55,7 @@ class DenoiserConfig:
     gate_width: int = 8            # hidden channels of the candidate gate
     gate_firefly: bool = False     # the gate also reads the samples' relative variance (models.candidate)
     energy_tolerance: float = 0.0  # τ of models.energy: > 0 pulls the image's total towards the samples'; 0 = off
+    energy_block: int = 0          # > 0 (with τ): then each block of this many pixels a side as well (models.energy)
     # Logits added to the candidate gate after training (models.candidate.CandidateGate.weight):
     # > 0 leans to the candidate, in full at λ = 1 and not at all at λ = 10.
     gate_offset: float = 0.0                  # the finest level's
@@ -69,10 +70,9 @@ class DenoiserConfig:
     # predicted with a clean estimate of the image in view, as a cross-bilateral filter is
     # guided by one. Single-frame only (a neighbour frame has no candidate of its own).
     candidate_features: bool = False
-    # Post-training: the kernels' result at each level is clamped to [c/(1+t), c·(1+t)] around the
-    # candidate c before the two are blended, t = kernel_clamp at λ = 1 widening to no clamp at
-    # λ = 10 (t / (1 − log λ / log 10)); None = off. A highlight the kernels spread beyond what
-    # OIDN saw there is a relMSE outlier (docs/guided-kernels.md).
+    # Post-training: each level's kernel result clamped to [c/(1+t), c·(1+t)] around the candidate c
+    # before the blend, t widening to no clamp at λ = 10 (models.candidate.clamp_around); None = off.
+    # A highlight the kernels spread beyond what OIDN saw is a relMSE outlier (docs/guided-kernels.md).
     kernel_clamp: float | None = None
 
     def without_post_training_settings(self) -> "DenoiserConfig":
@@ -97,7 +97,7 @@ class DenoiserConfig:
 
 TRUNKS = ("levels", "unet")
 # The config fields chosen after training, on validation scenes, for given weights (above).
-POST_TRAINING_SETTINGS = ("energy_tolerance", "gate_offset", "coarse_gate_offset", "candidate_cap", "kernel_clamp")
+POST_TRAINING_SETTINGS = ("energy_tolerance", "energy_block", "gate_offset", "coarse_gate_offset", "candidate_cap", "kernel_clamp")
 CANDIDATE_CHANNELS = 3   # trunk input channels DenoiserConfig.candidate_features adds (log demodulated RGB)
 
 # Inference bands of rows for the λ tail: a band's F·k² weight planes and its 3-channel output
@@ -268,7 +268,7 @@ class DenoiserCache:
     albedo: Tensor                 # padded center albedo for remodulation
     size: tuple[int, int]          # original (H, W) to crop back to
     n_bad: int = 0                 # NaN/Inf values replaced while sanitising the filtered window
-    energy: tuple[Tensor, Tensor] | None = None   # the center's sample mean radiance and its rse (models.energy)
+    energy: SampleEnergy | None = None   # the center's samples' energy (models.energy)
 
 
 class Denoiser(nn.Module):
@@ -323,7 +323,7 @@ class Denoiser(nn.Module):
         cleaned = [sanitize_frame(f) for f in window]
         frames, n_bad = [f for f, _ in cleaned], sum(n for _, n in cleaned)
         size = frames[center].size
-        energy = (sample_energy(frames[center].color, frames[center].variance)
+        energy = (measure_energy(frames[center].color, frames[center].variance, self.config.energy_block)
                   if self.config.energy_tolerance > 0 else None)
         align = self.config.alignment
         frames = [f.map(lambda _, t: pad_to(t, align)) for f in frames]
@@ -475,7 +475,7 @@ class Denoiser(nn.Module):
         h, w = cache.size
         out = remodulate(out, cache.albedo)[..., :h, :w]
         if cache.energy is not None:
-            out = conserve_energy(out, *cache.energy, self.config.energy_tolerance)
+            out = restore_energy(out, cache.energy, self.config.energy_tolerance)
         return out
 
     def _lambda_code(self, cache: DenoiserCache, lam: float | Tensor) -> Tensor:

@@ -71,7 +71,7 @@ def main() -> None:
                 for image in images:
                     m = image_metrics(image, reference)
                     cells.append(f"{image.mean() / mean:.4f}, {m['smape']:.4f}, {m['relmse']:.3g}")
-                print(f"| {scene.name} | {spp} | {float(cache.energy[1][0]):.4f} | {to_image(frame.color).mean() / mean:.4f} "
+                print(f"| {scene.name} | {spp} | {float(cache.energy.rse[0]):.4f} | {to_image(frame.color).mean() / mean:.4f} "
                       f"| {to_image(candidate).mean() / mean:.4f} | " + " | ".join(cells) + " |", flush=True)
     print("\n| spp | RMS energy error of the untouched output (the τ models.energy asks for) |\n|---:|---:|")
     for spp, values in errors.items():

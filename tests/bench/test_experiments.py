@@ -13,10 +13,12 @@ from bench.experiments.allocation_variants import allocator_variant, equal_gain_
 from bench.experiments.disagreement_map import ModulatedErrorMap, modulate
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
                                              ranking_row)
+from bench.experiments.energy_blocks import block_images, geometric_mean
 from bench.experiments.energy_tolerance import UNTOUCHED, outputs_per_tolerance
 from bench.experiments.gate_bound import kernels_and_candidate
 from bench.experiments.gate_offset import offset_ratios
 from bench.experiments.sample_cost import scene_cost, spread_over
+from bench.experiments.seed_spread import paired_ratio
 from bench.experiments.target_cost import INPUT_SPP, scene_costs
 from bench.experiments.trunk_speed import median_seconds, random_frame
 from models.denoiser import Denoiser, DenoiserConfig
@@ -110,6 +112,26 @@ def test_energy_tolerance_sweep_pulls_towards_the_samples_only_as_tau_grows_and_
     samples_mean = float(color.mean())
     assert untouched.mean() == pytest.approx(0.8 * samples_mean, rel=0.02)  # left as the network made it
     assert pulled.mean() == pytest.approx(samples_mean, rel=1e-3)         # rse ≪ τ: the samples' total
+
+
+def test_energy_blocks_sweep_restores_each_half_where_it_was_lost_and_restores_the_config():
+    # gate offset 10: the output is the candidate's image; the candidate lost a fifth on its left half only
+    config = DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True, energy_tolerance=0.03,
+                            gate_offset=10.0)
+    torch.manual_seed(0)
+    denoiser = Denoiser(config).eval()
+    color = torch.ones(1, 3, 32, 32)
+    frame = FrameTensors(color=color, variance=torch.full((1, 3, 32, 32), 1e-10), albedo=torch.full((1, 3, 32, 32), 0.5),
+                         normal=torch.zeros(1, 3, 32, 32), depth=torch.ones(1, 1, 32, 32), motion=None)
+    candidate = color.clone()
+    candidate[..., :16] *= 0.8
+    with torch.no_grad():
+        image_wide, blocks = block_images(denoiser, frame, candidate, [0, 8])
+    assert denoiser.config == config
+    assert image_wide[:, 24:].mean() > 1.05                               # one factor: the right half overshoots
+    np.testing.assert_allclose(blocks[:, 24:], 1.0, rtol=0.01)            # block by block: both halves right
+    np.testing.assert_allclose(blocks[:, :8], 1.0, rtol=0.01)
+    assert geometric_mean([(0.5, 2.0), (2.0, 2.0)]) == pytest.approx((1.0, 2.0))
 
 
 def test_denoiser_settings_apply_inside_and_are_undone_even_when_the_measurement_fails():
@@ -233,3 +255,14 @@ def test_denoise_and_predict_hands_a_disagreement_reading_network_what_the_loop_
     torch.testing.assert_close(denoise_and_predict(denoiser, plain, [frame], 0)[2], plain(frame, output))
     modulated = ModulatedErrorMap(reader, denoiser, 0.0)(frame, output)   # γ = 0: the network's own map
     torch.testing.assert_close(modulated, reader(frame, output, kernel_disagreement(kernels, candidate)))
+
+
+def test_paired_ratio_settles_a_consistent_lead_and_calls_a_seed_to_seed_swing_a_tie():
+    consistent = paired_ratio([0.98, 0.97, 0.99, 0.98], [1.0, 1.0, 1.0, 1.0])
+    assert consistent.verdict == "ours" and consistent.wins == 4 and consistent.geometric_mean == pytest.approx(0.98, abs=0.002)
+    assert (consistent.low, consistent.high) == pytest.approx((0.97, 0.99))
+    swinging = paired_ratio([0.95, 1.05, 0.96, 1.04], [1.0, 1.0, 1.0, 1.0])
+    assert swinging.verdict == "tie" and swinging.wins == 2
+    behind = paired_ratio([1.03, 1.02, 1.04], [1.0, 1.0, 1.0])
+    assert behind.verdict == "OIDN" and behind.t > 2 and behind.wins == 0
+    assert paired_ratio([1.0, 1.0], [1.0, 1.0]).t == 0.0           # identical: no spread, no verdict

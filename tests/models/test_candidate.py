@@ -285,8 +285,8 @@ def test_kernel_clamp_is_a_post_training_setting_that_moves_the_output_towards_t
     assert model.config.without_post_training_settings().kernel_clamp is None
 
 
-SHIPPED_SETTINGS = {"energy_tolerance": 0.03, "gate_offset": 2.0, "coarse_gate_offset": 10.0, "candidate_cap": True,
-                    "kernel_clamp": 0.5}
+SHIPPED_SETTINGS = {"energy_tolerance": 0.03, "energy_block": 32, "gate_offset": 2.0, "coarse_gate_offset": 10.0,
+                    "candidate_cap": True, "kernel_clamp": 0.5}
 
 
 def test_a_fine_tune_trains_without_the_post_training_settings_and_keep_settings_writes_them_back(tmp_path):

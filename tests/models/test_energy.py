@@ -3,7 +3,8 @@ from dataclasses import replace
 import torch
 
 from models.denoiser import Denoiser
-from models.energy import GAIN_RANGE, conserve_energy, sample_energy
+from models.energy import (GAIN_RANGE, block_energy, conserve_block_energy, conserve_energy, measure_energy,
+                           restore_energy, sample_energy)
 from tests.models.conftest import TINY, make_frame
 
 
@@ -62,3 +63,65 @@ def test_the_denoiser_with_an_energy_tolerance_keeps_the_samples_mean_radiance()
     before = plain(window, 0, 4.0)
     assert not torch.allclose(before.mean(), frame.color.mean(), rtol=1e-3)
     torch.testing.assert_close(out / out.mean(), before / before.mean())   # one factor, the picture unchanged
+
+
+def half_darkened(block: int = 8) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Flat samples of 1 known exactly, and a denoised image that lost 20 % on its left half only."""
+    color = torch.ones(1, 3, 32, 32)
+    image = color.clone()
+    image[..., :16] *= 0.8
+    return color, torch.full_like(color, 1e-10), image
+
+
+def test_block_gains_restore_the_energy_where_it_was_lost_and_leave_the_rest():
+    color, variance, image = half_darkened()
+    out = conserve_block_energy(image, block_energy(color, variance, 8), tolerance=0.01)
+    torch.testing.assert_close(out[..., :12], color[..., :12])    # away from the seam: the samples' level
+    torch.testing.assert_close(out[..., 20:], image[..., 20:])    # the right half was right and stays so
+    seam_gain = (out / image)[0, 0, 0, 12:20]                    # between the two blocks' gains, falling smoothly
+    assert (seam_gain <= 1 / 0.8 + 1e-6).all() and (seam_gain >= 1 - 1e-6).all() and (seam_gain.diff() <= 1e-6).all()
+    image_wide = conserve_energy(image, *sample_energy(color, variance), tolerance=0.01)
+    assert (image_wide[..., 20:] > 1.05).all()                    # one factor brightens what was right
+
+
+def test_a_block_whose_samples_are_noisy_keeps_the_images_energy():
+    color, variance, image = half_darkened()
+    variance[..., :8, :8] = 10.0                                  # one block's total rests on a firefly
+    out = conserve_block_energy(image, block_energy(color, variance, 8), tolerance=0.01)
+    torch.testing.assert_close(out[..., :4, :4], image[..., :4, :4], rtol=1e-3, atol=0)
+    torch.testing.assert_close(out[..., 12:16, :4], color[..., 12:16, :4])   # its neighbours still restored
+
+
+def test_block_gains_are_bounded_black_blocks_stay_black_and_a_cut_block_counts_its_own_pixels():
+    color = torch.ones(1, 3, 20, 20)                              # 20 = 2 whole blocks of 8 and a cut one
+    image = 0.1 * color
+    image[..., :8, :8] = 0.0
+    out = conserve_block_energy(image, block_energy(color, torch.zeros_like(color), 8), tolerance=0.01)
+    assert torch.equal(out[..., :4, :4], torch.zeros(1, 3, 4, 4))
+    torch.testing.assert_close(out[..., 16:, 16:], image[..., 16:, 16:] * GAIN_RANGE[1])
+    assert torch.isfinite(out).all() and out.shape == image.shape
+
+
+def test_restore_energy_runs_the_image_wide_factor_then_the_blocks():
+    color, variance, image = half_darkened()
+    without = restore_energy(image, measure_energy(color, variance), tolerance=0.01)
+    torch.testing.assert_close(without, conserve_energy(image, *sample_energy(color, variance), tolerance=0.01))
+    with_blocks = restore_energy(image, measure_energy(color, variance, block=8), tolerance=0.01)
+    torch.testing.assert_close(with_blocks[..., :12], color[..., :12])
+    torch.testing.assert_close(with_blocks[..., 20:], color[..., 20:])
+
+
+@torch.no_grad()
+def test_the_denoiser_with_an_energy_block_restores_each_blocks_samples_total():
+    frame = make_frame(16, 16)
+    frame.variance.fill_(1e-9)
+    frame.albedo.fill_(1.0)
+    config = replace(TINY, temporal=False, energy_tolerance=0.01, energy_block=8)
+    denoiser = Denoiser(config).eval()
+    cache = denoiser.prepare([frame], 0)
+    assert cache.energy.blocks is not None and cache.energy.blocks.total.shape[-2:] == (2, 2)
+    out = denoiser.apply(cache, 4.0)
+    block_means = lambda x: torch.nn.functional.avg_pool2d(x.sum(1, keepdim=True), 8)
+    ratio = block_means(out) / block_means(frame.color)
+    assert (ratio - 1).abs().max() < 0.05      # bilinear gains between block centres: close, not exact per block
+    torch.testing.assert_close(out.mean(), frame.color.mean(), rtol=0.02, atol=0)
