@@ -65,7 +65,7 @@ def test_the_denoiser_with_an_energy_tolerance_keeps_the_samples_mean_radiance()
     torch.testing.assert_close(out / out.mean(), before / before.mean())   # one factor, the picture unchanged
 
 
-def half_darkened(block: int = 8) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def half_darkened() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Flat samples of 1 known exactly, and a denoised image that lost 20 % on its left half only."""
     color = torch.ones(1, 3, 32, 32)
     image = color.clone()
