@@ -21,6 +21,7 @@ import torch
 
 from bench.common import denoiser_settings, image_metrics, load_bench_networks, oidn_denoiser, pinned_torch_threads
 from bench.dev_references import SUITES, dev_scenes, load_reference
+from bench.experiments.seed_spread import paired_ratio
 from bench.suite_quality import uniform_render
 from models.denoiser import Denoiser
 from models.frames import FrameTensors
@@ -35,10 +36,6 @@ def block_images(denoiser: Denoiser, frame: FrameTensors, candidate: torch.Tenso
         with denoiser_settings(denoiser, energy_block=block):
             images.append(to_image(denoiser.apply(denoiser.prepare([frame], 0, candidate))))
     return images
-
-
-def geometric_mean(ratios: list[tuple[float, float]]) -> tuple[float, float]:
-    return tuple(float(v) for v in np.exp(np.log(np.asarray(ratios)).mean(0)))
 
 
 def main() -> None:
@@ -64,7 +61,8 @@ def main() -> None:
         for scene in dev_scenes(None, suite.root):
             reference, _ = load_reference(suite.references, scene, None if scene.frames == 1 else 0)
             for spp in args.spp:
-                per_block: dict[int, list[tuple[float, float]]] = {b: [] for b in args.blocks}
+                # per block: (ours, OIDN) SMAPE and relMSE, one row per seed
+                per_block: dict[int, list[tuple[float, float, float, float]]] = {b: [] for b in args.blocks}
                 for seed in args.seeds:
                     buffer = uniform_render(scene, spp, nets.networks, seed=seed).buffers[0]
                     theirs = image_metrics(oidn(buffer.mean, buffer.albedo, buffer.normal), reference)
@@ -72,8 +70,12 @@ def main() -> None:
                     candidate = candidate_for(denoiser, frame)
                     for block, image in zip(args.blocks, block_images(denoiser, frame, candidate, args.blocks)):
                         ours = image_metrics(image, reference)
-                        per_block[block].append((ours["smape"] / theirs["smape"], ours["relmse"] / theirs["relmse"]))
-                means = {b: geometric_mean(r) for b, r in per_block.items()}
+                        per_block[block].append((ours["smape"], theirs["smape"], ours["relmse"], theirs["relmse"]))
+                means = {}
+                for block, rows in per_block.items():
+                    ours_s, theirs_s, ours_r, theirs_r = np.asarray(rows).T
+                    means[block] = (paired_ratio(ours_s, theirs_s).geometric_mean,
+                                    paired_ratio(ours_r, theirs_r).geometric_mean)
                 for block, mean in means.items():
                     cells.setdefault((spp, block), []).append(mean)
                 print(f"| {scene.name} | {spp} | " + " | ".join(f"{s:.3f} / {r:.3f}" for s, r in means.values()) + " |",

@@ -13,7 +13,7 @@ from bench.experiments.allocation_variants import allocator_variant, equal_gain_
 from bench.experiments.disagreement_map import ModulatedErrorMap, modulate
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
                                              ranking_row)
-from bench.experiments.energy_blocks import block_images, geometric_mean
+from bench.experiments.energy_blocks import block_images
 from bench.experiments.energy_tolerance import UNTOUCHED, outputs_per_tolerance
 from bench.experiments.gate_bound import kernels_and_candidate
 from bench.experiments.gate_offset import offset_ratios
@@ -131,7 +131,6 @@ def test_energy_blocks_sweep_restores_each_half_where_it_was_lost_and_restores_t
     assert image_wide[:, 24:].mean() > 1.05                               # one factor: the right half overshoots
     np.testing.assert_allclose(blocks[:, 24:], 1.0, rtol=0.01)            # block by block: both halves right
     np.testing.assert_allclose(blocks[:, :8], 1.0, rtol=0.01)
-    assert geometric_mean([(0.5, 2.0), (2.0, 2.0)]) == pytest.approx((1.0, 2.0))
 
 
 def test_denoiser_settings_apply_inside_and_are_undone_even_when_the_measurement_fails():

@@ -112,16 +112,19 @@ def test_restore_energy_runs_the_image_wide_factor_then_the_blocks():
 
 
 @torch.no_grad()
-def test_the_denoiser_with_an_energy_block_restores_each_blocks_samples_total():
-    frame = make_frame(16, 16)
-    frame.variance.fill_(1e-9)
-    frame.albedo.fill_(1.0)
-    config = replace(TINY, temporal=False, energy_tolerance=0.01, energy_block=8)
-    denoiser = Denoiser(config).eval()
-    cache = denoiser.prepare([frame], 0)
-    assert cache.energy.blocks is not None and cache.energy.blocks.total.shape[-2:] == (2, 2)
-    out = denoiser.apply(cache, 4.0)
-    block_means = lambda x: torch.nn.functional.avg_pool2d(x.sum(1, keepdim=True), 8)
-    ratio = block_means(out) / block_means(frame.color)
-    assert (ratio - 1).abs().max() < 0.05      # bilinear gains between block centres: close, not exact per block
-    torch.testing.assert_close(out.mean(), frame.color.mean(), rtol=0.02, atol=0)
+def test_the_denoiser_with_an_energy_block_puts_the_energy_back_where_its_image_lost_it():
+    # gate offset 10: the output is the candidate's image, which lost a fifth on its left half only
+    color, variance, candidate = half_darkened()
+    frame = make_frame(32, 32, motion=False)
+    frame.color.copy_(color)
+    frame.variance.copy_(variance)
+    config = replace(TINY, temporal=False, oidn_candidate=True, gate_offset=10.0, energy_tolerance=0.01)
+    image_wide = Denoiser(config).eval()
+    blocks = Denoiser(replace(config, energy_block=8)).eval()
+    blocks.load_state_dict(image_wide.state_dict())
+    cache = blocks.prepare([frame], 0, candidate)
+    assert cache.energy.blocks is not None and cache.energy.blocks.total.shape[-2:] == (4, 4)
+    out = blocks.apply(cache)
+    torch.testing.assert_close(out[..., :12], color[..., :12], rtol=0.01, atol=0)
+    torch.testing.assert_close(out[..., 20:], color[..., 20:], rtol=0.01, atol=0)
+    assert (image_wide([frame], 0, 1.0, candidate)[..., 20:] > 1.05).all()   # one factor: the right half too bright
