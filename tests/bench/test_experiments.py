@@ -9,6 +9,7 @@ import torch
 import service.loop.allocate as allocate
 import service.loop.loop as loop
 from bench.common import denoise_and_predict, denoiser_settings, image_metrics
+from bench.experiments.allocation_bound import best_allocation_ratio, fitted_exponent, optimal_counts, scene_bounds
 from bench.experiments.allocation_variants import allocator_variant, equal_gain_samples
 from bench.experiments.disagreement_map import ModulatedErrorMap, modulate
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
@@ -73,6 +74,41 @@ def test_equal_gain_variant_replaces_the_error_allocators_counts_for_one_loop_on
     with allocator_variant(1.0, {}, gain=0.5):
         assert loop.next_counts is not product
     assert loop.next_counts is product
+
+
+def test_allocation_bound_is_one_when_the_error_is_the_same_everywhere():
+    assert best_allocation_ratio(np.full((8, 8), 0.01), 0.3) == pytest.approx(1.0)
+    assert best_allocation_ratio(np.zeros((4, 4)), 0.3) == 1.0
+
+
+def test_allocation_bound_sends_every_added_sample_to_the_half_that_has_error():
+    """Half the frame error-free: the other half gets 16 + 2·112 = 240 spp, so its error falls by
+    (128/240)^β and the frame's with it."""
+    error = np.zeros((8, 8))
+    error[:, :4] = 0.02
+    assert best_allocation_ratio(error, 0.25) == pytest.approx((128 / 240) ** 0.25, rel=1e-6)
+
+
+def test_optimal_counts_keep_the_mean_and_equalise_the_marginal_gains_of_the_pixels_they_feed():
+    rng = np.random.default_rng(3)
+    v, beta = rng.uniform(0.0, 1.0, 500), rng.uniform(0.1, 0.6, 500)
+    n = optimal_counts(v, beta, 16, 128)
+    assert n.mean() == pytest.approx(128, rel=1e-9) and n.min() >= 16
+    fed = n > 16 * (1 + 1e-9)
+    gains = beta[fed] * v[fed] * n[fed] ** (-beta[fed] - 1)
+    np.testing.assert_allclose(gains, gains[0], rtol=1e-6)
+    assert (beta[~fed] * v[~fed] * 16.0 ** (-beta[~fed] - 1) <= gains[0] * (1 + 1e-6)).all()
+
+
+def test_fitted_exponent_recovers_a_power_law_and_the_scene_bounds_read_it():
+    rng = np.random.default_rng(4)
+    expected_16 = rng.uniform(0.01, 0.05, (32, 32))
+    expected_128 = expected_16 * 8.0 ** -0.3
+    assert fitted_exponent(expected_16, expected_128) == pytest.approx(np.full((32, 32), 0.3))
+    bounds = scene_bounds(expected_16, expected_128)
+    assert bounds["beta"] == pytest.approx(0.3)
+    assert 0.0 < bounds["pixel"] < bounds["shared 5×5"] < 1.0   # blurring the map leaves less to aim at
+    assert 0.0 < bounds["tiles, own β"] < 1.0
 
 
 @torch.no_grad()
