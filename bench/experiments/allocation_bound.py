@@ -6,11 +6,12 @@ allocator fed the denoised image's true error, reaches a median 0.89 (docs/bench
 this asks the question without the allocator's particulars. Per scene, K renders that differ
 only in their seed are denoised by the shipped denoiser at 16 and at 128 spp uniform; the mean
 of their true SMAPE maps is the scene's expected error ē₁₆, ē₁₂₈. Model each pixel's expected
-denoised error as e_i(n) = v_i·n^−β (Vogels et al. 2018 §7 allocate by such a per-pixel error),
-with β fitted to the scene's mean errors (ē₁₂₈ = ē₁₆·8^−β) and v_i = ē₁₂₈,i·128^β. With the
-first 16 spp spent uniformly, as the loop does, the allocation of a mean 128 spp that minimises
-Σ e_i(n_i) is a Lagrange optimum (`optimal_counts`); its error ÷ uniform's is the most any allocation knowing the expected error exactly can gain, under
-the model:
+denoised error as e_i(n) = v_i·n^−β (the paper's allocation, Vogels et al. 2018 §7, is driven by
+such a per-pixel error), with β fitted to the scene's mean errors (ē₁₂₈ = ē₁₆·8^−β) and
+v_i = ē₁₂₈,i·128^β. With the first 16 spp spent uniformly, as the loop does, the allocation of a
+mean 128 spp that minimises Σ e_i(n_i) is a Lagrange optimum (`optimal_counts`). Its error ÷
+uniform's is the most that any allocation knowing the expected error exactly can gain, under the
+model:
 
 - **pixel**: each pixel's samples lower only its own error;
 - **shared 5×5**: v box-filtered over 5×5 pixels first — the denoiser spreads a pixel's samples
