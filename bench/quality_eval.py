@@ -223,10 +223,11 @@ def evaluate(images: list[EvalImage], methods: dict[str, Denoise], denoiser: Den
     several cheap λ tails, as the service does)."""
     outputs = []
     for n, image in enumerate(images, 1):
-        results = {name: method(image) for name, method in methods.items()}
         window, centre = denoiser.filtered_window(image.window, image.centre)
-        # the error network's map of the TEMPORAL result (the same image), and the cache of the λ sweep
-        cache, _, predicted = denoise_and_predict(denoiser, predictor, window, centre)
+        # one prepare gives the TEMPORAL result (what `windowed` computes), the error network's map
+        # of it and the cache of the λ sweep
+        cache, denoised, predicted = denoise_and_predict(denoiser, predictor, window, centre)
+        results = {name: denoised if name == TEMPORAL else method(image) for name, method in methods.items()}
         out = Outputs(image, results, predicted_error=predicted)
         if image.spp == HEADLINE_SPP:
             out.lambda_results = {lam: denoiser.apply(cache, lam) for lam in lambdas}

@@ -39,9 +39,7 @@ def create_app(data_dir: Path, *, networks: Networks, workers: WorkerSettings = 
                db_url: str | None = None) -> FastAPI:
     """`db_url`: None for the SQLite file in `data_dir`, or a postgresql:// URL; job files stay
     under `data_dir` either way. `workers`: the thread backend (default) or Ray."""
-    # absolute from here on: `serve --data-dir data` (make run) is relative to the cwd, and the
-    # bundle and sandbox checks compare resolved paths
-    store = JobStore(Path(data_dir).resolve(), db_url)
+    store = JobStore(Path(data_dir), db_url)
     metrics = ServiceMetrics(store)
     worker = make_worker(store, networks, workers, observer=metrics)
     housekeeper = Housekeeper(store, retention)

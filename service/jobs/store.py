@@ -76,7 +76,9 @@ class JobStore:
 
     def __init__(self, data_dir: Path, db_url: str | None = None) -> None:
         """`db_url` None: the SQLite file in `data_dir`; a postgresql:// URL: that database."""
-        self.data_dir = Path(data_dir)
+        # absolute from here on: `serve --data-dir data` (make run) is relative to the server's cwd,
+        # and the bundle and sandbox checks compare resolved paths
+        self.data_dir = Path(data_dir).resolve()
         self.jobs_dir = self.data_dir / "jobs"
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
         self._db: Database = open_database(self.data_dir, db_url)

@@ -27,8 +27,8 @@ from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, de
                              sample_lambda)
 from service.dataset.build import INPUT_ITEMS, DatasetError
 from service.dataset.loader import DenoiserDataset, collate_samples
-from service.training.config import (DENOISER_STAGES, ERROR_NETWORK_STAGES, FINE_TUNE_STAGES, STAGE_PLANS, StagePlan, TrainConfig,
-                                     TrainConfigError)
+from service.training.config import (DENOISER_STAGES, ERROR_NETWORK_STAGES, FINE_TUNE_STAGES, STAGE_PLANS,
+                                     StagePlan, TrainConfig, TrainConfigError)
 
 VALIDATION_EVERY_NTH_SCENE = 8  # scenes with index % 8 == 7 are held back for validation
 

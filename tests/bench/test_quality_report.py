@@ -121,6 +121,22 @@ def test_ablation_reuses_the_trained_weights() -> None:
         assert torch.equal(value, trained.state_dict()[name]), name
 
 
+def test_evaluate_takes_the_temporal_result_from_its_one_prepare_and_counts_it_as_windowed(monkeypatch) -> None:
+    from tests.models.conftest import make_frame
+
+    denoiser = tiny_denoiser()
+    window = [make_frame(16, 16) for _ in range(3)]
+    image = evaluation.EvalImage("held-out", "s", 32, window, 1, torch.rand(1, 3, 16, 16))
+    methods, _ = evaluation.make_methods(denoiser, use_oidn=False)
+    prepares = []
+    original = Denoiser.prepare
+    monkeypatch.setattr(Denoiser, "prepare", lambda self, *a, **k: prepares.append(self) or original(self, *a, **k))
+    with torch.no_grad():
+        out = evaluation.evaluate([image], methods, denoiser, ErrorPredictor(ErrorPredictorConfig(width=8, blocks=1)), ())[0]
+        assert sum(p is denoiser for p in prepares) == 2   # MULTISCALE's, and one for TEMPORAL + error map
+        torch.testing.assert_close(out.results[evaluation.TEMPORAL], evaluation.windowed(denoiser, image))
+
+
 def test_lambda_measures_see_noise_and_blur() -> None:
     torch.manual_seed(0)
     x = torch.linspace(0, 1, 32)

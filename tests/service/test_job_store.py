@@ -42,6 +42,15 @@ def test_the_default_store_is_a_sqlite_file_in_wal_mode(tmp_path):
     assert journal == "wal"
 
 
+def test_a_relative_data_dir_is_held_absolute_so_a_later_chdir_or_a_worker_elsewhere_finds_it(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    store = JobStore("data")
+    try:
+        assert store.data_dir == tmp_path.resolve() / "data" and store.jobs_dir.is_absolute()
+    finally:
+        store.close()
+
+
 def test_a_postgresql_store_keeps_records_in_the_server_and_files_in_the_data_dir(tmp_path, postgres_url):
     store = JobStore(tmp_path / "data", postgres_url)
     job = store.create({}, None)
