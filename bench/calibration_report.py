@@ -21,6 +21,7 @@ from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.quality_measures import block_means, spearman
 from models.checkpoint import load_checkpoint, save_checkpoint
 from models.pretrained import ERROR_PREDICTOR_FILE
+from service.loop.change_calibration import calibrated_mean, image_change
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
 from service.render.runtime import active_variant
@@ -41,25 +42,34 @@ RANKING_BLOCK = 8
 @dataclass(frozen=True)
 class IterationScore:
     spp: float
-    predicted: float
+    predicted: float  # the loop's mean: what --target-error stops on
     true: float
     spearman: float  # per pixel: the figure issue 14 asks ≥ 0.7 of
     block_spearman: float = float("nan")  # of RANKING_BLOCK² tile means
+    network: float = float("nan")  # the error network's own mean, before the change calibration
+    change: float = float("nan")    # mean SMAPE between this iteration's denoised image and the last one's
 
     @property
     def ratio(self) -> float:
         return self.predicted / self.true if self.true > 0 else float("nan")
 
+    @property
+    def network_ratio(self) -> float:
+        return self.network / self.true if self.true > 0 else float("nan")
+
 
 def score_scene(path: Path, reference, networks) -> list[IterationScore]:
     spec = LoopSpec(scene=str(path), max_iterations=ITERATIONS, allocator="error")
-    scores = []
+    scores, previous = [], None
     for record in RenderLoop(spec, networks).run():
         denoised, predicted = record.denoised[0], record.error[0]
         true = true_error_map(denoised, reference)
         scores.append(IterationScore(record.spp_mean, float(predicted.mean()),
                                      image_metrics(denoised, reference)["smape"], spearman(predicted, true),
-                                     spearman(block_means(predicted, RANKING_BLOCK), block_means(true, RANKING_BLOCK))))
+                                     spearman(block_means(predicted, RANKING_BLOCK), block_means(true, RANKING_BLOCK)),
+                                     network=record.network_error,
+                                     change=float("nan") if previous is None else image_change(previous, denoised)))
+        previous = denoised
     return scores
 
 
@@ -69,21 +79,37 @@ def stop_for_target(scores: list[IterationScore], target: float) -> IterationSco
 
 
 def fitted_output_scale(results: dict[str, list[IterationScore]]) -> float:
-    """The factor that makes the median predicted ÷ true ratio over every (scene, iteration) 1.
-    A median of ratios (not a ratio of sums) so one scene with a large error does not set it."""
-    ratios = [s.ratio for scores in results.values() for s in scores if math.isfinite(s.ratio) and s.ratio > 0]
+    """The factor that makes the median ÷ true ratio of the network's own mean over every (scene,
+    iteration) 1. A median of ratios (not a ratio of sums) so one scene with a large error does not set it."""
+    ratios = [s.network_ratio for scores in results.values() for s in scores
+              if math.isfinite(s.network_ratio) and s.network_ratio > 0]
     if not ratios:
         raise ValueError("no iteration with a positive true and predicted error to fit a scale on")
     return 1.0 / statistics.median(ratios)
 
 
-def write_calibrated_error_network(source_dir: Path, target_dir: Path, scale: float, command: str) -> Path:
-    """Copy source_dir's error network to target_dir with its output scale multiplied by `scale`,
-    recording `command` in the checkpoint (the shipped weights say how they were made)."""
+def fitted_change_scale(results: dict[str, list[IterationScore]], output_scale: float) -> float:
+    """s such that √(P·s·C) (service.loop.change_calibration) has a median ÷ true ratio of 1 over
+    every iteration with a previous one, P being the network's mean after `output_scale`."""
+    ratios = [s.true / calibrated_mean(s.network * output_scale, s.change, 1.0) for scores in results.values()
+              for s in scores if math.isfinite(s.change) and s.change > 0 and s.network > 0 and s.true > 0]
+    if not ratios:
+        raise ValueError("no iteration with a change, a prediction and a true error to fit a change scale on")
+    return statistics.median(ratios) ** 2
+
+
+def write_calibrated_error_network(source_dir: Path, target_dir: Path, scale: float, command: str,
+                                   change_scale: float | None = None) -> Path:
+    """Copy source_dir's error network to target_dir with its output scale multiplied by `scale`
+    and its change scale set (None: left as it was), recording `command` in the checkpoint (the
+    shipped weights say how they were made)."""
     model = load_checkpoint(source_dir / ERROR_PREDICTOR_FILE, "error_predictor")
     model.config.output_scale *= scale
+    if change_scale is not None:
+        model.config.change_scale = change_scale
     extra = dict(model.checkpoint_extra)
-    extra["calibration"] = f"output_scale {model.config.output_scale:.4f} by {command}"
+    change = "" if model.config.change_scale is None else f", change_scale {model.config.change_scale:.4f}"
+    extra["calibration"] = f"output_scale {model.config.output_scale:.4f}{change} by {command}"
     return save_checkpoint(target_dir / ERROR_PREDICTOR_FILE, model, extra)
 
 
@@ -101,10 +127,11 @@ def run_calibration_report(out_dir: Path, *, weights_dir: Path | None = None, on
                   f"spearman {last.spearman:.2f}", flush=True)
     if fit_scale_to is not None:
         scale = fitted_output_scale(results)
+        change_scale = fitted_change_scale(results, scale)
         command = (f"renderloop bench --calibration --suite {suite} --weights {nets.folder} --fit-scale {fit_scale_to}"
                    + (f" --only {' '.join(only)}" if only else ""))
-        written = write_calibrated_error_network(nets.folder, fit_scale_to, scale, command)
-        print(f"bench --calibration: output scale ×{scale:.4f} → {written}", flush=True)
+        written = write_calibrated_error_network(nets.folder, fit_scale_to, scale, command, change_scale)
+        print(f"bench --calibration: output scale ×{scale:.4f}, change scale {change_scale:.4f} → {written}", flush=True)
     return write_calibration_report(results, out_dir, nets.description, suite)
 
 
@@ -154,11 +181,14 @@ def write_calibration_report(results: dict[str, list[IterationScore]], out_dir: 
     medians = []
     for i in range(iterations):
         ratios = [scores[i].ratio for scores in results.values()]
+        network = [scores[i].network_ratio for scores in results.values()]
         within = sum(abs(r - 1) <= MEAN_TOLERANCE for r in ratios)
+        within_network = sum(abs(r - 1) <= MEAN_TOLERANCE for r in network)
         rho = statistics.median(scores[i].spearman for scores in results.values())
         rho_block = statistics.median(scores[i].block_spearman for scores in results.values())
         medians.append(f"| {results[next(iter(results))][i].spp:g} | {statistics.median(ratios):.2f} | "
-                       f"{within} of {len(ratios)} | {rho:.2f} | {rho_block:.2f} |")
+                       f"{within} of {len(ratios)} | {statistics.median(network):.2f} | {within_network} of {len(network)} | "
+                       f"{rho:.2f} | {rho_block:.2f} |")
     target_table = _target_table(results)
     path = out_dir / REPORT_NAMES[suite]
     out_dir.mkdir(parents=True, exist_ok=True)

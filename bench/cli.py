@@ -53,7 +53,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "calibration.md (with --suite val: scenes/val → calibration-val.md)")
     p.add_argument("--fit-scale", type=Path, default=None, metavar="DIR",
                    help="with --calibration --suite val: also write the error network of --weights to DIR with "
-                        "the output scale that makes its median predicted ÷ true error 1 on those scenes")
+                        "the output scale that makes its median predicted ÷ true error 1 on those scenes, and the "
+                        "change scale that does the same for the mean calibrated by the image's change")
     p.add_argument("--scale", action="store_true",
                    help="Ray workers: 8 jobs on 1 vs 2 workers, Ray vs in-process overhead per iteration, a 5-frame "
                         "sequence on 1 vs 2 workers → scale.md")

@@ -47,6 +47,11 @@ class ErrorPredictorConfig:
     # constant factor; fitted on the validation scenes (`renderloop bench --calibration --suite
     # val --fit-scale DIR`). Allocation ∝ error is unchanged by it; --target-error is not.
     output_scale: float = 1.0
+    # Calibration from the second iteration on (service.loop.change_calibration): the loop rescales
+    # the map so its mean is √(the network's mean × change_scale × how much the denoised image
+    # moved since the previous iteration). None: the network's mean alone. Fitted with
+    # output_scale; the network never reads it.
+    change_scale: float | None = None
 
 
 class ErrorPredictor(nn.Module):
@@ -98,6 +103,12 @@ def residual_feature(frame: FrameTensors, denoised: Tensor) -> Tensor:
     (models.candidate.disagreement, with its floor for pixels whose samples all agreed)."""
     z = noise_units_squared(frame.color, denoised, frame.variance)
     return torch.log1p(box_mean(z, RESIDUAL_BOX))
+
+
+def change_scale_of(error_network: object) -> float | None:
+    """The network's change calibration (ErrorPredictorConfig.change_scale); None for stand-ins
+    such as the benchmark's true-error map, which need none."""
+    return error_network.config.change_scale if isinstance(error_network, ErrorPredictor) else None
 
 
 def reads_disagreement(error_network: object) -> bool:

@@ -14,9 +14,11 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from models.error_predictor import change_scale_of
 from models.pretrained import Networks
 from service.exr import ExrFrame, result_frame
 from service.loop.allocate import allocate_samples, allocation_weights, iteration_budget
+from service.loop.change_calibration import calibrate_by_change, image_change
 from service.loop.denoise_session import DenoiseSession
 from service.loop.tensors import to_image as to_hwc
 from service.loop.spec import IterationRecord, LoopSpec, LoopSpecError, lambda_problem, validate_spec
@@ -92,6 +94,12 @@ class RenderLoop:
         self.session = DenoiseSession(networks, spec.frames, radius, self.owned) if spec.denoise else None
         self.lock = self.session.lock if self.session else threading.RLock()
         self._denoised: list[np.ndarray | None] = [None] * spec.frames
+        self._denoised_lam: np.ndarray | None = None  # the λ map `_denoised` was made with
+        self._denoised_samples: list[int | None] = [None] * spec.frames  # the frame's sample total behind it
+        # per frame, how far its denoised image moved since the previous iteration (None: unknown),
+        # and the error network's own mean before that rescales it (service.loop.change_calibration)
+        self._change: list[float | None] = [None] * spec.frames
+        self._network_means: list[float | None] = [None] * spec.frames
         self._converged: list[np.ndarray] = [np.zeros(self.state.buffers[0].shape, bool) for _ in range(spec.frames)]
 
     # -- the loop ---------------------------------------------------------------------------
@@ -228,9 +236,22 @@ class RenderLoop:
             for f in self.owned:
                 self._converged[f] = self.state.buffers[f].converged()
                 self.state.error_maps[f] = converged_error(self._converged[f], errors[f])
+                self._network_means[f] = float(self.state.error_maps[f].mean())
+            previous_lam = self._denoised_lam
+            previous = {f: (self._denoised[f], self._denoised_samples[f]) for f in self.owned}
             # A λ edit that arrived meanwhile wins over the map this pass started with.
             self._keep_converged(self.session.relambda(self.state.lam_map) if not np.array_equal(lam_map, self.state.lam_map)
                                  else {f: to_hwc(image) for f, image in images.items()})
+            same_lam = previous_lam is not None and np.array_equal(previous_lam, self.state.lam_map)
+            scale = change_scale_of(self.session.networks.error_predictor)
+            for f, (image, samples) in previous.items():
+                now = self._denoised_samples[f] = int(self.state.buffers[f].spp.sum())
+                if samples is not None and 2 * samples == now:        # the previous iteration's image
+                    self._change[f] = image_change(image, self._denoised[f]) if same_lam else None
+                elif samples != now:                                  # none (first pass, resumed loop)
+                    self._change[f] = None
+                # (the same samples again: a repeated pass keeps the change it measured first)
+                self.state.error_maps[f] = calibrate_by_change(self.state.error_maps[f], self._change[f], scale)
         timings["denoise"], timings["error"] = t1 - t0, t2 - t1
 
     # -- λ without re-rendering -----------------------------------------------------------
@@ -261,6 +282,7 @@ class RenderLoop:
         for f, image in images.items():
             mask, buf = self._converged[f], self.state.buffers[f]
             self._denoised[f] = np.where(mask[..., None], buf.mean, image).astype(np.float32)
+        self._denoised_lam = self.state.lam_map.copy()
 
     # -- outputs ----------------------------------------------------------------------------
 
@@ -273,6 +295,7 @@ class RenderLoop:
     def _record(self, timings: dict, images: bool = True) -> IterationRecord:
         state = self.state
         known = [e for e in state.error_maps if e is not None]
+        network_means = [m for m in self._network_means if m is not None]
         return IterationRecord(
             iteration=state.iteration - 1,
             buffers=state.buffers,
@@ -280,6 +303,7 @@ class RenderLoop:
             error=list(state.error_maps),
             spp_mean=state.spp_mean,
             predicted_error=float(np.mean([e.mean() for e in known])) if known else None,
+            network_error=float(np.mean(network_means)) if network_means else None,
             timings=dict(timings),
         )
 

@@ -220,6 +220,9 @@ class IterationRecord:
     denoised: list[np.ndarray]  # (H, W, 3) float32 each; the noisy mean when not denoising
     error: list[np.ndarray | None]  # (H, W) predicted SMAPE, None when not predicted
     spp_mean: float  # mean samples per pixel over all frames so far
-    predicted_error: float | None
+    predicted_error: float | None  # mean of `error`: what --target-error stops on
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage, this iteration
     stop_reason: str | None = None  # set on the last record
+    # the error network's own mean before the change calibration (service.loop.change_calibration),
+    # over the frames denoised by this loop; None when it predicted none
+    network_error: float | None = None

@@ -8,13 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.calibration_report import (IterationScore, fitted_output_scale, run_calibration_report, stop_counts,
-                                      stop_for_target, write_calibrated_error_network)
+from bench.calibration_report import (IterationScore, fitted_change_scale, fitted_output_scale, run_calibration_report,
+                                      stop_counts, stop_for_target, write_calibrated_error_network)
 from bench.cli import main as bench_main
 from bench.quality_measures import block_means
 from models.checkpoint import read_checkpoint, save_checkpoint
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.pretrained import ERROR_PREDICTOR_FILE
+from service.loop.change_calibration import calibrated_mean
 
 
 def test_target_error_stop_is_the_first_iteration_predicted_at_or_below_it():
@@ -51,20 +52,36 @@ def test_calibration_report_scores_every_iteration_against_the_reference(tmp_pat
     assert -1 <= tiles <= 1
 
 
-def test_fitted_output_scale_makes_the_median_ratio_one_and_skips_empty_iterations():
-    results = {"a": [IterationScore(16, 0.02, 0.04, 0.5), IterationScore(32, 0.01, 0.0, 0.5)],
-               "b": [IterationScore(16, 0.03, 0.03, 0.5)], "c": [IterationScore(16, 0.01, 0.04, 0.5)]}
+def test_fitted_output_scale_makes_the_networks_median_ratio_one_and_skips_empty_iterations():
+    def score(network: float, true: float) -> IterationScore:  # the loop's mean set apart: the fit reads the network's
+        return IterationScore(16, 1.0, true, 0.5, network=network)
+    results = {"a": [score(0.02, 0.04), score(0.01, 0.0)], "b": [score(0.03, 0.03)], "c": [score(0.01, 0.04)]}
     # ratios 0.5, 1.0, 0.25 (the true-0 iteration has no ratio): median 0.5 → ×2
     assert fitted_output_scale(results) == 2.0
+
+
+def test_fitted_change_scale_makes_the_calibrated_median_ratio_one_after_the_output_scale():
+    # √(2P · s · C) = T on the middle iteration: P = 0.01, C = 0.005, T = 0.02 → s = 0.0004 / 0.0001 = 4
+    results = {"a": [IterationScore(16, 0.0, 0.05, 0.5, network=0.03),  # first iteration: no change, skipped
+                     IterationScore(32, 0.0, 0.02, 0.5, network=0.01, change=0.005)],
+               "b": [IterationScore(32, 0.0, 0.01, 0.5, network=0.01, change=0.005)],   # ratio ½ of "a"'s
+               "c": [IterationScore(32, 0.0, 0.04, 0.5, network=0.01, change=0.005)]}   # ratio 2×
+    scale = fitted_change_scale(results, 2.0)
+    assert scale == pytest.approx(4.0)
+    assert calibrated_mean(2.0 * 0.01, 0.005, scale) == pytest.approx(0.02)
+    with pytest.raises(ValueError, match="change"):
+        fitted_change_scale({"a": results["a"][:1]}, 1.0)
 
 
 def test_calibrated_error_network_carries_the_scale_and_the_command(tmp_path: Path):
     source, target = tmp_path / "src", tmp_path / "dst"
     model = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, output_scale=1.2))
     save_checkpoint(source / ERROR_PREDICTOR_FILE, model, {"command": "renderloop train …"})
-    write_calibrated_error_network(source, target, 1.5, "renderloop bench --calibration --suite val")
+    write_calibrated_error_network(source, target, 1.5, "renderloop bench --calibration --suite val", 1.3)
     written = read_checkpoint(target / ERROR_PREDICTOR_FILE)
     assert written["config"]["output_scale"] == pytest.approx(1.8)
+    assert written["config"]["change_scale"] == pytest.approx(1.3)
+    assert "change_scale 1.3000" in written["extra"]["calibration"]
     assert written["extra"]["command"] == "renderloop train …"
     assert "--suite val" in written["extra"]["calibration"]
 
