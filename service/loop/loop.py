@@ -100,6 +100,8 @@ class RenderLoop:
         # and the error network's own mean before that rescales it (service.loop.change_calibration)
         self._change: list[float | None] = [None] * spec.frames
         self._network_means: list[float | None] = [None] * spec.frames
+        # the buffers after the first half of iteration 0, when it is split (`_splits_first_iteration`)
+        self._first_half: list[FrameBuffer] | None = None
         self._converged: list[np.ndarray] = [np.zeros(self.state.buffers[0].shape, bool) for _ in range(spec.frames)]
 
     # -- the loop ---------------------------------------------------------------------------
@@ -207,14 +209,29 @@ class RenderLoop:
             if should_stop():
                 raise IterationInterrupted("stopped inside an iteration; resume from the last checkpoint")
 
-        for f, frame_counts in counts.items():
-            if f >= len(self.scenes):
-                break  # a scene without `$frame` is one frame (load_frames)
-            prev = self.scenes[f - 1].sensors()[0] if (f > 0 and self.effects.motion_vectors) else None
-            render_samples(self.scenes[f], frame_counts, self.state.buffers[f], integrator=self.integrator,
-                           seed=self.spec.seed * 7919 + f, prev_sensor=prev, prev_shapes=self.shape_motions[f],
-                           progress=check)
+        split = self._splits_first_iteration()
+        parts = [{f: c // 2 for f, c in counts.items()}, {f: c - c // 2 for f, c in counts.items()}] if split else [counts]
+        for part, part_counts in enumerate(parts):
+            if part == 1:
+                self._first_half = [buffer.copy() for buffer in self.state.buffers]
+            for f, frame_counts in part_counts.items():
+                if f >= len(self.scenes):
+                    break  # a scene without `$frame` is one frame (load_frames)
+                prev = self.scenes[f - 1].sensors()[0] if (f > 0 and self.effects.motion_vectors) else None
+                render_samples(self.scenes[f], frame_counts, self.state.buffers[f], integrator=self.integrator,
+                               seed=self.spec.seed * 7919 + f, prev_sensor=prev, prev_shapes=self.shape_motions[f],
+                               progress=check)
         timings["render"] = time.perf_counter() - t0
+
+    def _splits_first_iteration(self) -> bool:
+        """Whether iteration 0 renders in two halves and the first half is denoised too, so that the
+        first mean is also calibrated by the image's change (service.loop.change_calibration). Only
+        for a job that stops on its target error, the one use of that mean (the others pay
+        nothing), with an error network that carries a change scale, an even `spp_first` and
+        every frame owned by this loop (the halves' temporal windows must all be here)."""
+        return (self.state.iteration == 0 and self.spec.target_error is not None and self.session is not None
+                and change_scale_of(self.session.networks.error_predictor) is not None
+                and self.spec.spp_first % 2 == 0 and len(self.owned) == self.spec.frames)
 
     def denoise_step(self, timings: dict) -> None:
         """Denoise the owned frames and predict their error (their temporal windows read the
@@ -228,6 +245,9 @@ class RenderLoop:
         t0 = time.perf_counter()
         with self.lock:
             lam_map = self.state.lam_map.copy()
+        if self._first_half is not None:
+            first_half, self._first_half = self._first_half, None
+            self._denoise_first_half(first_half, lam_map)
         images = self.session.denoise(self.state.buffers, lam_map)
         t1 = time.perf_counter()
         errors = self.session.predict_error(images)
@@ -253,6 +273,17 @@ class RenderLoop:
                 # (the same samples again: a repeated pass keeps the change it measured first)
                 self.state.error_maps[f] = calibrate_by_change(self.state.error_maps[f], self._change[f], scale)
         timings["denoise"], timings["error"] = t1 - t0, t2 - t1
+
+    def _denoise_first_half(self, buffers: list[FrameBuffer], lam_map: np.ndarray) -> None:
+        """Denoise the first half of a split iteration 0 and keep it as the image the full one's
+        change is measured against."""
+        images = self.session.denoise(buffers, lam_map)
+        with self.lock:
+            for f in self.owned:
+                kept = buffers[f].converged()[..., None]
+                self._denoised[f] = np.where(kept, buffers[f].mean, to_hwc(images[f])).astype(np.float32)
+                self._denoised_samples[f] = int(buffers[f].spp.sum())
+            self._denoised_lam = lam_map.copy()
 
     # -- λ without re-rendering -----------------------------------------------------------
 

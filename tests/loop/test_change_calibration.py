@@ -130,3 +130,23 @@ def test_the_calibration_changes_the_reported_error_never_where_samples_go(calib
         assert a.network_error == pytest.approx(b.network_error, rel=1e-6)
     with_change, without = with_change[-1][1], without[-1][1]
     assert with_change.predicted_error != pytest.approx(without.predicted_error, rel=1e-3)
+
+
+def test_a_job_with_a_target_error_splits_its_first_iteration_and_calibrates_that_mean_too(calibrated_networks):
+    """Iteration 0 renders spp_first/2 twice (the first half is pass 0, as a loop of spp_first/2
+    renders it) and measures the change between the halves' denoised images."""
+    half = next(make_loop(calibrated_networks, spp_first=8, max_iterations=1).run())
+    loop = make_loop(calibrated_networks, spp_first=16, max_iterations=1, target_error=1e-9)
+    first = next(loop.run())
+    assert first.spp_mean == 16 and loop.state.buffers[0].passes == 2
+    assert loop.session.full_calls == 2  # the half, then the whole
+    change = image_change(half.denoised[0], first.denoised[0])
+    assert first.predicted_error == pytest.approx(calibrated_mean(first.network_error, change, SCALE), rel=1e-4)
+
+
+def test_without_a_target_error_or_with_an_odd_first_count_the_first_iteration_is_one_pass(calibrated_networks):
+    for overrides in ({}, {"spp_first": 15, "target_error": 1e-9}):
+        loop = make_loop(calibrated_networks, max_iterations=1, **overrides)
+        first = next(loop.run())
+        assert loop.state.buffers[0].passes == 1 and loop.session.full_calls == 1
+        assert first.predicted_error == pytest.approx(first.network_error)

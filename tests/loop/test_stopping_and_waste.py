@@ -42,11 +42,13 @@ def test_pixels_whose_samples_all_agree_get_no_more_than_their_share(shipped, sc
 
 
 def test_target_error_stops_at_the_first_iteration_that_reaches_it(shipped):
-    """A target between two iterations' predicted errors stops exactly after the later one."""
+    """A target below the first two iterations' predicted errors and above the third's stops
+    exactly after the third. (The mean need not fall at every iteration: from the second on it is
+    calibrated by the image's change, which can correct the first iteration's guess upwards.)"""
     scene = next(p for p in DEV_SCENES if p.parent.name == "hard_shadows")
     errors = [r.predicted_error for r in dev_loop(shipped, scene, max_iterations=4).run()]
-    assert errors == sorted(errors, reverse=True), errors  # more samples, lower predicted error
-    target = (errors[1] + errors[2]) / 2
+    assert errors[2] < min(errors[:2]), errors
+    target = (errors[2] + min(errors[:2])) / 2
     records = list(dev_loop(shipped, scene, max_iterations=None, spp_budget=128, target_error=target).run())
     assert [r.stop_reason for r in records] == [None, None, "target_error"]
     assert records[-1].predicted_error <= target < records[-2].predicted_error
