@@ -262,17 +262,24 @@ class RenderLoop:
             # A λ edit that arrived meanwhile wins over the map this pass started with.
             self._keep_converged(self.session.relambda(self.state.lam_map) if not np.array_equal(lam_map, self.state.lam_map)
                                  else {f: to_hwc(image) for f, image in images.items()})
-            same_lam = previous_lam is not None and np.array_equal(previous_lam, self.state.lam_map)
-            scale = change_scale_of(self.session.networks.error_predictor)
-            for f, (image, samples) in previous.items():
-                now = self._denoised_samples[f] = int(self.state.buffers[f].spp.sum())
-                if samples is not None and 2 * samples == now:        # the previous iteration's image
-                    self._change[f] = image_change(image, self._denoised[f]) if same_lam else None
-                elif samples != now:                                  # none (first pass, resumed loop)
-                    self._change[f] = None
-                # (the same samples again: a repeated pass keeps the change it measured first)
-                self.state.error_maps[f] = calibrate_by_change(self.state.error_maps[f], self._change[f], scale)
+            self._calibrate_by_change(previous, previous_lam)
         timings["denoise"], timings["error"] = t1 - t0, t2 - t1
+
+    def _calibrate_by_change(self, previous: dict[int, tuple[np.ndarray | None, int | None]],
+                             previous_lam: np.ndarray | None) -> None:
+        """Rescale each owned frame's new error map by how far its denoised image moved from the
+        one before (service.loop.change_calibration). `previous`: per frame, that image and the
+        sample total behind it; only an image of half the samples, made with the same λ map, counts."""
+        same_lam = previous_lam is not None and np.array_equal(previous_lam, self.state.lam_map)
+        scale = change_scale_of(self.session.networks.error_predictor)
+        for f, (image, samples) in previous.items():
+            now = self._denoised_samples[f] = int(self.state.buffers[f].spp.sum())
+            if samples is not None and 2 * samples == now:        # the previous iteration's image
+                self._change[f] = image_change(image, self._denoised[f]) if same_lam else None
+            elif samples != now:                                  # none (first pass, resumed loop)
+                self._change[f] = None
+            # (the same samples again: a repeated pass keeps the change it measured first)
+            self.state.error_maps[f] = calibrate_by_change(self.state.error_maps[f], self._change[f], scale)
 
     def _denoise_first_half(self, buffers: list[FrameBuffer], lam_map: np.ndarray) -> None:
         """Denoise the first half of a split iteration 0 and keep it as the image the full one's
