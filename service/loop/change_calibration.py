@@ -19,17 +19,18 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
-from models.losses import SMAPE_EPS
+from models.losses import smape
 
 
 def image_change(previous: np.ndarray, current: np.ndarray) -> float:
-    """Mean SMAPE (eq. 2, ε = SMAPE_EPS) between two (H, W, 3) images; non-finite values count as 0."""
-    a = np.nan_to_num(np.asarray(previous, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    b = np.nan_to_num(np.asarray(current, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    """Mean SMAPE (eq. 2, models.losses.smape) between two (H, W, 3) images; non-finite values count as 0."""
+    a, b = (torch.nan_to_num(torch.as_tensor(x, dtype=torch.float64), nan=0.0, posinf=0.0, neginf=0.0)
+            for x in (previous, current))
     if a.shape != b.shape:
-        raise ValueError(f"images differ in shape: {a.shape} and {b.shape}")
-    return float((np.abs(a - b) / (np.abs(a) + np.abs(b) + SMAPE_EPS)).mean())
+        raise ValueError(f"images differ in shape: {tuple(a.shape)} and {tuple(b.shape)}")
+    return float(smape(a, b))
 
 
 def calibrated_mean(network_mean: float, change: float, change_scale: float) -> float:

@@ -257,9 +257,9 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
 
 def _error_network_to_train(init: Path | None, device, disagreement: bool = False,
                             width: int | None = None, residual: bool = False) -> ErrorPredictor:
-    """A fresh error network, or `init`'s weights with its calibration scale back at 1: the scale
-    is fitted after training, on validation scenes (`renderloop bench --calibration
-    --fit-scale`), so a fine-tuning run must not train through it. `disagreement` adds the
+    """A fresh error network, or `init`'s weights with its calibration back to none (output scale
+    1, no change scale): both are fitted after training, on validation scenes (`renderloop bench
+    --calibration --fit-scale`), so a fine-tuning run must neither train through nor keep them. `disagreement` adds the
     kernels/candidate disagreement channel; an `init` without it gets a zero-weighted one, so
     training starts from exactly that network; `residual` adds the residual test the same way
     (after it). `width`: a fresh network's (None: the default)."""
@@ -271,7 +271,7 @@ def _error_network_to_train(init: Path | None, device, disagreement: bool = Fals
                                                    residual_input=residual, **sizes)).to(device)
     trained = load_checkpoint(init, expected_kind="error_predictor", device=device)
     model = ErrorPredictor(dataclasses.replace(
-        trained.config, output_scale=1.0, disagreement_input=disagreement or trained.config.disagreement_input,
+        trained.config, output_scale=1.0, change_scale=None, disagreement_input=disagreement or trained.config.disagreement_input,
         residual_input=residual or trained.config.residual_input)).to(device)
     weights = trained.state_dict()
     weights["head.weight"] = _head_for_inputs(weights["head.weight"], trained.config, model.config)

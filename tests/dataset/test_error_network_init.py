@@ -13,10 +13,12 @@ from tests.models.conftest import make_frame
 
 def test_an_init_network_widened_for_the_disagreement_predicts_what_it_did_with_its_scale_reset(tmp_path):
     torch.manual_seed(0)
-    shipped = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, output_scale=1.25))
+    shipped = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, output_scale=1.25, change_scale=1.5))
     save_checkpoint(tmp_path / "error_predictor.pt", shipped)
     widened = _error_network_to_train(tmp_path / "error_predictor.pt", "cpu", disagreement=True)
+    # both calibrations are fitted to a trained network afterwards: a fine-tune starts without them
     assert widened.config.disagreement_input and widened.config.output_scale == 1.0
+    assert widened.config.change_scale is None
     frame, denoised = make_frame(8, 8), torch.rand(1, 3, 8, 8)
     with torch.no_grad():
         before = shipped(frame, denoised) / 1.25
