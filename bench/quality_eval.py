@@ -18,7 +18,8 @@ from torch import Tensor
 
 from bench.common import denoise_and_predict, oidn_denoiser, sanitize as clean, scene_reference, score
 from bench.quality_measures import flicker, lambda_measures, nanstats, pearson, spearman
-from models.denoiser import Denoiser, DenoiserCache, down, pad_to
+from models.denoiser import Denoiser, DenoiserCache
+from models.pyramid import down, pad_to
 from models.error_predictor import ErrorPredictor
 from models.features import demodulate
 from models.frames import FrameTensors

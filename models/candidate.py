@@ -108,9 +108,16 @@ class CandidateGate(nn.Module):
             self.specialise.base[:, -1].fill_(GATE_INIT_LOGIT)   # the bias column (ones input last)
 
     def prepare(self, kernel_features: Tensor, noisy: Tensor, candidate: Tensor, variance: Tensor) -> Tensor:
-        """(N,C,H,W) centre features and images → (N,1,width+1,H,W) with a ones channel last."""
-        x = torch.cat([kernel_features, gate_statistics(noisy, candidate, variance, self.firefly)], 1)
-        h = F.relu_(self.hidden(x))
+        """(N,C,H,W) centre features and images → (N,1,width+1,H,W) with a ones channel last.
+        The hidden layer reads [features; statistics] as two GEMMs, W·[f; s] = W_f·f + W_s·s,
+        instead of concatenating its input: one full-size copy fewer per pyramid level."""
+        stats = gate_statistics(noisy, candidate, variance, self.firefly)
+        n, c, height, width = kernel_features.shape
+        weight = self.hidden.weight
+        h = torch.baddbmm(self.hidden.bias.view(1, -1, 1), weight[:, :c].expand(n, -1, -1),
+                          kernel_features.reshape(n, c, -1))
+        h = h.baddbmm_(weight[:, c:].expand(n, -1, -1), stats.reshape(n, stats.shape[1], -1)).relu_()
+        h = h.view(n, -1, height, width)
         return torch.cat([h, torch.ones_like(h[:, :1])], 1).unsqueeze(1)
 
     def weight(self, hidden: Tensor, code: Tensor, offset: float = 0.0) -> Tensor:

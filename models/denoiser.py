@@ -30,6 +30,7 @@ from models.features import HDR_MAX, demodulate, feature_set, log_transform, rem
 from models.frames import FrameTensors
 from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
 from models.layers import ConvPair, Pointwise, cat_channels_last, conv3x3, res_blocks, trunk_in_bfloat16
+from models.pyramid import down, down_frame, pad_to, up, up_nearest
 from models.unet import UNetTrunk
 from models.warp import flow_to_center, warp
 
@@ -104,37 +105,7 @@ CANDIDATE_CHANNELS = 3   # trunk input channels DenoiserConfig.candidate_feature
 # stay in cache from the GEMM through exp to the last tap.
 TILE_PIXELS = 32768
 
-# --- tiny verbs ---------------------------------------------------------------------------
-
-def down(x: Tensor) -> Tensor:
-    """D: 2×2 average pooling (eq. 5) as four strided views: F.avg_pool2d's means at a third of
-    its CPU time (0.28 vs 0.96 ms for 3×512², 2 threads); the pyramid pools every buffer."""
-    h, w = x.shape[-2] // 2 * 2, x.shape[-1] // 2 * 2
-    return (x[..., 0:h:2, 0:w:2] + x[..., 1:h:2, 0:w:2] + x[..., 0:h:2, 1:w:2] + x[..., 1:h:2, 1:w:2]) * 0.25
-
-
-def up(x: Tensor) -> Tensor:
-    """U: bilinear 2× upsampling (eq. 5); smoother than nearest, no block seams."""
-    return F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
-
-
-def up_nearest(x: Tensor) -> Tensor:
-    """N: each coarse pixel onto its own 2×2 block (the compositor's cap, not its blend)."""
-    return F.interpolate(x, scale_factor=2, mode="nearest")
-
-
-def pad_to(x: Tensor, multiple: int) -> Tensor:
-    h, w = x.shape[-2:]
-    ph, pw = (-h) % multiple, (-w) % multiple
-    return F.pad(x, (0, pw, 0, ph), mode="replicate") if (ph or pw) else x
-
-
-def down_frame(frame: FrameTensors) -> FrameTensors:
-    """One pyramid step: average buffers; variance of a 4-pixel mean is the mean variance ÷ 4,
-    motion in pixels halves with the resolution."""
-    scale = {"variance": 0.25, "motion": 0.5}
-    return frame.map(lambda name, t: down(t) * scale.get(name, 1.0))
-
+# --- λ ------------------------------------------------------------------------------------
 
 def lambda_code(lam: Tensor) -> Tensor:
     """log λ / log 10 ∈ [0, 1]: the paper samples log λ uniformly, so this is the natural axis."""
@@ -246,10 +217,11 @@ class ScaleCompositor(nn.Module):
         if alphas is not None:
             alphas.append(a)
         swapped = torch.addcmul(fine, up(a), up(coarse - fine_low))
-        swapped = torch.minimum(swapped, torch.maximum(fine, up_nearest(coarse)))
-        if candidate is not None:
-            swapped = torch.minimum(swapped, torch.maximum(fine, candidate))
-        return torch.maximum(swapped, torch.minimum(fine, up(coarse)))
+        # One clamp for the floor and both caps: min(max(f, N), max(f, c)) = max(f, min(N, c)),
+        # and floor ≤ fine ≤ cap, so clamping in either order gives the same pixel.
+        near = up_nearest(coarse)
+        ceiling = torch.maximum(fine, near if candidate is None else torch.minimum(near, candidate))
+        return torch.clamp(swapped, min=torch.minimum(fine, up(coarse)), max=ceiling)
 
 
 # --- the λ-independent state ---------------------------------------------------------------
@@ -320,6 +292,8 @@ class Denoiser(nn.Module):
         center %= len(window)
         if self.temporal is None:  # one frame filtered: the center, its neighbours' samples pooled in
             window, center = self.filtered_window(window, center)
+        if len(window) == 1:       # nothing to warp, and no feature reads the sample count
+            window = [dataclasses.replace(window[0], motion=None, spp=None)]
         cleaned = [sanitize_frame(f) for f in window]
         frames, n_bad = [f for f, _ in cleaned], sum(n for _, n in cleaned)
         size = frames[center].size
@@ -361,16 +335,20 @@ class Denoiser(nn.Module):
         scale = demodulate(torch.ones_like(frame.albedo), frame.albedo)
         return demodulate(pad_to(clean, align), frame.albedo), frame.variance * scale * scale, n_bad
 
-    def _trunk_inputs(self, frames: list[FrameTensors], guide: Tensor | None = None) -> Tensor:
-        """All frames as one channels-last batch; guide: the demodulated candidate (candidate_features)."""
-        if guide is not None:
-            return cat_channels_last([self.features.build(frames[0]), log_transform(guide)])
+    def _trunk_inputs(self, frames: list[FrameTensors], guide: Tensor | None = None,
+                      dtype: torch.dtype | None = None) -> Tensor:
+        """All frames as one channels-last batch; guide: the demodulated candidate (candidate_features).
+        dtype: a single frame's is built in it at once (a bfloat16 trunk would copy it again)."""
+        extra = [log_transform(guide)] if guide is not None else []
+        if len(frames) == 1:
+            return cat_channels_last(self.features.planes(frames[0]) + extra, dtype)
         return torch.cat([self.features.build(f).permute(0, 2, 3, 1) for f in frames], 0).permute(0, 3, 1, 2)
 
     def _unet_features(self, frames: list[FrameTensors], guide: Tensor | None = None) -> list[tuple[Tensor, ...]]:
         """Per pyramid level, each frame's U-Net features (finest first), from the finest inputs."""
-        inputs = self._trunk_inputs(frames, guide)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=trunk_in_bfloat16(inputs)):
+        bf16 = trunk_in_bfloat16(frames[0].color)
+        inputs = self._trunk_inputs(frames, guide, torch.bfloat16 if bf16 else None)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             return [f.float().split(frames[0].color.shape[0], 0) for f in self.unet(inputs)]
 
     def _prepare_level(self, frames: list[FrameTensors], images: list[Tensor], center: int,
@@ -378,8 +356,9 @@ class Denoiser(nn.Module):
         """feats: this level's per-frame U-Net features; None: the level's own trunk (reads `guide`)."""
         n = frames[0].color.shape[0]
         if feats is None:
-            inputs = self._trunk_inputs(frames, guide)
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=trunk_in_bfloat16(inputs)):
+            bf16 = trunk_in_bfloat16(frames[0].color)
+            inputs = self._trunk_inputs(frames, guide, torch.bfloat16 if bf16 else None)
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
                 feats = self.spatial(self.encoder(inputs)).float().split(n, 0)
         motions = [f.motion for f in frames]
         c_feat, c_img = feats[center], images[center]
@@ -404,7 +383,7 @@ class Denoiser(nn.Module):
         hidden = c_img.new_empty(n, len(frames), c_hid + 1, *c_img.shape[-2:])
         hidden[:, :, c_hid] = 1.0
         for j, f in enumerate(feats_to_center):
-            hidden[:, j, :c_hid] = F.relu_(self.kernel_head(f))
+            self.kernel_head.relu_into(f, hidden[:, j, :c_hid])
         k = self.config.kernel_size
         return LevelCache([pad_for_kernel(i, k).contiguous() for i in out_images], hidden)
 

@@ -31,7 +31,7 @@ from models.features import (HDR_MAX, demodulate, feature_set, log_transform, sa
                              sanitize_frame)
 from models.frames import FrameTensors
 from models.kernel_disagreement import disagreement_feature
-from models.layers import channels_last, conv3x3, res_blocks, trunk_in_bfloat16
+from models.layers import cat_channels_last, conv3x3, res_blocks, trunk_in_bfloat16
 
 
 @dataclass
@@ -77,7 +77,7 @@ class ErrorPredictor(nn.Module):
         `disagreement_input` (and then required)."""
         f, _ = sanitize_frame(frame)
         d, _ = sanitize(denoised.float(), 0.0, HDR_MAX)
-        inputs = [self.features.build(f), log_transform(demodulate(d, f.albedo))]
+        inputs = [*self.features.planes(f), log_transform(demodulate(d, f.albedo))]
         if self.config.sample_count_input:
             if f.spp is None:
                 raise ValueError("this error network reads the per-pixel sample count: the frame has no spp map")
@@ -88,9 +88,9 @@ class ErrorPredictor(nn.Module):
             inputs.append(disagreement_feature(sanitize(disagreement.float(), 0.0, 1.0)[0]))
         if self.config.residual_input:
             inputs.append(residual_feature(f, d))
-        x = channels_last(torch.cat(inputs, 1))
+        x = cat_channels_last(inputs)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=trunk_in_bfloat16(x)):
-            raw = self.out(self.blocks(F.relu_(self.head(x)))).float()
+            raw = self.out(self.blocks(self.head.relu(x))).float()
         error = F.softplus(raw)
         return (error * self.config.output_scale).contiguous()
 

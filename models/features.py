@@ -101,31 +101,38 @@ def normalize_depth(depth: Tensor) -> Tensor:
 
 # --- encoder inputs, one builder per render source ----------------------------------------
 
-def path_features(f: FrameTensors) -> Tensor:
-    """(N,13,H,W) encoder input for the Mitsuba path tracer from an already sanitised frame: log
-    demodulated radiance, log(1+relative variance), log(1+albedo), normal, normalised depth."""
-    return torch.cat([
+def path_features(f: FrameTensors) -> list[Tensor]:
+    """The 13 encoder input channels for the Mitsuba path tracer from an already sanitised frame,
+    as planes: log demodulated radiance, log(1+relative variance), log(1+albedo), normal,
+    normalised depth."""
+    return [
         log_transform(demodulate(f.color, f.albedo)),
         log_transform(relative_variance(f.variance, f.color)),
         log_transform(f.albedo),
         f.normal,
         normalize_depth(f.depth),
-    ], dim=1)
+    ]
 
 
-def radiance_features(f: FrameTensors) -> Tensor:
-    """(N,6,H,W) for sources without auxiliary buffers (e.g. an EXR of colour + variance);
+def radiance_features(f: FrameTensors) -> list[Tensor]:
+    """The 6 channels for sources without auxiliary buffers (e.g. an EXR of colour + variance);
     the caller passes albedo = 1 so demodulation is a no-op."""
-    return torch.cat([
+    return [
         log_transform(demodulate(f.color, f.albedo)),
         log_transform(relative_variance(f.variance, f.color)),
-    ], dim=1)
+    ]
 
 
 @dataclass(frozen=True)
 class FeatureSet:
     channels: int
-    build: Callable[[FrameTensors], Tensor]   # from a SANITISED frame
+    # from a SANITISED frame, the channel groups in order: a network concatenates them with its
+    # other inputs in one pass (models.layers.cat_channels_last) rather than building them first
+    planes: Callable[[FrameTensors], list[Tensor]]
+
+    def build(self, frame: FrameTensors) -> Tensor:
+        """(N, channels, H, W) NCHW."""
+        return torch.cat(self.planes(frame), dim=1)
 
 
 FEATURE_SETS: dict[str, FeatureSet] = {

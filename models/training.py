@@ -13,7 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.denoiser import LAMBDA_MAX, Denoiser, DenoiserCache, down, pad_to
+from models.denoiser import LAMBDA_MAX, Denoiser, DenoiserCache
+from models.pyramid import down, pad_to
 from models.error_predictor import ErrorPredictor
 from models.features import demodulate
 from models.frames import FrameTensors

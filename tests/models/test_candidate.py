@@ -313,3 +313,16 @@ def test_keep_settings_is_refused_without_a_denoiser_to_take_them_from(tmp_path,
     config = TrainConfig(data=tmp_path, init=tmp_path / "shipped.pt", stage="multiscale", keep_settings=True)
     with pytest.raises(TrainConfigError, match="--keep-settings"):
         dataclasses.replace(config, **changes).validate()
+
+
+def test_gate_preparation_is_relu_of_its_layer_on_features_and_statistics_with_a_ones_channel():
+    den = Denoiser(dataclasses.replace(TINY, oidn_candidate=True, temporal=False))
+    gate, f = den.gate, make_frame()
+    features = torch.rand(1, TINY.lambda_width, 12, 16)
+    with torch.no_grad():
+        hidden = gate.prepare(features, f.color, f.color * 0.8, f.variance)
+        stats = gate_statistics(f.color, f.color * 0.8, f.variance)
+        expected = F.relu(gate.hidden(torch.cat([features, stats], 1)))
+    assert hidden.shape == (1, 1, TINY.gate_width + 1, 12, 16)
+    assert torch.allclose(hidden[:, 0, :-1], expected, atol=1e-6)
+    assert torch.equal(hidden[:, 0, -1], torch.ones(1, 12, 16))

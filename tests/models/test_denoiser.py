@@ -3,7 +3,8 @@ from dataclasses import replace
 import pytest
 import torch
 
-from models.denoiser import Denoiser, ScaleCompositor, down, up
+from models.denoiser import Denoiser, ScaleCompositor
+from models.pyramid import down, up
 from models.frames import FrameTensors
 from models.layers import cpu_has_native_bfloat16, trunk_in_bfloat16
 from tests.models.conftest import TINY, make_frame
@@ -262,3 +263,29 @@ def test_bfloat16_trunk_changes_the_denoised_image_by_under_a_percent(monkeypatc
 def test_training_keeps_the_trunk_in_float32():
     with torch.enable_grad():
         assert not trunk_in_bfloat16(torch.zeros(1))
+
+
+def test_scale_compositor_clamp_is_the_floor_and_both_caps_of_its_docstring():
+    """The one clamp equals the rule applied step by step: swap capped at max(fine, N(coarse)) and
+    at max(fine, candidate), then floored at min(fine, U(coarse))."""
+    compositor = ScaleCompositor(4)
+    g = torch.Generator().manual_seed(3)
+    fine, coarse = torch.rand(2, 3, 8, 10, generator=g) * 5, torch.rand(2, 3, 4, 5, generator=g) * 5
+    candidate = torch.rand(2, 3, 8, 10, generator=g) * 5
+    with torch.no_grad():
+        out = compositor(fine, coarse, candidate=candidate)
+        swapped = torch.addcmul(fine, up(compositor.blend_weight(down(fine), coarse)), up(coarse - down(fine)))
+    near = torch.nn.functional.interpolate(coarse, scale_factor=2, mode="nearest")
+    stepwise = torch.minimum(swapped, torch.maximum(fine, near))
+    stepwise = torch.minimum(stepwise, torch.maximum(fine, candidate))
+    stepwise = torch.maximum(stepwise, torch.minimum(fine, up(coarse)))
+    assert torch.equal(out, stepwise)
+
+
+def test_a_single_frames_motion_and_sample_count_do_not_change_its_denoised_image():
+    den = Denoiser(replace(TINY, temporal=False)).eval()
+    moving = make_frame(h=16, w=16)
+    moving.spp = torch.full((1, 1, 16, 16), 32.0)
+    still = replace(moving, motion=None, spp=None)
+    with torch.no_grad():
+        assert torch.equal(den([moving], 0), den([still], 0))

@@ -35,7 +35,8 @@ def test_network_input_is_finite_with_hostile_buffers():
     f.variance[0, 1, 1, 1] = float("inf")
     f.albedo.zero_()
     f.depth.zero_()
-    x = path_features(sanitize_frame(f)[0])
+    x = FEATURE_SETS["mitsuba-path"].build(sanitize_frame(f)[0])
+    assert torch.equal(x, torch.cat(path_features(sanitize_frame(f)[0]), 1))
     assert x.shape == (1, FEATURE_SETS["mitsuba-path"].channels, 12, 16)
     assert x.isfinite().all()
 

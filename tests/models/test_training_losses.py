@@ -1,7 +1,8 @@
 import pytest
 import torch
 
-from models.denoiser import Denoiser, down
+from models.denoiser import Denoiser
+from models.pyramid import down
 from models.features import demodulate
 from models.training import coarse_levels_loss, denoiser_lambda_loss, denoiser_loss, denoiser_smape, result_loss
 from tests.models.conftest import TINY, make_frame
