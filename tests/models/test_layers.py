@@ -68,3 +68,12 @@ def test_cat_channels_last_converts_dtype_in_the_same_pass():
     assert in_bf16.dtype == torch.bfloat16
     assert torch.equal(in_bf16, torch.cat(parts, 1).to(torch.bfloat16))
     assert torch.equal(plain, torch.cat(parts, 1))
+
+
+def test_a_conv_built_under_inference_mode_runs_its_fast_path():
+    """Parameters created under inference_mode are inference tensors without a version counter
+    (a network built inside a timed or served inference block)."""
+    with torch.inference_mode():
+        conv, x, residual = Conv3x3(6, 6), _image(), _image(seed=1)
+        assert torch.allclose(conv.relu(x), F.relu(conv(x)), atol=1e-5)
+        assert torch.allclose(conv.add_relu(x, residual), F.relu(conv(x) + residual), atol=1e-5)
