@@ -197,8 +197,16 @@ def test_a_sequence_fanned_out_over_two_workers_equals_the_single_process_result
         torch.set_num_threads(threads)
     for f, want in enumerate(expected):
         got = read_exr(worker.files(job_id).result_path(f))
-        for layer in ("color", "noisy", "variance", "spp", "error", "motion"):
-            np.testing.assert_array_equal(getattr(got, layer), getattr(want, layer), err_msg=f"frame {f} {layer}")
+        np.testing.assert_array_equal(got.spp, want.spp, err_msg=f"frame {f}: another allocation")
+        # Equal up to the last bits of float32, not bit for bit: the renderer's scatter-adds and
+        # the GEMMs sum in an order that can differ between processes (seen on an AVX2 EPYC,
+        # 1 ulp in the noisy mean of one frame), which a bitwise check would call a mismatch.
+        for layer in ("color", "noisy", "variance", "error", "motion"):
+            if getattr(want, layer) is None:
+                assert getattr(got, layer) is None, f"frame {f} {layer}"
+                continue
+            np.testing.assert_allclose(getattr(got, layer), getattr(want, layer), rtol=1e-5, atol=1e-6,
+                                       err_msg=f"frame {f} {layer}")
 
 
 def test_serve_with_two_ray_workers_runs_two_submitted_jobs_at_once(tmp_path):
