@@ -67,14 +67,19 @@ def guarded_scene(name: str):
 
 
 @pytest.fixture(scope="module")
-def shipped_runs():
+def shipped() -> Networks:
+    return load_networks()
+
+
+@pytest.fixture(scope="module")
+def shipped_runs(shipped):
     """name → (scene, reference, the shipped networks' first iteration), each rendered once."""
     runs: dict = {}
 
     def run(name: str):
         if name not in runs:
             scene, reference = guarded_scene(name)
-            runs[name] = scene, reference, first_iteration(scene, load_networks())
+            runs[name] = scene, reference, first_iteration(scene, shipped)
         return runs[name]
     return run
 
@@ -108,10 +113,10 @@ def error_rank(record, reference) -> float:
 
 
 @pytest.mark.parametrize("name", GUARDS)
-def test_shipped_denoiser_keeps_its_smape_cut_on_an_unseen_scene(shipped_runs, name):
+def test_shipped_denoiser_keeps_its_smape_cut_on_an_unseen_scene(shipped, shipped_runs, name):
     _, reference, record = shipped_runs(name)
     assert smape_cut(record, reference) >= GUARDS[name].smape_cut
-    assert kernel_smape_cut(load_networks().denoiser, record, reference) >= GUARDS[name].kernel_smape_cut
+    assert kernel_smape_cut(shipped.denoiser, record, reference) >= GUARDS[name].kernel_smape_cut
 
 
 def test_shipped_denoiser_keeps_the_hard_shadows_contrast(shipped_runs):
@@ -119,16 +124,15 @@ def test_shipped_denoiser_keeps_the_hard_shadows_contrast(shipped_runs):
     assert shadow_contrast_ratio(record.denoised[0], reference, SHADOW_REGIONS["hard_shadows"]) >= MIN_SHADOW_CONTRAST
 
 
-def untrained_shipped_architecture() -> Networks:
-    shipped = load_networks()
+def untrained_shipped_architecture(shipped: Networks) -> Networks:
     torch.manual_seed(0)
     return Networks(Denoiser(shipped.denoiser.config).eval(), shipped.error_predictor)
 
 
 @pytest.mark.parametrize("name", GUARDS)
-def test_an_untrained_denoiser_does_not_pass_the_guard(tiny_networks, name):
+def test_an_untrained_denoiser_does_not_pass_the_guard(shipped, tiny_networks, name):
     scene, reference = guarded_scene(name)
-    for networks in (tiny_networks, untrained_shipped_architecture()):
+    for networks in (tiny_networks, untrained_shipped_architecture(shipped)):
         record = first_iteration(scene, networks)
         # the whole image of a candidate-leaning architecture is mostly OIDN's: the kernels tell
         assert kernel_smape_cut(networks.denoiser, record, reference) < GUARDS[name].kernel_smape_cut
@@ -141,9 +145,8 @@ def test_shipped_error_network_ranks_pixels_by_their_true_error(shipped_runs, na
 
 
 @pytest.mark.parametrize("name", GUARDS)
-def test_an_untrained_error_network_does_not_pass_the_guard(name):
+def test_an_untrained_error_network_does_not_pass_the_guard(shipped, name):
     scene, reference = guarded_scene(name)
-    shipped = load_networks()
     torch.manual_seed(0)
     untrained = Networks(shipped.denoiser, ErrorPredictor(shipped.error_predictor.config).eval())
     assert error_rank(first_iteration(scene, untrained), reference) < GUARDS[name].error_rank
@@ -159,11 +162,11 @@ def luminance(image: np.ndarray) -> np.ndarray:
     return image @ np.array([0.2126, 0.7152, 0.0722])
 
 
-def test_a_firefly_leaves_no_dark_halo_around_it(shipped_runs):
+def test_a_firefly_leaves_no_dark_halo_around_it(shipped, shipped_runs):
     # One sample FIREFLY_FACTOR× the pixel's mean, injected into a real 16-spp render; the
     # yardstick is the same denoiser on the same render without it, so only the firefly's own
     # effect is measured (the issue's "no halo darker than the surrounding reference").
-    denoiser = load_networks().denoiser
+    denoiser = shipped.denoiser
     buffer = shipped_runs("hard_shadows")[2].buffers[0]
     without = luminance(denoise_buffer(denoiser, buffer))
     rng = np.random.default_rng(0)
