@@ -26,7 +26,8 @@ from torch import Tensor
 from models.accumulation import accumulate_window
 from models.candidate import CandidateGate, blend, clamp_around
 from models.energy import SampleEnergy, measure_energy, restore_energy
-from models.features import HDR_MAX, demodulate, feature_set, log_transform, remodulate, sanitize, sanitize_frame
+from models.features import (HDR_MAX, demodulate, demodulation_albedo, feature_set, log_transform, remodulate, sanitize,
+                             sanitize_frame)
 from models.frames import FrameTensors
 from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
 from models.layers import ConvPair, Pointwise, cat_channels_last, conv3x3, res_blocks, trunk_in_bfloat16
@@ -75,6 +76,12 @@ class DenoiserConfig:
     # before the blend, t widening to no clamp at λ = 10 (models.candidate.clamp_around); None = off.
     # A highlight the kernels spread beyond what OIDN saw is a relMSE outlier (docs/guided-kernels.md).
     kernel_clamp: float | None = None
+    # Post-training: the kernels filter radiance ÷ max(albedo, floor), the candidate joins in that
+    # space, and the result is multiplied back by the same (models.features.demodulation_albedo);
+    # the trunk still reads the plain demodulated features it was trained on. 0 = plain albedo.
+    # Near-zero albedo (glass, mirrors, the sky) otherwise left bright dots along the edges of
+    # what borders it (docs/models.md, "The albedo floor").
+    albedo_floor: float = 0.0
 
     def without_post_training_settings(self) -> "DenoiserConfig":
         """This config with the settings chosen after training (on validation scenes, for given
@@ -98,7 +105,8 @@ class DenoiserConfig:
 
 TRUNKS = ("levels", "unet")
 # The config fields chosen after training, on validation scenes, for given weights (above).
-POST_TRAINING_SETTINGS = ("energy_tolerance", "energy_block", "gate_offset", "coarse_gate_offset", "candidate_cap", "kernel_clamp")
+POST_TRAINING_SETTINGS = ("energy_tolerance", "energy_block", "gate_offset", "coarse_gate_offset", "candidate_cap", "kernel_clamp",
+                          "albedo_floor")
 CANDIDATE_CHANNELS = 3   # trunk input channels DenoiserConfig.candidate_features adds (log demodulated RGB)
 
 # Inference bands of rows for the λ tail: a band's F·k² weight planes and its 3-channel output
@@ -237,7 +245,7 @@ class LevelCache:
 @dataclass
 class DenoiserCache:
     levels: list[LevelCache]       # finest first
-    albedo: Tensor                 # padded center albedo for remodulation
+    albedo: Tensor                 # padded center demodulation albedo (DenoiserConfig.albedo_floor), for remodulation
     size: tuple[int, int]          # original (H, W) to crop back to
     n_bad: int = 0                 # NaN/Inf values replaced while sanitising the filtered window
     energy: SampleEnergy | None = None   # the center's samples' energy (models.energy)
@@ -301,13 +309,14 @@ class Denoiser(nn.Module):
                   if self.config.energy_tolerance > 0 else None)
         align = self.config.alignment
         frames = [f.map(lambda _, t: pad_to(t, align)) for f in frames]
-        albedo = frames[center].albedo
+        floor = self.config.albedo_floor
+        albedo = demodulation_albedo(frames[center].albedo, floor)
 
         # Demodulate once at full resolution and pool the result: re-demodulating pooled buffers
         # (D(c)/D(a) ≠ D(c/a) on textures and albedo edges) made every coarse result differ
         # from D(fine) by a texture-shaped bias, and eq. 5 then learned α → 0.
-        images = [demodulate(f.color, f.albedo) for f in frames]
-        extra = self._demodulated_candidate(candidate, frames[center], align) if candidate is not None else None
+        images = [demodulate(f.color, demodulation_albedo(f.albedo, floor)) for f in frames]
+        extra = self._demodulated_candidate(candidate, frames[center].variance, albedo, align) if candidate is not None else None
         n_bad += extra[2] if extra is not None else 0
         guide = extra[0] if self.config.candidate_features else None
         trunk_features = self._unet_features(frames, guide) if self.config.trunk == "unet" else None
@@ -329,11 +338,12 @@ class Denoiser(nn.Module):
         return DenoiserCache(levels, albedo, size, n_bad, energy)
 
     @staticmethod
-    def _demodulated_candidate(candidate: Tensor, frame: FrameTensors, align: int) -> tuple[Tensor, Tensor, int]:
-        """Candidate and the center's variance in the kernels' demodulated space (Var(x/a) = Var(x)/a²)."""
+    def _demodulated_candidate(candidate: Tensor, variance: Tensor, albedo: Tensor, align: int) -> tuple[Tensor, Tensor, int]:
+        """Candidate and the center's variance in the kernels' demodulated space (Var(x/a) = Var(x)/a²);
+        albedo: the padded center's demodulation albedo."""
         clean, n_bad = sanitize(candidate.float(), 0.0, HDR_MAX)
-        scale = demodulate(torch.ones_like(frame.albedo), frame.albedo)
-        return demodulate(pad_to(clean, align), frame.albedo), frame.variance * scale * scale, n_bad
+        scale = demodulate(torch.ones_like(albedo), albedo)
+        return demodulate(pad_to(clean, align), albedo), variance * scale * scale, n_bad
 
     def _trunk_inputs(self, frames: list[FrameTensors], guide: Tensor | None = None,
                       dtype: torch.dtype | None = None) -> Tensor:

@@ -82,6 +82,15 @@ def remodulate(irradiance: Tensor, albedo: Tensor) -> Tensor:
     return irradiance * (albedo + ALBEDO_EPS)
 
 
+def demodulation_albedo(albedo: Tensor, floor: float) -> Tensor:
+    """The albedo a denoiser divides its filtered radiance by: at least `floor` (0 = the albedo).
+    Demodulation is right for light the albedo scales; glass, mirrors, emitters and the sky have
+    an albedo of about 0 and light it does not scale, which radiance / (albedo + ε) amplifies up to
+    1/ε = 100×. A kernel tap across such an edge then carries that amplified value onto a diffuse
+    neighbour. The floor bounds the amplification to 1/floor and stays continuous in the albedo."""
+    return albedo.clamp_min(floor) if floor > 0 else albedo
+
+
 def relative_variance(variance: Tensor, mean: Tensor) -> Tensor:
     """var / (mean² + ε): noise level independent of exposure."""
     return variance / (mean * mean + REL_VAR_EPS)

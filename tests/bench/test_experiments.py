@@ -20,6 +20,7 @@ from bench.experiments.gate_bound import kernels_and_candidate
 from bench.experiments.gate_offset import offset_ratios
 from bench.experiments.sample_cost import scene_cost, spread_over
 from bench.experiments.seed_spread import paired_ratio
+from bench.experiments.setting_sweep import parse_values, setting_images, summary_rows
 from bench.experiments.target_cost import INPUT_SPP, scene_costs
 from bench.experiments.trunk_speed import median_seconds, random_frame
 from models.denoiser import Denoiser, DenoiserConfig
@@ -301,3 +302,38 @@ def test_paired_ratio_settles_a_consistent_lead_and_calls_a_seed_to_seed_swing_a
     behind = paired_ratio([1.03, 1.02, 1.04], [1.0, 1.0, 1.0])
     assert behind.verdict == "OIDN" and behind.t > 2 and behind.wins == 0
     assert paired_ratio([1.0, 1.0], [1.0, 1.0]).t == 0.0           # identical: no spread, no verdict
+
+
+def test_setting_sweep_reads_each_value_as_the_settings_own_type():
+    assert parse_values("albedo_floor", ["0", "0.1"]) == [0.0, 0.1]
+    assert all(type(v) is float for v in parse_values("albedo_floor", ["0", "0.1"]))
+    assert parse_values("energy_block", ["0", "32"]) == [0, 32]
+    assert all(type(v) is int for v in parse_values("energy_block", ["32"]))
+    assert parse_values("kernel_clamp", ["off", "0.5"]) == [None, 0.5]
+    assert parse_values("candidate_cap", ["on", "off"]) == [True, False]
+    with pytest.raises(ValueError):
+        parse_values("energy_block", ["0.5"])
+
+
+def test_setting_sweep_summary_takes_medians_counts_and_their_mean_per_value():
+    # two scenes at one spp; value 1 is at most OIDN's on one scene in SMAPE and both in relMSE
+    cells = {(16, 0): [(1.2, 1.1), (1.0, 0.9)], (16, 1): [(0.9, 0.8), (1.1, 0.7)]}
+    rows = summary_rows(cells, [16], [0, 1])
+    assert rows[0] == (0, [(1.1, 1, 1.0, 1)], pytest.approx(1.05))
+    assert rows[1] == (1, [(1.0, 1, 0.75, 2)], pytest.approx(0.875))
+
+
+def test_setting_sweep_images_follow_the_setting_and_restore_the_config():
+    config = DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True)
+    torch.manual_seed(0)
+    denoiser = Denoiser(config).eval()
+    albedo = torch.full((1, 3, 16, 16), 0.8)
+    albedo[..., :8] = 0.0
+    color = torch.where(albedo > 0, 0.8, 1.0)
+    frame = FrameTensors(color=color, variance=torch.full_like(color, 1e-4), albedo=albedo,
+                         normal=torch.zeros(1, 3, 16, 16), depth=torch.ones(1, 1, 16, 16), motion=None)
+    with torch.no_grad():
+        plain, floored, plain_again = setting_images(denoiser, frame, color.clone(), "albedo_floor", [0.0, 0.1, 0.0])
+    assert denoiser.config == config
+    np.testing.assert_array_equal(plain, plain_again)
+    assert np.abs(plain - floored).max() > 1e-3

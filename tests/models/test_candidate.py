@@ -286,7 +286,7 @@ def test_kernel_clamp_is_a_post_training_setting_that_moves_the_output_towards_t
 
 
 SHIPPED_SETTINGS = {"energy_tolerance": 0.03, "energy_block": 32, "gate_offset": 2.0, "coarse_gate_offset": 10.0,
-                    "candidate_cap": True, "kernel_clamp": 0.5}
+                    "candidate_cap": True, "kernel_clamp": 0.5, "albedo_floor": 0.05}
 
 
 def test_a_fine_tune_trains_without_the_post_training_settings_and_keep_settings_writes_them_back(tmp_path):

@@ -3,7 +3,8 @@ from dataclasses import replace
 import pytest
 import torch
 
-from models.denoiser import Denoiser, ScaleCompositor
+from models.denoiser import Denoiser, DenoiserConfig, ScaleCompositor
+from models.features import ALBEDO_EPS
 from models.pyramid import down, up
 from models.frames import FrameTensors
 from models.layers import cpu_has_native_bfloat16, trunk_in_bfloat16
@@ -289,3 +290,39 @@ def test_a_single_frames_motion_and_sample_count_do_not_change_its_denoised_imag
     still = replace(moving, motion=None, spp=None)
     with torch.no_grad():
         assert torch.equal(den([moving], 0), den([still], 0))
+
+
+def _glass_beside_plaster(h: int = 8, w: int = 16) -> FrameTensors:
+    """Left half: light the albedo does not scale (glass, the sky: albedo 0, radiance 1); right
+    half: a diffuse surface of albedo 0.8 lit to radiance 0.8. Noise-free, so only the kernels
+    decide what crosses the edge between columns 7 and 8."""
+    albedo = torch.full((1, 3, h, w), 0.8)
+    albedo[..., : w // 2] = 0.0
+    color = torch.where(albedo > 0, 0.8, 1.0)
+    return FrameTensors(color=color, variance=torch.full_like(color, 1e-4), albedo=albedo,
+                        normal=torch.zeros(1, 3, h, w), depth=torch.ones(1, 1, h, w), motion=None)
+
+
+@torch.no_grad()
+def test_albedo_floor_bounds_what_a_zero_albedo_region_carries_onto_its_diffuse_neighbour():
+    # One level, no candidate: each output is a convex combination of its 3×3 neighbours'
+    # radiance ÷ (demodulation albedo + ε), times its own. On the plaster column beside the glass
+    # the glass taps read 1 / 0.01 = 100 without a floor and 1 / 0.11 ≈ 9.1 with floor 0.1.
+    config = replace(TINY, temporal=False, multiscale=False)
+    model = Denoiser(config).eval()
+    frame = _glass_beside_plaster()
+    plain = model([frame], 0)
+    model.config = replace(config, albedo_floor=0.1)
+    floored = model([frame], 0)
+    edge = (0.8 + ALBEDO_EPS) / (0.1 + ALBEDO_EPS)      # the most a plaster pixel can read with the floor
+    assert floored[..., 8].max() <= edge + 1e-4
+    assert plain[..., 8].max() > 3 * floored[..., 8].max()
+    # Beyond the kernels' reach each side comes back as it went in, with and without the floor.
+    for image in (plain, floored):
+        torch.testing.assert_close(image[..., :6], torch.ones_like(image[..., :6]))
+        torch.testing.assert_close(image[..., 10:], torch.full_like(image[..., 10:], 0.8))
+
+
+def test_albedo_floor_is_a_post_training_setting_off_by_default():
+    assert DenoiserConfig().albedo_floor == 0.0
+    assert replace(DenoiserConfig(), albedo_floor=0.1).without_post_training_settings().albedo_floor == 0.0
