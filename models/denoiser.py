@@ -78,9 +78,9 @@ class DenoiserConfig:
     kernel_clamp: float | None = None
     # Post-training: the kernels filter radiance ÷ max(albedo, floor), the candidate joins in that
     # space, and the result is multiplied back by the same (models.features.demodulation_albedo);
-    # the trunk still reads the plain demodulated features it was trained on. 0 = plain albedo.
-    # Near-zero albedo (glass, mirrors, the sky) otherwise left bright dots along the edges of
-    # what borders it (docs/models.md, "The albedo floor").
+    # the trunk's own features stay as trained (its guide, the candidate, is in the floored
+    # space). 0 = the plain albedo. The sky seen directly (a camera ray that misses: albedo 0)
+    # otherwise left bright dots along the edges of what borders it (docs/models.md, "The albedo floor").
     albedo_floor: float = 0.0
 
     def without_post_training_settings(self) -> "DenoiserConfig":

@@ -84,10 +84,12 @@ def remodulate(irradiance: Tensor, albedo: Tensor) -> Tensor:
 
 def demodulation_albedo(albedo: Tensor, floor: float) -> Tensor:
     """The albedo a denoiser divides its filtered radiance by: at least `floor` (0 = the albedo).
-    Demodulation is right for light the albedo scales; glass, mirrors, emitters and the sky have
-    an albedo of about 0 and light it does not scale, which radiance / (albedo + ε) amplifies up to
-    1/ε = 100×. A kernel tap across such an edge then carries that amplified value onto a diffuse
-    neighbour. The floor bounds the amplification to 1/floor and stays continuous in the albedo."""
+    Demodulation is right for light the albedo scales. A camera ray that misses everything sees the
+    sky or the environment and has albedo 0 (service/render/renderer.py; specular surfaces get 1),
+    and so has a black surface: light the albedo does not scale, which radiance / (albedo + ε)
+    amplifies up to 1/ε = 100×. A kernel tap across such an edge then carries that amplified value
+    onto a diffuse neighbour. The floor bounds the amplification to 1/floor and stays continuous
+    in the albedo."""
     return albedo.clamp_min(floor) if floor > 0 else albedo
 
 

@@ -292,8 +292,8 @@ def test_a_single_frames_motion_and_sample_count_do_not_change_its_denoised_imag
         assert torch.equal(den([moving], 0), den([still], 0))
 
 
-def _glass_beside_plaster(h: int = 8, w: int = 16) -> FrameTensors:
-    """Left half: light the albedo does not scale (glass, the sky: albedo 0, radiance 1); right
+def _sky_beside_plaster(h: int = 8, w: int = 16) -> FrameTensors:
+    """Left half: the sky seen directly (a camera ray that misses: albedo 0, radiance 1); right
     half: a diffuse surface of albedo 0.8 lit to radiance 0.8. Noise-free, so only the kernels
     decide what crosses the edge between columns 7 and 8."""
     albedo = torch.full((1, 3, h, w), 0.8)
@@ -306,11 +306,11 @@ def _glass_beside_plaster(h: int = 8, w: int = 16) -> FrameTensors:
 @torch.no_grad()
 def test_albedo_floor_bounds_what_a_zero_albedo_region_carries_onto_its_diffuse_neighbour():
     # One level, no candidate: each output is a convex combination of its 3×3 neighbours'
-    # radiance ÷ (demodulation albedo + ε), times its own. On the plaster column beside the glass
-    # the glass taps read 1 / 0.01 = 100 without a floor and 1 / 0.11 ≈ 9.1 with floor 0.1.
+    # radiance ÷ (demodulation albedo + ε), times its own. On the plaster column beside the sky
+    # the sky taps read 1 / 0.01 = 100 without a floor and 1 / 0.11 ≈ 9.1 with floor 0.1.
     config = replace(TINY, temporal=False, multiscale=False)
     model = Denoiser(config).eval()
-    frame = _glass_beside_plaster()
+    frame = _sky_beside_plaster()
     plain = model([frame], 0)
     model.config = replace(config, albedo_floor=0.1)
     floored = model([frame], 0)
