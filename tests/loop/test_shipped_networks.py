@@ -32,13 +32,13 @@ class Guard:
     error_rank: float          # Spearman of the error network's map against the true error
 
 
-# Measured with the shipped weights on a 2-core AVX2 EPYC (float32 trunk; docs/guided-kernels.md
-# has the Xeon's), as cut / kernel cut / rank; an untrained network of the shipped architecture in
-# brackets:
+# Measured with the shipped weights and settings (albedo floor included) on a 2-core AVX2 EPYC
+# (float32 trunk; docs/guided-kernels.md has the Xeon's), as cut / kernel cut / rank; an untrained
+# network of the shipped architecture in brackets:
 #   hard_shadows 5.92 / 4.36 / 0.547  (5.83 / 2.49 / 0.05)   OIDN alone 5.89
 #   metals       5.66 / 4.28 / 0.580  (5.59 / 2.22 / 0.29)   OIDN alone 5.51
-#   glass_box    4.26 / 3.34 / 0.608  (4.20 / 1.11 / 0.33)   OIDN alone 4.04
-#   env_object   5.40 / 4.25 / 0.847  (5.32 / 1.21 / −0.57)  OIDN alone 5.36
+#   glass_box    4.26 / 3.32 / 0.608  (4.21 / 1.08 / 0.33)   OIDN alone 4.04
+#   env_object   5.38 / 4.23 / 0.834  (5.34 / 1.95 / −0.57)  OIDN alone 5.36
 # The shipped denoiser mixes OIDN's image in (oidn_candidate) and its gate leans to it at λ = 1
 # (gate offsets 2 and 10), so an untrained network of the shipped architecture scores nearly the
 # same on the whole image: what the trained weights carry is the kernels, guarded on their own.
