@@ -309,13 +309,13 @@ class Denoiser(nn.Module):
                   if self.config.energy_tolerance > 0 else None)
         align = self.config.alignment
         frames = [f.map(lambda _, t: pad_to(t, align)) for f in frames]
-        floor = self.config.albedo_floor
-        albedo = demodulation_albedo(frames[center].albedo, floor)
+        albedos = [demodulation_albedo(f.albedo, self.config.albedo_floor) for f in frames]
+        albedo = albedos[center]
 
         # Demodulate once at full resolution and pool the result: re-demodulating pooled buffers
         # (D(c)/D(a) ≠ D(c/a) on textures and albedo edges) made every coarse result differ
         # from D(fine) by a texture-shaped bias, and eq. 5 then learned α → 0.
-        images = [demodulate(f.color, demodulation_albedo(f.albedo, floor)) for f in frames]
+        images = [demodulate(f.color, a) for f, a in zip(frames, albedos)]
         extra = self._demodulated_candidate(candidate, frames[center].variance, albedo, align) if candidate is not None else None
         n_bad += extra[2] if extra is not None else 0
         guide = extra[0] if self.config.candidate_features else None

@@ -13,19 +13,9 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
-import torch
-
 from bench.common import load_bench_networks
 from bench.dev_references import SUITES
-from bench.experiments.setting_sweep import setting_images, sweep
-from models.denoiser import Denoiser
-from models.frames import FrameTensors
-
-
-def block_images(denoiser: Denoiser, frame: FrameTensors, candidate: torch.Tensor, blocks: list[int]) -> list[np.ndarray]:
-    """The λ = 1 image for each energy block size (0: image-wide only); the config is back in place after."""
-    return setting_images(denoiser, frame, candidate, "energy_block", blocks)
+from bench.experiments.setting_sweep import sweep
 
 
 def main() -> None:

@@ -14,7 +14,6 @@ from bench.experiments.allocation_variants import allocator_variant, equal_gain_
 from bench.experiments.disagreement_map import ModulatedErrorMap, modulate
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
                                              ranking_row)
-from bench.experiments.energy_blocks import block_images
 from bench.experiments.energy_tolerance import UNTOUCHED, outputs_per_tolerance
 from bench.experiments.gate_bound import kernels_and_candidate
 from bench.experiments.gate_offset import offset_ratios
@@ -163,7 +162,7 @@ def test_energy_blocks_sweep_restores_each_half_where_it_was_lost_and_restores_t
     candidate = color.clone()
     candidate[..., :16] *= 0.8
     with torch.no_grad():
-        image_wide, blocks = block_images(denoiser, frame, candidate, [0, 8])
+        image_wide, blocks = setting_images(denoiser, frame, candidate, "energy_block", [0, 8])
     assert denoiser.config == config
     assert image_wide[:, 24:].mean() > 1.05                               # one factor: the right half overshoots
     np.testing.assert_allclose(blocks[:, 24:], 1.0, rtol=0.01)            # block by block: both halves right
