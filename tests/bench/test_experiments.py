@@ -11,6 +11,7 @@ import service.loop.loop as loop
 from bench.common import denoise_and_predict, denoiser_settings, image_metrics
 from bench.experiments.allocation_bound import best_allocation_ratio, fitted_exponent, optimal_counts, scene_bounds
 from bench.experiments.allocation_variants import allocator_variant, equal_gain_samples
+from bench.experiments.change_map import ChangeShapedLoop, change_shaped
 from bench.experiments.disagreement_map import ModulatedErrorMap, modulate
 from bench.experiments.error_ceiling import (infinite_render_estimate, leave_one_out_spearman, pairwise_spearman,
                                              ranking_row)
@@ -26,7 +27,9 @@ from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.frames import FrameTensors
 from models.kernel_disagreement import kernel_disagreement
+from service.loop.loop import RenderLoop
 from service.loop.oidn import candidate_for
+from service.loop.spec import LoopSpec
 from service.loop.tensors import to_image
 
 
@@ -336,3 +339,28 @@ def test_setting_sweep_images_follow_the_setting_and_restore_the_config():
     assert denoiser.config == config
     np.testing.assert_array_equal(plain, plain_again)
     assert np.abs(plain - floored).max() > 1e-3
+
+
+def test_change_shaping_keeps_the_maps_mean_and_ranks_by_how_far_each_pixel_moved():
+    error = np.full((12, 12), 0.02, np.float32)
+    previous = np.full((12, 12, 3), 0.5, np.float32)
+    current = previous.copy()
+    current[:, 6:] = 0.7                                     # the right half moved, the left did not
+    for gamma in (0.25, 1.0):
+        shaped = change_shaped(error, previous, current, gamma)
+        assert shaped.mean() == pytest.approx(error.mean(), rel=1e-5)
+        assert shaped[:, 9:].min() > shaped[:, :3].max()
+    np.testing.assert_array_equal(change_shaped(error, previous, current, 0.0), error)
+    assert change_shaped(error, previous, previous, 1.0) is error   # no change measured: the map as it was
+
+
+def test_the_change_shaped_loop_reshapes_the_map_only_once_it_has_an_image_to_compare(tiny_networks):
+    spec = LoopSpec(scene="cornell-box", width=16, height=16, max_iterations=2, allocator="error", seed=3)
+    (first, second), (shaped_first, shaped_second) = (
+        [(r.buffers[0].spp.copy(), r.error[0].copy(), r.denoised[0].copy()) for r in loop.run()]
+        for loop in (RenderLoop(spec, tiny_networks), ChangeShapedLoop(spec, tiny_networks, 0.5)))
+    np.testing.assert_array_equal(first[1], shaped_first[1])            # iteration 0: nothing to compare
+    np.testing.assert_array_equal(second[0], shaped_second[0])          # so the same samples followed
+    assert shaped_second[1].mean() == pytest.approx(second[1].mean(), rel=1e-4)
+    np.testing.assert_allclose(shaped_second[1], change_shaped(second[1], first[2], second[2], 0.5), rtol=1e-5, atol=1e-9)
+    assert not np.allclose(shaped_second[1], second[1])
