@@ -13,6 +13,7 @@ import hashlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import drjit as dr
 import numpy as np
@@ -171,3 +172,11 @@ def load_reference(folder: Path, scene: DevScene, frame: int | None = None,
         raise StaleReference(f"{candidates[-1].name} was rendered from another version of {scene.name}: "
                              "re-run `renderloop bench --references --only " + scene.name + "`")
     return stored.color, stored.header
+
+
+def still_scenes(suite: str) -> Iterator[tuple[DevScene, np.ndarray]]:
+    """Each still scene of `suite` (SUITES' name) with its reference; an animated one is left out
+    (what is measured on one loop or a static sequence has no single image to compare it with)."""
+    for scene in dev_scenes(None, SUITES[suite].root):
+        if scene.frames == 1:
+            yield scene, load_reference(SUITES[suite].references, scene, None)[0]

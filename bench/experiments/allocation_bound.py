@@ -34,7 +34,7 @@ import torch
 from scipy.ndimage import uniform_filter
 
 from bench.common import denoise_and_predict, load_bench_networks, pinned_torch_threads, true_error_map
-from bench.dev_references import SUITES, dev_scenes, load_reference
+from bench.dev_references import SUITES, still_scenes
 from bench.quality_measures import block_means
 from bench.suite_quality import uniform_render
 from models.pretrained import Networks
@@ -115,10 +115,7 @@ def main() -> None:
           f"uniform's at a mean {FINAL_SPP} spp\n\n| scene | " + " | ".join(columns) + " |\n|---|" + "---:|" * len(columns))
     rows = []
     with pinned_torch_threads(2), torch.no_grad():
-        for scene in dev_scenes(None, SUITES[args.suite].root):
-            if scene.frames > 1:
-                continue
-            reference, _ = load_reference(SUITES[args.suite].references, scene, None)
+        for scene, reference in still_scenes(args.suite):
             first, final = (expected_error(scene, reference, nets.networks, spp, args.renders)
                             for spp in (FIRST_SPP, FINAL_SPP))
             rows.append(scene_bounds(first, final))

@@ -19,7 +19,7 @@ import numpy as np
 import service.loop.allocate as allocate
 import service.loop.loop as loop
 from bench.common import image_metrics, load_bench_networks, pinned_torch_threads
-from bench.dev_references import SUITES, DevScene, dev_scenes, load_reference
+from bench.dev_references import SUITES, DevScene, still_scenes
 from bench.loop_run import TrueErrorMap
 from models.pretrained import Networks
 from service.loop.loop import RenderLoop
@@ -96,10 +96,7 @@ def final_smape(scene_path: str, networks: Networks, allocator: str, reference: 
 def uniform_baselines(suite: str, networks: Networks, seed: int) -> Iterator[tuple[DevScene, np.ndarray, float]]:
     """Each still scene of `suite`, its reference, and uniform (b)'s SMAPE at 128 spp: what every
     variant's loop is divided by."""
-    for scene in dev_scenes(None, SUITES[suite].root):
-        if scene.frames > 1:
-            continue
-        reference, _ = load_reference(SUITES[suite].references, scene, None)
+    for scene, reference in still_scenes(suite):
         yield scene, reference, final_smape(str(scene.path), networks, "uniform", reference, seed)
 
 

@@ -26,7 +26,7 @@ import torch
 from scipy.ndimage import uniform_filter
 
 from bench.common import image_metrics, load_bench_networks, pinned_torch_threads, true_error_map
-from bench.dev_references import SUITES, dev_scenes, load_reference
+from bench.dev_references import SUITES, still_scenes
 from bench.experiments.disagreement_map import modulate
 from bench.quality_measures import spearman
 from models.pretrained import Networks
@@ -95,10 +95,7 @@ def main(argv: Sequence[str] | None = None) -> None:
           "| scene | shipped | " + " | ".join(f"γ = {g:g}" for g in args.gamma) + " |\n|---|---|" + "---|" * len(args.gamma))
     rows = []
     with pinned_torch_threads(2), torch.no_grad():
-        for scene in dev_scenes(None, SUITES[args.suite].root):
-            if scene.frames > 1:
-                continue
-            reference, _ = load_reference(SUITES[args.suite].references, scene, None)
+        for scene, reference in still_scenes(args.suite):
             row = scene_rows(str(scene.path), reference, networks, args.gamma, args.seeds)
             rows.append(row)
             print(f"| {scene.name} | " + " | ".join(f"{r:.3f} / {rho:.2f}" for r, rho, _ in row) + " |", flush=True)

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from bench.common import denoiser_settings, image_metrics, load_bench_networks, pinned_torch_threads
-from bench.dev_references import SUITES, dev_scenes, load_reference
+from bench.dev_references import SUITES, still_scenes
 from bench.quality_measures import mean_abs_change
 from bench.suite_quality import SEED, uniform_render
 from service.loop.oidn import candidate_for
@@ -53,10 +53,7 @@ def main() -> None:
           + " | ".join(SETTINGS) + " |\n|---|" + "---:|" * len(SETTINGS))
     ratios: dict[str, list[tuple[float, float, float]]] = {name: [] for name in SETTINGS}
     with pinned_torch_threads(2), torch.no_grad():
-        for scene in dev_scenes(None, SUITES[args.suite].root):
-            if scene.frames > 1:
-                continue                                   # an animated scene is not a static sequence
-            reference, _ = load_reference(SUITES[args.suite].references, scene, None)
+        for scene, reference in still_scenes(args.suite):   # an animated scene is not a static sequence
             ours: dict[str, list[np.ndarray]] = {name: [] for name in SETTINGS}
             oidn = []
             for f in range(FRAMES):
