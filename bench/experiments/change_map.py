@@ -71,15 +71,14 @@ def last_scores(loop: RenderLoop, reference: np.ndarray) -> tuple[float, float]:
 
 
 def scene_rows(scene_path: str, reference: np.ndarray, networks: Networks, gammas: Sequence[float],
-               seeds: Sequence[int]) -> list[tuple[float, float, float]]:
-    """Per setting (shipped, then each γ): (SMAPE ÷ the shipped loop's, Spearman, its own SMAPE),
-    means over the seeds."""
+               seeds: Sequence[int]) -> list[tuple[float, float]]:
+    """Per setting (shipped, then each γ): (SMAPE ÷ the shipped loop's, Spearman), means over the seeds."""
     per_seed = []
     for seed in seeds:
         spec = LoopSpec(scene=scene_path, max_iterations=ITERATIONS, allocator="error", seed=seed)
         scores = [last_scores(RenderLoop(spec, networks), reference)]
         scores += [last_scores(ChangeShapedLoop(spec, networks, gamma), reference) for gamma in gammas]
-        per_seed.append([(s / scores[0][0], rho, s) for s, rho in scores])
+        per_seed.append([(s / scores[0][0], rho) for s, rho in scores])
     return [tuple(float(x) for x in row) for row in np.mean(np.asarray(per_seed), axis=0)]
 
 
@@ -98,10 +97,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         for scene, reference in still_scenes(args.suite):
             row = scene_rows(str(scene.path), reference, networks, args.gamma, args.seeds)
             rows.append(row)
-            print(f"| {scene.name} | " + " | ".join(f"{r:.3f} / {rho:.2f}" for r, rho, _ in row) + " |", flush=True)
+            print(f"| {scene.name} | " + " | ".join(f"{r:.3f} / {rho:.2f}" for r, rho in row) + " |", flush=True)
     medians = np.median(np.asarray(rows), axis=0)
     better = (np.asarray(rows)[:, :, 0] < 1).sum(axis=0)
-    print("| **median** | " + " | ".join(f"{r:.3f} / {rho:.2f}" for r, rho, _ in medians) + " |")
+    print("| **median** | " + " | ".join(f"{r:.3f} / {rho:.2f}" for r, rho in medians) + " |")
     print("| SMAPE below the shipped loop's | — | " + " | ".join(f"{n} of {len(rows)}" for n in better[1:]) + " |")
 
 
