@@ -35,6 +35,13 @@ BINS_PER_HALF_PIXEL = 128
 BOX_RADIUS = 0.5 + 1e-3
 
 
+def footprint_pixels(radius: float) -> int:
+    """How many pixels beyond its own a sample drawn for one pixel can land (offsets up to the
+    filter's radius from the pixel centre): 0 for the box, 1 for the tent, 2 for Mitsuba's
+    default Gaussian (radius 2)."""
+    return max(0, math.ceil(radius - 0.5 - 1e-6))
+
+
 class PixelFilter:
     """Draws (film position, weight) per lane for pixel (column, row) of a W×H film."""
 

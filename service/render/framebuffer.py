@@ -18,6 +18,21 @@ def _finite(values: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(values), values, 0.0)
 
 
+def _window(values: np.ndarray, radius: int, reduce) -> np.ndarray:
+    """`reduce` (np.minimum, np.maximum, np.logical_and) over each pixel's (2r+1)² window, as
+    two separable passes; the film's edge pixels stand in for what lies beyond it (the filter
+    is truncated to the film, so nothing there reaches in)."""
+    for axis in (0, 1):
+        n = values.shape[axis]
+        pad = [(radius, radius) if a == axis else (0, 0) for a in range(values.ndim)]
+        padded = np.moveaxis(np.pad(values, pad, mode="edge"), axis, 0)
+        out = padded[:n]
+        for k in range(1, 2 * radius + 1):
+            out = reduce(out, padded[k:k + n])
+        values = np.moveaxis(out, 0, axis)
+    return values
+
+
 @dataclass
 class FrameBuffer:
     """Running sums for one frame, persistent across render calls.
@@ -81,19 +96,32 @@ class FrameBuffer:
         var_of_mean = np.divide(np.maximum(sample_var, 0.0), n, out=np.zeros_like(mean), where=n > 1)
         return _finite(var_of_mean).astype(np.float32)
 
-    def converged(self, min_spp: int = CONVERGED_MIN_SPP) -> np.ndarray:
+    def converged(self, min_spp: int = CONVERGED_MIN_SPP, footprint: int = 0) -> np.ndarray:
         """(H, W) bool: at least `min_spp` samples and every one returned the same value — an
         empty background (every primary ray missed, radiance 0) or a flat emitter seen directly
         (the same non-zero value). The mean is then exact for what the pixel sees, so nothing
         gains from more samples or from filtering it. A surface pixel whose samples were all 0
-        does not count: rare light paths (indirect light in a dark corner) can miss 16 times."""
+        does not count: rare light paths (indirect light in a dark corner) can miss 16 times.
+
+        `footprint`: how many pixels the film's reconstruction filter reaches beyond a pixel's
+        own (service.render.filters.footprint_pixels; 0 for a box). A sample drawn for a pixel
+        lands anywhere in that reach, so a pixel beside geometry can see only misses in 16
+        samples and still have a non-zero expected value (sun_room's sky row above the ground
+        under a Gaussian filter: 15 % of it read 0 at 16 spp, the reference 0.024). Such a pixel
+        is exact only if every pixel within the reach agreed on the same value too."""
         n = self.spp[..., None].astype(np.float64)
         spread = self.radiance_sq_sum - np.divide(self.radiance_sum**2, n, out=np.zeros_like(self.radiance_sum),
                                                   where=n > 0)
         same = (np.abs(spread) <= CONVERGED_REL_TOLERANCE * self.radiance_sq_sum).all(axis=-1)
         lit = self.radiance_sum.any(axis=-1)
         missed = self.depth_sum == 0  # first-hit distance is 0 for a miss
-        return (self.spp >= min_spp) & same & (lit | missed)
+        agreed = (self.spp >= min_spp) & same & (lit | missed)
+        if footprint <= 0:
+            return agreed
+        mean = self._per_sample(self.radiance_sum)
+        low, high = _window(mean, footprint, np.minimum), _window(mean, footprint, np.maximum)
+        level = (high - low <= CONVERGED_REL_TOLERANCE * np.abs(high)).all(axis=-1)
+        return _window(agreed, footprint, np.logical_and) & level
 
     def relative_variance(self, eps: float = 1e-2) -> np.ndarray:
         """Variance of the mean over squared luminance-ish magnitude (Rousselle et al. style)."""

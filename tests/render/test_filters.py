@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.render.filters import PixelFilter
+from service.render.filters import PixelFilter, footprint_pixels
 from service.render.runtime import mitsuba
 
 LANES = 200_000
@@ -41,3 +41,10 @@ def test_gaussian_weights_stay_near_one():
     x, weight = offsets({"type": "gaussian"}, column=4)
     assert np.abs(x).max() <= 2.0 and weight is not None
     assert abs(weight.mean() - 1) < 0.01 and weight.std() < 0.05
+
+
+def test_the_footprint_counts_the_pixels_a_sample_can_land_in_beyond_its_own():
+    mi = mitsuba()
+    radii = {name: mi.load_dict({"type": name}).radius() for name in ("box", "tent", "gaussian")}
+    assert [footprint_pixels(radii[n]) for n in ("box", "tent", "gaussian")] == [0, 1, 2]
+    assert footprint_pixels(1.5) == 1 and footprint_pixels(1.51) == 2
