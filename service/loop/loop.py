@@ -32,13 +32,13 @@ from service.render.runtime import active_variant, mitsuba
 
 
 def next_counts(allocator: str, buffer: FrameBuffer, predicted_error: np.ndarray | None, budget: int,
-                seed: int, footprint: int = 0) -> np.ndarray:
+                seed: int) -> np.ndarray:
     """The loop's allocation step for one frame: `budget` new samples per the allocator's
-    weights. Pixels whose samples all agreed (empty background, flat emitters; `footprint`:
-    FrameBuffer.converged) gain nothing from more: they get only the allocator's uniform floor."""
+    weights. Pixels whose samples all agreed (empty background, flat emitters) gain nothing
+    from more: they get only the allocator's uniform floor."""
     weights = allocation_weights(allocator, predicted_error=predicted_error,
                                  relative_variance=buffer.relative_variance(), shape=buffer.shape)
-    settled = buffer.converged(footprint=footprint) if allocator != "uniform" else None
+    settled = buffer.converged() if allocator != "uniform" else None
     return allocate_samples(weights, budget, seed=seed, floor_only=settled)
 
 
@@ -87,11 +87,14 @@ class RenderLoop:
         self.integrator = make_integrator(self.effects)
         film = self.scenes[0].sensors()[0].film()
         width, height = film.crop_size()
-        # how far the pixel filter carries a sample into the neighbours (FrameBuffer.converged)
-        self.footprint = footprint_pixels(film.rfilter().radius())
         self.state = state or LoopState.new(spec.frames, int(height), int(width), spec.lam)
         if self.state.buffers[0].shape != (height, width) or len(self.state.buffers) != spec.frames:
             raise LoopSpecError("checkpoint does not match the job's resolution or frame count")
+        # How far the film filter carries a sample into the neighbours: which agreeing pixels are
+        # exact (FrameBuffer.converged). A property of the scene, so a checkpoint needs not keep it.
+        footprint = footprint_pixels(film.rfilter().radius())
+        for buffer in self.state.buffers:
+            buffer.footprint = footprint
         # One frame → no temporal work; more → each frame's 2M+1 window (all frames advance together).
         radius = networks.denoiser.config.temporal_radius if (networks and self.effects.temporal) else 0
         self.owned = owned if owned is not None else range(spec.frames)
@@ -199,7 +202,7 @@ class RenderLoop:
             if spec.spp_budget is not None:
                 budget = min(budget, max(0, int(round(spec.spp_budget * buf.spp.size)) - int(buf.spp.sum())))
             counts[f] = next_counts(spec.allocator, buf, state.error_maps[f], budget,
-                                    seed=spec.seed * 1000 + state.iteration, footprint=self.footprint)
+                                    seed=spec.seed * 1000 + state.iteration)
         timings["allocate"] = time.perf_counter() - t0
         return counts
 
@@ -258,7 +261,7 @@ class RenderLoop:
         t2 = time.perf_counter()
         with self.lock:
             for f in self.owned:
-                self._converged[f] = self.state.buffers[f].converged(footprint=self.footprint)
+                self._converged[f] = self.state.buffers[f].converged()
                 self.state.error_maps[f] = converged_error(self._converged[f], errors[f])
                 self._network_means[f] = float(self.state.error_maps[f].mean())
             previous_lam = self._denoised_lam
@@ -291,7 +294,7 @@ class RenderLoop:
         images = self.session.denoise(buffers, lam_map)
         with self.lock:
             for f in self.owned:
-                kept = buffers[f].converged(footprint=self.footprint)[..., None]
+                kept = buffers[f].converged()[..., None]
                 self._denoised[f] = np.where(kept, buffers[f].mean, to_hwc(images[f])).astype(np.float32)
                 self._denoised_samples[f] = int(buffers[f].spp.sum())
             self._denoised_lam = lam_map.copy()

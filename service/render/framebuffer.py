@@ -55,6 +55,9 @@ class FrameBuffer:
     aov_names: tuple[str, ...] = ()
     passes: int = 0  # render calls accumulated (seeds are derived from it)
     meta: dict = field(default_factory=dict)
+    # How many pixels beyond its own a sample can land: the film filter's reach
+    # (service.render.filters.footprint_pixels; 0 for a box). The loop sets it from its scene.
+    footprint: int = 0
 
     @classmethod
     def empty(cls, height: int, width: int) -> "FrameBuffer":
@@ -96,16 +99,15 @@ class FrameBuffer:
         var_of_mean = np.divide(np.maximum(sample_var, 0.0), n, out=np.zeros_like(mean), where=n > 1)
         return _finite(var_of_mean).astype(np.float32)
 
-    def converged(self, min_spp: int = CONVERGED_MIN_SPP, footprint: int = 0) -> np.ndarray:
+    def converged(self, min_spp: int = CONVERGED_MIN_SPP) -> np.ndarray:
         """(H, W) bool: at least `min_spp` samples and every one returned the same value — an
         empty background (every primary ray missed, radiance 0) or a flat emitter seen directly
         (the same non-zero value). The mean is then exact for what the pixel sees, so nothing
         gains from more samples or from filtering it. A surface pixel whose samples were all 0
         does not count: rare light paths (indirect light in a dark corner) can miss 16 times.
 
-        `footprint`: how many pixels the film's reconstruction filter reaches beyond a pixel's
-        own (service.render.filters.footprint_pixels; 0 for a box). A sample drawn for a pixel
-        lands anywhere in that reach, so a pixel beside geometry can see only misses in 16
+        Under a filter wider than the box (`footprint` > 0), a sample drawn for a pixel lands
+        anywhere in the filter's reach, so a pixel beside geometry can see only misses in 16
         samples and still have a non-zero expected value (sun_room's sky row above the ground
         under a Gaussian filter: 15 % of it read 0 at 16 spp, the reference 0.024). Such a pixel
         is exact only if every pixel within the reach agreed on the same value too."""
@@ -116,12 +118,12 @@ class FrameBuffer:
         lit = self.radiance_sum.any(axis=-1)
         missed = self.depth_sum == 0  # first-hit distance is 0 for a miss
         agreed = (self.spp >= min_spp) & same & (lit | missed)
-        if footprint <= 0:
+        if self.footprint <= 0:
             return agreed
         mean = self._per_sample(self.radiance_sum)
-        low, high = _window(mean, footprint, np.minimum), _window(mean, footprint, np.maximum)
+        low, high = _window(mean, self.footprint, np.minimum), _window(mean, self.footprint, np.maximum)
         level = (high - low <= CONVERGED_REL_TOLERANCE * np.abs(high)).all(axis=-1)
-        return _window(agreed, footprint, np.logical_and) & level
+        return _window(agreed, self.footprint, np.logical_and) & level
 
     def relative_variance(self, eps: float = 1e-2) -> np.ndarray:
         """Variance of the mean over squared luminance-ish magnitude (Rousselle et al. style)."""
@@ -168,4 +170,5 @@ class FrameBuffer:
             aov_names=self.aov_names,
             passes=self.passes,
             meta=dict(self.meta),
+            footprint=self.footprint,
         )

@@ -1,6 +1,8 @@
 """FrameBuffer statistics: which pixels count as converged."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from service.render.framebuffer import CONVERGED_MIN_SPP, FrameBuffer
@@ -35,19 +37,28 @@ def test_a_missed_pixel_within_the_filters_reach_of_a_lit_one_is_not_converged()
     n = CONVERGED_MIN_SPP
     buffer = buffer_with([[0.0] * n] * 5 + [[0.5] * (n - 1) + [0.6]])   # five misses, then a noisy surface
     buffer.depth_sum[0, 5] = 2.0 * n
-    np.testing.assert_array_equal(buffer.converged()[0], [True] * 5 + [False])
-    np.testing.assert_array_equal(buffer.converged(footprint=1)[0], [True] * 4 + [False, False])
-    np.testing.assert_array_equal(buffer.converged(footprint=2)[0], [True] * 3 + [False] * 3)
+    reach = {footprint: dataclasses.replace(buffer, footprint=footprint).converged()[0] for footprint in (0, 1, 2)}
+    np.testing.assert_array_equal(reach[0], [True] * 5 + [False])
+    np.testing.assert_array_equal(reach[1], [True] * 4 + [False, False])
+    np.testing.assert_array_equal(reach[2], [True] * 3 + [False] * 3)
 
 
 def test_two_flat_emitters_side_by_side_are_not_converged_where_the_filter_mixes_them():
     n = CONVERGED_MIN_SPP
     buffer = buffer_with([[2.0] * n] * 3 + [[5.0] * n] * 3)
     np.testing.assert_array_equal(buffer.converged()[0], [True] * 6)
-    np.testing.assert_array_equal(buffer.converged(footprint=1)[0], [True, True, False, False, True, True])
+    buffer.footprint = 1
+    np.testing.assert_array_equal(buffer.converged()[0], [True, True, False, False, True, True])
 
 
 def test_the_film_edge_does_not_unsettle_a_uniform_background():
     buffer = FrameBuffer.empty(4, 5)
     buffer.spp[:] = CONVERGED_MIN_SPP                       # every ray missed: radiance and depth 0
-    assert buffer.converged(footprint=2).all()
+    buffer.footprint = 2
+    assert buffer.converged().all()
+
+
+def test_a_copy_keeps_the_filters_reach():
+    buffer = FrameBuffer.empty(2, 2)
+    buffer.footprint = 2
+    assert buffer.copy().footprint == 2
