@@ -49,6 +49,9 @@ MAX_INCLUDE_DEPTH = 15  # Mitsuba's ParserConfig.max_include_depth
 MAX_XML_FILES = 1024  # XML files read per scene (a fan-out of includes is exponential otherwise)
 MAX_VALUE_CHARS = 65_536  # one attribute after substitution (nested defaults can double per level)
 MAX_DOCUMENT_CHARS = 256 * 1024 * 1024
+# Elements nested in one another, includes counted: real scenes nest about ten deep; the walk
+# below and Mitsuba's own parser recurse once per level, so thousands would exhaust the stack.
+MAX_ELEMENT_DEPTH = 100
 FILE_PROPERTIES = frozenset({"filename"})
 # Plain properties: dropped when they sit directly under an included <scene> (Mitsuba copies only
 # the included scene's objects into the parent).
@@ -196,6 +199,8 @@ class _Flattener:
                 name: str | None = None, included_root: bool = False) -> None:
         """Emit `element` (substituted, checked) and its children at `level` of indentation."""
         where = f"{self._label(stack[-1])}:{element.line}"
+        if level >= MAX_ELEMENT_DEPTH:  # one file is capped while parsed; this counts includes too
+            raise FlattenError(f"{where}: elements nested deeper than {MAX_ELEMENT_DEPTH}")
         attributes = {key: self._substitute(value, where) for key, value in element.attrib.items()}
         tag = element.tag
         if tag == "default":
@@ -369,18 +374,28 @@ class _LineElement(Element):
 class _LineBuilder(TreeBuilder):
     """Records each element's start line (for messages that point into the user's files)."""
 
-    def __init__(self) -> None:
+    def __init__(self, label: str) -> None:
         super().__init__(element_factory=_LineElement)
         self.parser = None
+        self.label = label
+        self.depth = 0
 
     def start(self, tag, attrs):
+        line = self.parser.parser.CurrentLineNumber if self.parser is not None else 0
+        self.depth += 1
+        if self.depth > MAX_ELEMENT_DEPTH:  # refused while reading: no deep tree is ever built
+            raise FlattenError(f"{self.label}:{line}: elements nested deeper than {MAX_ELEMENT_DEPTH}")
         element = super().start(tag, attrs)
-        element.line = self.parser.parser.CurrentLineNumber if self.parser is not None else 0
+        element.line = line
         return element
+
+    def end(self, tag):
+        self.depth -= 1
+        return super().end(tag)
 
 
 def _parse_xml(path: Path, label: str) -> Element:
-    builder = _LineBuilder()
+    builder = _LineBuilder(label)
     parser = DefusedXMLParser(target=builder, forbid_dtd=True)
     builder.parser = parser
     try:
@@ -388,6 +403,8 @@ def _parse_xml(path: Path, label: str) -> Element:
             while chunk := stream.read(1 << 20):
                 parser.feed(chunk)
         return parser.close()
+    except FlattenError:
+        raise
     except defusedxml.DTDForbidden as exc:
         raise FlattenError(f"{label}: DTDs are not allowed in scene XML") from exc
     except defusedxml.EntitiesForbidden as exc:

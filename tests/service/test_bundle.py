@@ -188,3 +188,13 @@ def test_scene_parameters_are_checked_at_upload(tmp_path):
     extract_zip(make_zip(good_members(**{"scene.xml": scene})), root)
     with pytest.raises(BundleError, match="unknown scene parameter spp; the scene's <default> parameters: tex"):
         prepare_bundle(root, None, params={"spp": "4"})
+
+
+def test_nesting_deep_across_includes_is_a_bundle_error(tmp_path):
+    # Each file stays under the per-file cap; the chain of includes goes past it.
+    level = '<shape type="sphere">' * 40 + "{inner}" + "</shape>" * 40
+    members = {"scene.xml": '<scene version="3.0.0">' + level.format(inner='<include filename="a.xml"/>') + "</scene>",
+               "a.xml": '<scene version="3.0.0">' + level.format(inner='<include filename="b.xml"/>') + "</scene>",
+               "b.xml": '<scene version="3.0.0">' + level.format(inner="") + "</scene>"}
+    with pytest.raises(BundleError, match="nested deeper than 100"):
+        unpack(tmp_path, members, scene="scene.xml")

@@ -10,7 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
-from service_harness import REPO, finished, wait_for, zip_bytes
+from service_harness import REPO, finished, renderloop_cli, wait_for, zip_bytes
 from service.render.runtime import mitsuba
 
 SPEC = '{"width": 8, "height": 8, "max_iterations": 1}'
@@ -115,3 +115,22 @@ def test_zipped_scene_folder_completes(client, png):
 def test_file_and_folder_of_one_name_and_long_names_are_4xx(server, client):
     assert_refused(server, client, {"scene.xml": scene(""), "a": "x", "a/b.txt": "y"}, "is both a file and a folder")
     assert_refused(server, client, {"scene.xml": scene(""), "x" * 300 + ".png": "x"}, "longer than 255 bytes")
+
+
+def deep_scene(depth: int) -> str:
+    return scene('<shape type="sphere">' * depth + "</shape>" * depth)
+
+
+def test_xml_nested_thousands_deep_is_422_not_500(server, client):
+    detail = assert_refused(server, client, {"scene.xml": deep_scene(5000)}, "nested deeper than")
+    assert detail.startswith("scene.xml:")
+
+
+def test_xml_nested_thousands_deep_is_one_cli_error_line(tmp_path):
+    path = tmp_path / "deep.xml"
+    path.write_text(deep_scene(5000))
+    result = renderloop_cli("render", str(path), "-o", str(tmp_path / "out.exr"))
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith("renderloop: error: deep.xml:"), result.stderr
+    assert "nested deeper than" in result.stderr and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
