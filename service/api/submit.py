@@ -16,7 +16,7 @@ from service.api.schemas import BundleJobCreate, JobCreate
 from service.jobs import bundle
 from service.jobs.artifacts import JobFiles
 from service.loop.spec import SERVICE_LIMITS, JobLimits, LoopSpec, LoopSpecError, check_limits
-from service.render.scenes import SceneError, builtin_scene_names, film_size
+from service.render.scenes import SceneError, builtin_scene_names, check_scene, film_size
 
 JSON_MEDIA_TYPE = "application/json"
 
@@ -64,6 +64,8 @@ def check_effective_job(spec: LoopSpec, root: Path | None = None, limits: JobLim
         width, height = film_size(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root,
                                   frames=spec.frames)
         check_limits(spec, width, height, limits)
+        if root is not None:  # an uploaded scene: what instantiating it would refuse, refused now
+            check_scene(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root)
     except (SceneError, LoopSpecError) as exc:
         raise invalid("spec", str(exc)) from exc
 

@@ -30,6 +30,7 @@ from service.render.flatten import FlatScene, FlattenError, flatten_scene
 from service.render.integrators import film_refusal, integrator_refusal, sensor_refusal
 from service.render.runtime import mitsuba
 from service.render.sandbox import run_walled
+from service.render.unreferenced import unreferenced_message
 
 MAX_RESOLUTION = 8192
 MAX_PIXELS = 16_777_216
@@ -98,13 +99,23 @@ def load_scene_info(
     """
     mi = mitsuba()
     parsed = _parse_scene(mi, source, width, height, frame, params, root)
-    max_depth, integrator = _conform(mi, parsed.state, width, height, parsed.label)
+    with _unread(parsed.state):
+        max_depth, integrator = _conform(mi, parsed.state, width, height, parsed.label)
     scene = _instantiate(mi, parsed)
     if not isinstance(scene, mi.Scene):
         raise SceneError(f"{parsed.label}: the file describes a {type(scene).__name__}, not a <scene>")
     if not scene.sensors():
         raise SceneError(f"{parsed.label}: the scene declares no <sensor> (camera) to render from")
     return LoadedScene(scene=scene, max_depth=max_depth, declares_frame=parsed.declares_frame, integrator=integrator)
+
+
+def check_scene(source: str | Path, *, width: int | None = None, height: int | None = None,
+                params: dict[str, str] | None = None, root: str | Path | None = None) -> None:
+    """Mitsuba's own checks on frame 0 — unreferenced (misspelt) properties, values a plugin
+    refuses, files it cannot read — by instantiating it (behind the wall) and dropping it: a
+    submit check, so an uploaded scene that `mi.load_file` would refuse is a 422, not a job
+    that fails later."""
+    load_scene_info(source, width=width, height=height, params=params, root=root)
 
 
 def film_size(source: str | Path, *, width: int | None = None, height: int | None = None,
@@ -163,7 +174,7 @@ def _parse_scene(mi, source: str | Path, width: int | None, height: int | None, 
         path = _scene_path(source)
         flat = _flatten(path, root, params, frame, width, height)
         readable = Path(root) if root is not None else path.parent
-        explain = _explainer(flat, readable)
+        explain = _explainer(flat, readable, path.name)
         with _sandboxed_resolver(mi):
             state = _parse(lambda: mi.parser.parse_string(config, flat.document), path.name, explain)
         declares_frame = flat.declares(FRAME_PARAMETER)
@@ -234,14 +245,17 @@ def _flatten(path: Path, root, params, frame: int, width, height) -> FlatScene:
         raise SceneError(str(exc)) from exc
 
 
-def _explainer(flat: FlatScene, root: Path):
+def _explainer(flat: FlatScene, root: Path, label: str):
     """Mitsuba's messages about the flat document, pointed back at the user's file and line,
     with the bundle's absolute paths shortened to bundle-relative ones."""
     prefix = str(root.resolve()) + "/"
 
     def explain(message: str) -> str:
+        unreferenced = unreferenced_message(flat, message)
+        if unreferenced is not None:
+            return unreferenced.replace(prefix, "")
         message = _FLAT_LOCATION.sub(lambda match: flat.locate(int(match.group(1))), message)
-        return message.replace(prefix, "")
+        return f"{label}: {message.replace(prefix, '')}"
 
     return explain
 
@@ -259,7 +273,23 @@ def _parse(step, label: str, explain=None):
         raise
     except Exception as exc:  # Mitsuba raises RuntimeError for every parse problem
         message = _one_line(exc)
-        raise SceneError(f"{label}: {explain(message) if explain else message}") from exc
+        raise SceneError(explain(message) if explain else f"{label}: {message}") from exc
+
+
+@contextmanager
+def _unread(state):
+    """Reading a property from Python (`props[key]`) marks it queried, and Mitsuba's check for
+    unreferenced (misspelt) properties only reports unqueried ones: a `max_dpeth` on an
+    integrator whose keys we looked at would pass silently. So whatever the edits read, every
+    property the plugin has not yet used is unqueried again when instantiation begins."""
+    before = [list(node.props.unqueried()) for node in state.nodes]
+    try:
+        yield
+    finally:
+        for node, keys in zip(state.nodes, before):
+            for key in keys:
+                if key in node.props:
+                    node.props.mark_queried(key, False)
 
 
 def _conform(mi, state, width: int | None, height: int | None, label: str) -> tuple[int | None, str | None]:
