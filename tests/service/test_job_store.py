@@ -2,7 +2,10 @@
 (conftest's db_url runs each store test once on each) — and the per-job artifacts folder."""
 from __future__ import annotations
 
+import socket
 import sqlite3
+import subprocess
+import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -14,9 +17,11 @@ import pytest
 from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.latest import LatestWins
 from service.jobs.db.connect import open_database
-from service.jobs.db.schema import JOBS
+from service.jobs.db.schema import JOBS, DuplicateKey
 from service.jobs.errors import StoreUnavailable
-from service.jobs.store import CANCELED, COMPLETED, QUEUED, RUNNING, JobStore
+from service.jobs.leases import Leases
+from service.jobs.quotas import QuotaExceeded, Quotas
+from service.jobs.store import CANCELED, COMPLETED, QUEUED, RUNNING, AlreadySubmitted, JobStore
 from service_harness import free_port
 
 
@@ -229,3 +234,106 @@ def test_latest_wins_reports_failures():
     box = LatestWins(apply)
     with pytest.raises(ValueError, match="bad 1"):
         box.wait(box.submit(1), timeout=5)
+
+
+# -- quotas, idempotency, priority, leases ------------------------------------------------------
+
+def test_a_database_made_before_leases_and_quotas_is_migrated(tmp_path, db_url):
+    new = {"effects", "priority", "client", "idempotency_key", "lease_owner", "lease_expires_at"}
+    first_release = replace(JOBS, columns=tuple(c for c in JOBS.columns if c.name not in new), added=(), unique=())
+    old = open_database(tmp_path, db_url)
+    old.ensure_schema(first_release)
+    old.execute("INSERT INTO jobs (id, state, spec, created_at) VALUES (?, ?, ?, ?)", ("old", QUEUED, "{}", 1.0))
+    old.close()
+    store = JobStore(tmp_path, db_url)
+    assert store.get("old").priority == 0 and store.get("old").lease_owner is None
+    assert store.claim("old") and store.get("old").lease_owner == store.owner
+    store.close()
+
+
+def test_higher_priority_queued_jobs_are_claimed_first_then_the_oldest(store):
+    low = store.create({"priority": -5}, None)
+    first_default, second_default = store.create({}, None), store.create({"priority": 0}, None)
+    urgent = store.create({"priority": 7}, None)
+    order = []
+    while (job_id := store.next_queued()) is not None:
+        assert store.claim(job_id)
+        order.append(job_id)
+    assert order == [urgent.id, first_default.id, second_default.id, low.id]
+    assert store.get(urgent.id).priority == 7
+
+
+def test_a_repeated_idempotency_key_gives_back_the_first_job_and_creates_no_second(store):
+    first = store.create({}, None, client="token:a", idempotency_key="k1")
+    with pytest.raises(AlreadySubmitted) as repeat:
+        store.create({}, None, client="token:a", idempotency_key="k1")
+    assert repeat.value.record.id == first.id
+    other_client = store.create({}, None, client="token:b", idempotency_key="k1")  # keys are per client
+    assert other_client.id != first.id and len(store.list()) == 2
+    assert store.find_submitted("token:a", "k1").id == first.id and store.find_submitted("token:a", "k2") is None
+
+
+def test_the_unique_index_refuses_a_second_row_with_the_same_client_and_key(tmp_path, db_url):
+    """The index, not only the look-up before the insert, holds when two servers race."""
+    store = JobStore(tmp_path, db_url)
+    store.create({}, None, client="c", idempotency_key="k")
+    with pytest.raises(DuplicateKey):
+        store._db.execute("INSERT INTO jobs (id, state, spec, created_at, client, idempotency_key) "
+                          "VALUES (?, ?, ?, ?, ?, ?)", ("x", QUEUED, "{}", 1.0, "c", "k"))
+    store.close()
+
+
+def test_the_queue_caps_refuse_beyond_the_server_total_and_the_per_client_cap(store):
+    quotas = Quotas(max_queued=3, max_queued_per_client=2, retry_after_seconds=7)
+    store.create({}, None, client="a", quotas=quotas)
+    store.create({}, None, client="a", quotas=quotas)
+    with pytest.raises(QuotaExceeded, match="cap per client is 2") as caught:
+        store.create({}, None, client="a", quotas=quotas)
+    assert caught.value.retry_after == 7
+    store.create({}, None, client="b", quotas=quotas)
+    with pytest.raises(QuotaExceeded, match="queue is full"):
+        store.create({}, None, client="c", quotas=quotas)
+    assert store.claim(store.next_queued())  # a job that starts leaves the queue: room again
+    store.create({}, None, client="c", quotas=quotas)
+
+
+def test_a_claim_takes_a_lease_that_its_owner_renews(tmp_path, db_url):
+    store = JobStore(tmp_path, db_url, leases=Leases(seconds=5))
+    job = store.create({}, None)
+    before = time.time()
+    assert store.claim(job.id)
+    claimed = store.get(job.id)
+    assert claimed.lease_owner == store.owner and before + 5 <= claimed.lease_expires_at <= time.time() + 5
+    time.sleep(0.05)
+    assert store.renew_leases() == [job.id] and store.get(job.id).lease_expires_at > claimed.lease_expires_at
+    store.close()
+
+
+def test_only_a_lapsed_lease_is_requeued_and_not_a_live_servers(tmp_path, db_url):
+    alive = JobStore(tmp_path, db_url, leases=Leases(seconds=60))
+    dying = JobStore(tmp_path, db_url, leases=Leases(seconds=0.5))
+    theirs, lost = alive.create({}, None), alive.create({}, None)
+    assert alive.claim(theirs.id) and dying.claim(lost.id)
+    other = JobStore(tmp_path, db_url)  # a third server starting up
+    assert other.requeue_abandoned() == []  # both leases hold (and both owners live in this process)
+    time.sleep(0.6)  # the dying server stops renewing
+    assert alive.renew_leases() == [theirs.id]
+    assert other.requeue_lapsed() == [lost.id]
+    assert other.get(lost.id).state == QUEUED and other.get(theirs.id).state == RUNNING
+    assert dying.renew_leases() == []  # the job is no longer its to renew
+    dying.requeue(theirs.id)  # nor to requeue
+    assert other.get(theirs.id).state == RUNNING
+    for s in (alive, dying, other):
+        s.close()
+
+
+def test_a_restart_requeues_at_once_the_jobs_of_a_dead_process_on_this_host(tmp_path, db_url):
+    store = JobStore(tmp_path, db_url)
+    job = store.create({}, None)
+    store.claim(job.id)
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    ghost = f"{socket.gethostname()}/{int(dead.stdout)}/feedbeef"  # a process that has exited
+    store._db.execute("UPDATE jobs SET lease_owner = ? WHERE id = ?", (ghost, job.id))
+    assert store.get(job.id).lease_expires_at > time.time() + 10  # its lease has not lapsed
+    assert store.requeue_abandoned() == [job.id] and store.get(job.id).state == QUEUED
+    store.close()

@@ -13,9 +13,10 @@ from contextlib import contextmanager
 from typing import Any, Iterator, Sequence
 
 import psycopg
+from psycopg import errors as pg_errors
 from psycopg.rows import dict_row
 
-from service.jobs.db.schema import Kind, Table, column_sql, create_statements
+from service.jobs.db.schema import DuplicateKey, Kind, Table, column_sql, create_statements, index_statements
 from service.jobs.errors import StoreUnavailable
 
 TYPES = {Kind.TEXT: "TEXT", Kind.INTEGER: "BIGINT", Kind.REAL: "DOUBLE PRECISION"}  # REAL would be 32-bit
@@ -71,6 +72,8 @@ class PostgresDatabase:
                 for name in table.added:
                     column = column_sql(table.column(name), TYPES)
                     conn.execute(f"ALTER TABLE {table.name} ADD COLUMN IF NOT EXISTS {column}")
+                for statement in index_statements(table):
+                    conn.execute(statement)
 
     def execute(self, sql: str, params: Sequence[Any] = ()) -> int:
         """One statement in its own transaction; the number of rows it changed."""
@@ -87,6 +90,8 @@ class PostgresDatabase:
         is not retried) as StoreUnavailable — a 503 — and the next statement reconnects."""
         try:
             yield
+        except pg_errors.UniqueViolation as exc:
+            raise DuplicateKey(one_line(exc)) from exc
         except psycopg.OperationalError as exc:
             raise StoreUnavailable(f"the job database at {self.location} failed: {one_line(exc)}") from exc
 

@@ -28,6 +28,7 @@ class Table:
     columns: tuple[Column, ...]  # every column but the key
     indexes: tuple[str, ...]  # indexed columns, one index each
     added: tuple[str, ...]  # columns added after the first release: migrated into old databases
+    unique: tuple[tuple[str, ...], ...] = ()  # unique indexes over these columns (NULLs never clash)
 
     @property
     def column_names(self) -> tuple[str, ...]:
@@ -56,10 +57,20 @@ JOBS = Table(
         Column("lambda_value", Kind.REAL),
         Column("resumed_from", Kind.INTEGER),
         Column("effects", Kind.TEXT),
+        Column("priority", Kind.INTEGER, "NOT NULL DEFAULT 0"),  # higher is claimed first
+        Column("client", Kind.TEXT),  # who submitted: a token's digest or an address (quotas)
+        Column("idempotency_key", Kind.TEXT),  # the submit's Idempotency-Key header, per client
+        Column("lease_owner", Kind.TEXT),  # the server running the job (service/jobs/leases.py)
+        Column("lease_expires_at", Kind.REAL),  # unix seconds; renewed while the job runs
     ),
     indexes=("state",),
-    added=("effects",),
+    added=("effects", "priority", "client", "idempotency_key", "lease_owner", "lease_expires_at"),
+    unique=(("client", "idempotency_key"),),
 )
+
+
+class DuplicateKey(RuntimeError):
+    """An insert clashed with a unique index (the same client's Idempotency-Key, twice)."""
 
 
 def column_sql(column: Column, types: dict[Kind, str]) -> str:
@@ -67,10 +78,18 @@ def column_sql(column: Column, types: dict[Kind, str]) -> str:
 
 
 def create_statements(table: Table, types: dict[Kind, str], extra_columns: tuple[str, ...] = ()) -> list[str]:
-    """CREATE TABLE / CREATE INDEX, idempotent; `extra_columns` are a backend's own (e.g. an
-    insertion counter), written as full column definitions."""
+    """CREATE TABLE, idempotent; `extra_columns` are a backend's own (e.g. an insertion
+    counter), written as full column definitions. Indexes come after the migration
+    (index_statements): an old database gets the columns they index first."""
     columns = [f"{table.key} TEXT PRIMARY KEY", *(column_sql(c, types) for c in table.columns), *extra_columns]
     body = ",\n    ".join(columns)
-    statements = [f"CREATE TABLE IF NOT EXISTS {table.name} (\n    {body}\n)"]
-    statements += [f"CREATE INDEX IF NOT EXISTS {table.name}_{name} ON {table.name}({name})" for name in table.indexes]
+    return [f"CREATE TABLE IF NOT EXISTS {table.name} (\n    {body}\n)"]
+
+
+def index_statements(table: Table) -> list[str]:
+    """CREATE [UNIQUE] INDEX, idempotent."""
+    statements = [f"CREATE INDEX IF NOT EXISTS {table.name}_{name} ON {table.name}({name})" for name in table.indexes]
+    for names in table.unique:
+        statements.append(f"CREATE UNIQUE INDEX IF NOT EXISTS {table.name}_{'_'.join(names)}_key "
+                          f"ON {table.name}({', '.join(names)})")
     return statements

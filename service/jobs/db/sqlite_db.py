@@ -11,7 +11,7 @@ import threading
 from pathlib import Path
 from typing import Any, Sequence
 
-from service.jobs.db.schema import Kind, Table, column_sql, create_statements
+from service.jobs.db.schema import DuplicateKey, Kind, Table, column_sql, create_statements, index_statements
 
 DB_NAME = "jobs.sqlite"
 TYPES = {Kind.TEXT: "TEXT", Kind.INTEGER: "INTEGER", Kind.REAL: "REAL"}  # SQLite REAL is 64-bit
@@ -37,11 +37,18 @@ class SqliteDatabase:
             for name in table.added:
                 if name not in present:
                     self._db.execute(f"ALTER TABLE {table.name} ADD COLUMN {column_sql(table.column(name), TYPES)}")
+            for statement in index_statements(table):
+                self._db.execute(statement)
 
     def execute(self, sql: str, params: Sequence[Any] = ()) -> int:
         """One statement in its own transaction; the number of rows it changed."""
         with self._lock:
-            return self._db.execute(sql, tuple(params)).rowcount
+            try:
+                return self._db.execute(sql, tuple(params)).rowcount
+            except sqlite3.IntegrityError as exc:
+                if "UNIQUE" not in str(exc):
+                    raise
+                raise DuplicateKey(str(exc)) from exc
 
     def query(self, sql: str, params: Sequence[Any] = ()) -> list[dict[str, Any]]:
         """Every row at once: an UPDATE … RETURNING commits only once its rows are all read."""
