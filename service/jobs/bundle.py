@@ -16,11 +16,13 @@ from __future__ import annotations
 import re
 import shutil
 import stat
+import struct
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO, Iterable
 
+from service.jobs.zip_directory import DirectorySize, read_directory_size
 from service.render.flatten import FlatScene, FlattenError, flatten_scene
 
 # Defaults that fit real scenes (hundreds of meshes, tens of MB); `serve` may override them.
@@ -28,6 +30,9 @@ MAX_BUNDLE_BYTES = 1024 * 1024 * 1024  # total uncompressed size of all files
 MAX_BUNDLE_FILES = 4096
 MAX_NAME_BYTES = 255  # one path component: what Linux file systems accept
 MAX_PATH_BYTES = 1024  # a whole member name
+# One central-directory entry: 46 fixed bytes, its name, and room for extra fields and a comment
+# (desktop tools write well under 100 bytes of those).
+MAX_DIRECTORY_ENTRY_BYTES = 46 + MAX_PATH_BYTES + 1024
 FRAME_PARAMETER = "frame"
 _COPY_CHUNK = 1024 * 1024
 _DRIVE = re.compile(r"^[A-Za-z]:")
@@ -107,17 +112,31 @@ def _copy_capped(source: BinaryIO, target: Path, name: str, budget: _Budget) -> 
         raise BundleError(f"{name}: cannot store ({exc.strerror})") from exc
 
 
-def _check_layout(paths: list[tuple[str, PurePosixPath]]) -> None:
-    """No duplicate names, and no name that is both a file and another file's folder."""
-    files: dict[PurePosixPath, str] = {}
-    for name, path in paths:
-        if path in files:
+class _Layout:
+    """No duplicate names, and no name that is both a file and another file's folder. Checked
+    one name at a time against sets of what came before, so n names cost O(n) (times their
+    depth): re-checking every earlier name per upload made 4096 files take a minute."""
+
+    def __init__(self) -> None:
+        self.files: dict[PurePosixPath, str] = {}  # file path -> its name as uploaded
+        self.folders: dict[PurePosixPath, str] = {}  # folder path -> the first name inside it
+
+    def add(self, name: str, path: PurePosixPath) -> None:
+        if path in self.files:
             raise BundleError(f"{name}: duplicate file in bundle")
-        files[path] = name
-    for name, path in paths:
+        if path in self.folders:
+            raise BundleError(f"{name}: is both a file and a folder in the bundle (see {self.folders[path]})")
         for folder in path.parents:
-            if folder in files:
-                raise BundleError(f"{files[folder]}: is both a file and a folder in the bundle (see {name})")
+            if folder in self.files:
+                raise BundleError(f"{self.files[folder]}: is both a file and a folder in the bundle (see {name})")
+            self.folders.setdefault(folder, name)
+        self.files[path] = name
+
+
+def _check_layout(paths: list[tuple[str, PurePosixPath]]) -> None:
+    layout = _Layout()
+    for name, path in paths:
+        layout.add(name, path)
 
 
 def _top_folder(paths: list[PurePosixPath]) -> PurePosixPath | None:
@@ -128,17 +147,41 @@ def _top_folder(paths: list[PurePosixPath]) -> PurePosixPath | None:
     return None
 
 
+def _max_entries(limits: BundleLimits) -> int:
+    return 2 * limits.max_files  # folders are entries too, but not unbounded
+
+
+def _open_zip(archive: BinaryIO, limits: BundleLimits) -> zipfile.ZipFile:
+    try:
+        directory = read_directory_size(archive)
+    except (OSError, struct.error) as exc:
+        raise BundleError(f"bundle: not a readable zip archive ({exc})") from exc
+    _check_directory_size(directory, limits)
+    try:
+        return zipfile.ZipFile(archive)
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise BundleError(f"bundle: not a readable zip archive ({exc})") from exc
+
+
+def _check_directory_size(directory: DirectorySize | None, limits: BundleLimits) -> None:
+    """Refuse from the end record, before `zipfile` parses the central directory: too many
+    entries, or a directory larger than that many entries can fill (`zipfile` parses exactly
+    the stated size, so this bounds its work even when the stated count lies)."""
+    if directory is None:
+        return  # no end record: zipfile refuses the archive itself
+    if directory.entries > _max_entries(limits):
+        raise BundleError(f"bundle: {directory.entries} entries, above the cap of {limits.max_files} files")
+    if directory.size > _max_entries(limits) * MAX_DIRECTORY_ENTRY_BYTES:
+        raise BundleError(f"bundle: a zip directory of {directory.size} bytes, more than {limits.max_files} files need")
+
+
 def extract_zip(archive: BinaryIO, dest: Path, limits: BundleLimits = BundleLimits()) -> list[PurePosixPath]:
     """Unpack a zip into `dest` after checking every member name; returns the files written
     (relative to `dest`, without a single top-level folder the whole zip sits in)."""
-    try:
-        zf = zipfile.ZipFile(archive)
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
-        raise BundleError(f"bundle: not a readable zip archive ({exc})") from exc
     budget = _Budget(limits)
-    with zf:
+    with _open_zip(archive, limits) as zf:
         infos = zf.infolist()
-        if len(infos) > 2 * limits.max_files:  # folders are entries too, but not unbounded
+        if len(infos) > _max_entries(limits):
             raise BundleError(f"bundle: {len(infos)} entries, above the cap of {limits.max_files} files")
         members: list[tuple[zipfile.ZipInfo, PurePosixPath]] = []
         for info in infos:  # check all names first: reject before writing anything
@@ -167,11 +210,12 @@ def save_files(
 ) -> list[PurePosixPath]:
     """Store uploaded (name, stream) pairs under `dest`; names may carry sub-folders."""
     budget = _Budget(limits)
+    layout = _Layout()
     written: list[PurePosixPath] = []
     for name, stream in files:
         budget.add_file(name)
         path = safe_member_path(name)
-        _check_layout([(str(p), p) for p in written] + [(name, path)])
+        layout.add(name, path)
         _copy_capped(stream, dest / path, name, budget)
         written.append(path)
     return written

@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 import io
+import struct
+import time
 
 import pytest
 
 from service_harness import zip_bytes
 from service.jobs.bundle import BundleError, BundleLimits, extract_zip, prepare_bundle, save_files
+from service.jobs.zip_directory import DirectorySize, read_directory_size
 
 SCENE = """<scene version="3.0.0">
   <include filename="parts/lights.xml"/>
@@ -198,3 +201,40 @@ def test_nesting_deep_across_includes_is_a_bundle_error(tmp_path):
                "b.xml": '<scene version="3.0.0">' + level.format(inner="") + "</scene>"}
     with pytest.raises(BundleError, match="nested deeper than 100"):
         unpack(tmp_path, members, scene="scene.xml")
+
+
+def zip_with_entries(count: int, name_bytes: int = 8) -> bytearray:
+    return bytearray(zip_bytes({f"{i:0{name_bytes}d}.txt": "" for i in range(count)}))
+
+
+def test_entry_cap_applies_before_the_zip_directory_is_parsed(tmp_path):
+    archive = zip_with_entries(20)
+    # Spoil every central-directory entry: parsing the directory would fail ("bad magic number"),
+    # so only a check of the end record's count can name the cap.
+    archive[:] = archive.replace(b"PK\x01\x02", b"XX\x01\x02")
+    with pytest.raises(BundleError, match="bundle: 20 entries, above the cap of 4 files"):
+        extract_zip(io.BytesIO(bytes(archive)), tmp_path / "bundle", BundleLimits(max_files=4))
+
+
+def test_a_zip_directory_larger_than_the_cap_needs_is_refused_even_when_its_count_lies(tmp_path):
+    archive = zip_with_entries(40, name_bytes=900)
+    end = archive.rfind(b"PK\x05\x06")
+    archive[end + 8:end + 12] = struct.pack("<2H", 1, 1)  # "one entry", over a 40-entry directory
+    with pytest.raises(BundleError, match="a zip directory of .* bytes, more than 4 files need"):
+        extract_zip(io.BytesIO(bytes(archive)), tmp_path / "bundle", BundleLimits(max_files=4))
+
+
+def test_zip64_end_record_counts_are_read():
+    directory = struct.pack("<4sQ2H2L4Q", b"PK\x06\x06", 44, 45, 45, 0, 0, 70_000, 70_000, 5_000_000, 0)
+    locator = struct.pack("<4sLQL", b"PK\x06\x07", 0, 0, 1)
+    end = struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, 0xFFFF, 0xFFFF, 0xFFFFFFFF, 0xFFFFFFFF, 0)
+    stream = io.BytesIO(directory + locator + end)
+    assert read_directory_size(stream) == DirectorySize(entries=70_000, size=5_000_000)
+    assert stream.tell() == 0
+
+
+def test_layout_check_of_4096_loose_files_is_linear(tmp_path):
+    names = [f"d{i % 64}/f{i}.txt" for i in range(4096)]
+    started = time.monotonic()
+    save_files(((name, io.BytesIO(b"x")) for name in names), tmp_path / "loose")
+    assert time.monotonic() - started < 15  # quadratic: ~35 s on a 2-core machine

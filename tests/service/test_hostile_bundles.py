@@ -6,6 +6,8 @@ textures in sub-folders must render to `completed`.
 """
 from __future__ import annotations
 
+import time
+
 import httpx
 import numpy as np
 import pytest
@@ -134,3 +136,35 @@ def test_xml_nested_thousands_deep_is_one_cli_error_line(tmp_path):
     assert result.stderr.startswith("renderloop: error: deep.xml:"), result.stderr
     assert "nested deeper than" in result.stderr and "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+
+
+def many_files(count: int) -> dict[str, str]:
+    members = {"scene.xml": scene('<shape type="sphere"/>')}
+    members.update({f"d{i % 64}/f{i}.txt": "x" for i in range(count - 1)})
+    return members
+
+
+def test_4096_loose_files_are_accepted_within_seconds(client):
+    files = [("files", (name, data.encode(), "application/octet-stream")) for name, data in many_files(4096).items()]
+    started = time.monotonic()
+    response = client.post("/jobs", data={"spec": SPEC}, files=files, timeout=120)
+    elapsed = time.monotonic() - started
+    assert response.status_code == 202, response.text
+    assert elapsed < 15, f"4096 file names took {elapsed:.1f} s"  # quadratic layout check: a minute
+
+
+def test_4096_files_in_a_zip_are_accepted_within_seconds(client):
+    started = time.monotonic()
+    response = submit(client, many_files(4096))
+    elapsed = time.monotonic() - started
+    assert response.status_code == 202, response.text
+    assert elapsed < 15, f"4096 zip entries took {elapsed:.1f} s"
+
+
+def test_a_zip_claiming_more_entries_than_the_cap_is_refused_before_its_directory_is_read(server, client):
+    archive = bytearray(zip_bytes({f"{i}.txt": "" for i in range(3 * 4096)}))
+    # The directory itself is spoilt: only the end record's count can name the cap.
+    archive[:] = archive.replace(b"PK\x01\x02", b"XX\x01\x02")
+    response = client.post("/jobs", data={"spec": SPEC}, files={"bundle": ("s.zip", bytes(archive), "application/zip")})
+    assert response.status_code == 422, response.text
+    assert response.json()["detail"] == "bundle: 12288 entries, above the cap of 4096 files"
