@@ -12,7 +12,10 @@ import sys
 from pathlib import Path
 
 from service import client_command, denoise_command, train_command
-from service.api.security import LOOPBACK_HOSTS, SecuritySettings, is_loopback
+from service.api.security import (LOOPBACK_HOSTS, TOKEN_ENV, TOKEN_FILE_ENV, SecuritySettings, TokenFileError,
+                                  is_loopback, read_token_file)
+from service.api.edge import HEADER_TIMEOUT_SECONDS, KEEP_ALIVE_SECONDS, MAX_CONNECTIONS, EdgeSettings
+from service.api.streams import MAX_STREAMS_PER_CLIENT
 from service.jobs.worker_settings import WorkerSettings
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.jobs.db.url import is_postgres_url, without_password
@@ -177,8 +180,12 @@ def add_serve_parser(sub) -> None:
                               "backend; a job cannot be killed mid-iteration nor limited in memory)")
     p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
                    "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
-    p.add_argument("--token", default=os.environ.get("RENDERLOOP_TOKEN"),
-                   help="bearer token every request but /healthz must carry (default: $RENDERLOOP_TOKEN)")
+    token = p.add_mutually_exclusive_group()
+    token.add_argument("--token-file", type=Path, metavar="PATH",
+                       help="read the bearer token every request but /healthz must carry from this file (mode 600; "
+                            "default: $RENDERLOOP_TOKEN_FILE, else $RENDERLOOP_TOKEN)")
+    token.add_argument("--token", help="the bearer token itself; every user of the machine sees it in ps, so prefer "
+                                       "--token-file or $RENDERLOOP_TOKEN")
     p.add_argument("--allowed-host", action="append", default=[], metavar="NAME",
                    help="a Host header name to serve besides the loopback names (repeatable; '*' for any)")
     p.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",
@@ -196,18 +203,58 @@ def add_serve_parser(sub) -> None:
                    help="keep the data folder under this size by removing the oldest finished jobs (default: no cap)")
     p.add_argument("--insecure-no-auth", action="store_true",
                    help="allow binding a non-loopback address without a token")
+    add_edge_arguments(p)
     p.set_defaults(handler=run_serve)
+
+
+def add_edge_arguments(p) -> None:
+    """How the server holds connections (service/api/edge.py, service/api/streams.py)."""
+    edge = p.add_argument_group("connections")
+    edge.add_argument("--header-timeout", type=float, default=HEADER_TIMEOUT_SECONDS, metavar="S",
+                      help=f"close a connection whose request headers are not complete after S seconds "
+                           f"(default {HEADER_TIMEOUT_SECONDS:g})")
+    edge.add_argument("--keep-alive-timeout", type=int, default=KEEP_ALIVE_SECONDS, metavar="S",
+                      help=f"close an idle keep-alive connection after S seconds (default {KEEP_ALIVE_SECONDS})")
+    edge.add_argument("--max-connections", type=int, default=MAX_CONNECTIONS, metavar="N",
+                      help=f"open connections at most; beyond: 503, and the longest-idle connection is closed "
+                           f"first (default {MAX_CONNECTIONS})")
+    edge.add_argument("--max-event-streams", type=int, default=MAX_STREAMS_PER_CLIENT, metavar="N",
+                      help=f"open event streams per client address; beyond: 429 (default {MAX_STREAMS_PER_CLIENT})")
+
+
+def serve_edge(args) -> EdgeSettings:
+    if not args.header_timeout > 0 or args.keep_alive_timeout < 1:
+        raise CliError("--header-timeout must be > 0 and --keep-alive-timeout >= 1")
+    if args.max_connections < 2 or args.max_event_streams < 1:
+        raise CliError("--max-connections must be >= 2 and --max-event-streams >= 1")
+    return EdgeSettings(header_timeout=args.header_timeout, keep_alive_timeout=args.keep_alive_timeout,
+                        max_connections=args.max_connections)
+
+
+def serve_token(args) -> str | None:
+    """--token (warned about: `ps` shows it), --token-file, $RENDERLOOP_TOKEN_FILE, $RENDERLOOP_TOKEN."""
+    if args.token:
+        print("renderloop: warning: --token is visible to every user of this machine (ps, /proc); "
+              "use --token-file PATH or $RENDERLOOP_TOKEN", file=sys.stderr)
+        return args.token
+    path = args.token_file or (Path(os.environ[TOKEN_FILE_ENV]) if os.environ.get(TOKEN_FILE_ENV) else None)
+    try:
+        return read_token_file(path) if path is not None else os.environ.get(TOKEN_ENV) or None
+    except TokenFileError as exc:
+        raise CliError(str(exc)) from exc
 
 
 def serve_security(args) -> SecuritySettings:
     """Refuse to expose an unauthenticated server: a non-loopback bind needs a token."""
-    if not is_loopback(args.host) and not args.token and not args.insecure_no_auth:
-        raise CliError(f"binding {args.host} exposes the service: give --token (or RENDERLOOP_TOKEN), "
+    token = serve_token(args)
+    if not is_loopback(args.host) and not token and not args.insecure_no_auth:
+        raise CliError(f"binding {args.host} exposes the service: give --token-file (or RENDERLOOP_TOKEN), "
                        "or --insecure-no-auth if something in front of it authenticates")
     hosts = list(LOOPBACK_HOSTS) + list(args.allowed_host)
     if not is_loopback(args.host) and args.host not in ("0.0.0.0", "::"):
         hosts.append(args.host)
-    return SecuritySettings(token=args.token or None, allowed_hosts=tuple(hosts), cors_origins=tuple(args.cors_origin))
+    return SecuritySettings(token=token, allowed_hosts=tuple(hosts), cors_origins=tuple(args.cors_origin),
+                            max_streams_per_client=args.max_event_streams)
 
 
 def run_serve(args) -> int:
@@ -222,7 +269,7 @@ def run_serve(args) -> int:
     # No flag: $RENDERLOOP_CONCURRENCY / $RENDERLOOP_WORKERS / $RENDERLOOP_RAY_ADDRESS, else local Ray.
     workers = (WorkerSettings(concurrency=args.concurrency, workers=args.workers, ray_address=args.ray_address)
                if explicit else worker_settings_from_env())
-    security = serve_security(args)
+    security, edge = serve_security(args), serve_edge(args)
     if args.max_bundle_mb < 1 or args.max_bundle_files < 1:
         raise CliError("--max-bundle-mb and --max-bundle-files must be >= 1")
     limits = BundleLimits(max_bytes=args.max_bundle_mb * 2**20, max_files=args.max_bundle_files)
@@ -244,7 +291,8 @@ def run_serve(args) -> int:
           "-d '{\"scene\": \"cornell-box\", \"width\": 64, \"height\": 64, \"max_iterations\": 3}'")
     try:
         serve(args.host, args.port, args.data_dir, workers, networks=load_cli_networks(args.weights),
-              security=security, bundle_limits=limits, job_limits=job_limits, retention=retention, db_url=args.db)
+              security=security, bundle_limits=limits, job_limits=job_limits, retention=retention, db_url=args.db,
+              edge=edge)
     except StoreUnavailable as exc:
         raise CliError(str(exc)) from exc
     return 0

@@ -17,8 +17,9 @@ from service.jobs.errors import JobConflict, JobNotFound, StoreUnavailable
 log = logging.getLogger(__name__)
 
 
-class UploadTooLarge(ValueError):
-    """The request body is over the upload cap (413)."""
+class UploadTooLarge(Exception):
+    """The request body is over its route's cap (413). Not a ValueError: a JSON parser's
+    `except ValueError` must not turn it into "invalid JSON"."""
 
 
 def _location(loc: tuple) -> str:
@@ -70,21 +71,48 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(Exception, _unexpected)
 
 
-class BodySizeLimit:
-    """Pure ASGI middleware: refuse bodies over `max_bytes`, by header or while streaming."""
+JSON_BODY_BYTES = 1024 * 1024  # a job spec or a λ edit (rects) is a few KiB
+# A λ map is one channel at the job's image size: at most 2048² float32 pixels plus headers;
+# an uncompressed EXR or 16-bit PNG of it is 16 MiB.
+MAP_UPLOAD_BYTES = 32 * 1024 * 1024
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+
+def _mib(n: int) -> str:
+    return f"{n / 2**20:g} MiB"
+
+
+class BodySizeLimit:
+    """Pure ASGI middleware: refuse bodies over the route's cap, by header or while streaming.
+    Only a bundle upload (multipart POST /jobs) gets `max_bytes`; a λ map upload gets
+    MAP_UPLOAD_BYTES; every other body (JSON) JSON_BODY_BYTES, so no route reads a
+    gigabyte of JSON."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int, json_bytes: int = JSON_BODY_BYTES,
+                 map_bytes: int = MAP_UPLOAD_BYTES) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        self.json_bytes = json_bytes
+        self.map_bytes = map_bytes
+
+    def limit_for(self, scope: Scope) -> tuple[int, str]:
+        """(cap, what it is for) for this request."""
+        headers = dict(scope.get("headers", []))
+        multipart = headers.get(b"content-type", b"").lower().startswith(b"multipart/form-data")
+        method, path = scope["method"], scope["path"].rstrip("/")
+        if multipart and method == "POST" and path == "/jobs":
+            return self.max_bytes, "scene upload"
+        if multipart and method == "PUT" and path.startswith("/jobs/") and path.endswith("/lambda"):
+            return self.map_bytes, "λ map upload"
+        return self.json_bytes, "request body"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        limit = self.max_bytes
+        limit, what = self.limit_for(scope)
         declared = dict(scope.get("headers", [])).get(b"content-length")
         if declared is not None and declared.isdigit() and int(declared) > limit:
-            response = _json(413, f"request body of {int(declared)} bytes exceeds the {limit // (1024 * 1024)} MiB cap")
+            response = _json(413, f"{what} of {int(declared)} bytes exceeds the {_mib(limit)} cap")
             await response(scope, receive, send)
             return
         seen = 0
@@ -95,7 +123,7 @@ class BodySizeLimit:
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
                 if seen > limit:
-                    raise UploadTooLarge(f"request body exceeds the {limit // (1024 * 1024)} MiB cap")
+                    raise UploadTooLarge(f"{what} exceeds the {_mib(limit)} cap")
             return message
 
         await self.app(scope, counted, send)

@@ -17,6 +17,7 @@ from starlette.concurrency import run_in_threadpool
 from service.api import imaging
 from service.api.metrics import MEDIA_TYPE as METRICS_MEDIA_TYPE, ServiceMetrics
 from service.api.lambda_map import constant, decode_map, paint_rects
+from service.api.links import JobLinks, job_links, request_signer
 from service.api.schemas import (ErrorBody, Health, ImageFormat, JobCreate, JobCreated, JobList, JobStatus,
                                  LambdaResult, LambdaUpdate, Layer, MAX_SEQUENCE, SEQUENCE_DESCRIPTION, SceneInfo,
                                  SceneList)
@@ -279,6 +280,14 @@ async def job_events(job_id: str, request: Request, store: Store) -> StreamingRe
     await run_in_threadpool(require_job, store, job_id)
     headers = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
     return StreamingResponse(event_stream(store, job_id, request), media_type="text/event-stream", headers=headers)
+
+
+@router.get("/jobs/{job_id}/links", response_model=JobLinks, responses=JOB_ERRORS)
+def get_links(record: Job, request: Request) -> JobLinks:
+    """URLs of the job's preview and event stream for elements that cannot send the token
+    (`<img>`, EventSource): signed, valid for a few minutes, when the server has a token. The
+    token itself is not accepted in a URL."""
+    return job_links(record.id, request_signer(request))
 
 
 @lru_cache(maxsize=1)

@@ -19,6 +19,7 @@ from fastapi import FastAPI
 
 from models.pretrained import Networks, load_networks
 from service.api.app import create_app
+from service.api.edge import EdgeSettings, uvicorn_options
 from service.api.security import SecuritySettings
 from service.jobs.worker_settings import WorkerSettings
 from service.jobs.retention import Retention
@@ -84,13 +85,14 @@ def job_limits_from_env() -> JobLimits:
 def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | None = None,
           workers: WorkerSettings = WorkerSettings(), *, networks: Networks, security: SecuritySettings = SecuritySettings(),
           bundle_limits: BundleLimits = BundleLimits(), job_limits: JobLimits = SERVICE_LIMITS,
-          retention: Retention = Retention(), db_url: str | None = None) -> None:
+          retention: Retention = Retention(), db_url: str | None = None, edge: EdgeSettings = EdgeSettings()) -> None:
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
     app = create_app(data_dir, networks=networks, workers=workers, security=security,
                      bundle_limits=bundle_limits, job_limits=job_limits, retention=retention, db_url=db_url)
     log_service_messages()
-    uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS)
+    uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS,
+                **uvicorn_options(edge))
 
 
 def log_service_messages() -> None:

@@ -2,18 +2,23 @@
 from __future__ import annotations
 
 import http.client
+import json
 import os
 import subprocess
 import sys
+import time
 
 import httpx
 import pytest
 
-from service_harness import REPO
+from service.api.signing import UrlSigner
+from service_harness import REPO, wait_for
 
 TOKEN = "s3cret-token"
 JOB = {"scene": "cornell-box", "width": 8, "height": 8, "max_iterations": 1}
-SERVER_ENV = {"RENDERLOOP_TOKEN": TOKEN}
+ALLOWED_ORIGIN = "https://app.example"
+SERVER_ENV = {"RENDERLOOP_TOKEN": TOKEN, "RENDERLOOP_CORS_ORIGINS": ALLOWED_ORIGIN}
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 
 @pytest.fixture(scope="module")
@@ -61,10 +66,87 @@ def test_the_right_token_is_accepted_and_a_job_is_created(server):
         assert client.post("/jobs", json=JOB).status_code == 202
 
 
-def test_event_streams_and_previews_take_the_token_from_the_query_for_browsers(server):
+@pytest.fixture(scope="module")
+def finished_job(server) -> str:
+    with httpx.Client(base_url=server.url, timeout=30, headers=AUTH) as client:
+        job_id = client.post("/jobs", json=JOB).json()["id"]
+        wait_for(client, job_id, lambda job: job["state"] == "completed")
+    return job_id
+
+
+def test_a_signed_preview_and_event_stream_url_work_without_the_token(server, finished_job):
+    links = httpx.get(f"{server.url}/jobs/{finished_job}/links", headers=AUTH, timeout=30).json()
+    assert TOKEN not in json.dumps(links) and links["expires"] > time.time()
     with httpx.Client(base_url=server.url, timeout=30) as anonymous:
-        assert anonymous.get("/jobs/nope/preview", params={"token": TOKEN}).status_code == 404  # past the guard
-        assert anonymous.get("/jobs", params={"token": TOKEN}).status_code == 401  # only where headers are impossible
+        preview = anonymous.get(links["preview"] + "&layer=noisy&format=png")
+        assert preview.status_code == 200 and preview.headers["content-type"] == "image/png"
+        events = anonymous.get(links["events"])
+        assert events.status_code == 200 and "event: end" in events.text
+        assert anonymous.get(f"/jobs/{finished_job}/links").status_code == 401  # issuing them needs the token
+
+
+def test_an_expired_tampered_or_other_jobs_signature_is_401(server, finished_job):
+    signer = UrlSigner.from_token(TOKEN)  # the server's own key: only the expiry makes it fail
+    expires, signature = signer.sign(finished_job, now=time.time() - 2 * signer.seconds)
+    links = httpx.get(f"{server.url}/jobs/{finished_job}/links", headers=AUTH, timeout=30).json()
+    good_exp, good_sig = links["expires"], links["preview"].rsplit("sig=", 1)[1]
+    other_job = httpx.post(server.url + "/jobs", json=JOB, headers=AUTH, timeout=30).json()["id"]
+    with httpx.Client(base_url=server.url, timeout=30) as anonymous:
+        for job_id, exp, sig in [(finished_job, expires, signature),           # expired
+                                 (finished_job, good_exp, good_sig[:-2] + "AA"),  # tampered
+                                 (finished_job, good_exp + 3600, good_sig),      # expiry pushed out
+                                 (other_job, good_exp, good_sig)]:               # another job's
+            for route in ("preview", "events"):
+                response = anonymous.get(f"/jobs/{job_id}/{route}", params={"exp": exp, "sig": sig})
+                assert response.status_code == 401, (job_id, exp, route)
+                assert "/links" in response.json()["detail"]
+
+
+def test_the_raw_token_in_a_url_is_refused_even_where_browsers_need_one(server, finished_job):
+    with httpx.Client(base_url=server.url, timeout=30) as anonymous:
+        for route in ("preview", "events"):
+            response = anonymous.get(f"/jobs/{finished_job}/{route}", params={"token": TOKEN})
+            assert response.status_code == 401 and "Authorization" in response.json()["detail"], route
+        assert anonymous.get("/jobs", params={"token": TOKEN}).status_code == 401
+
+
+def test_a_cross_site_browser_write_is_403_json_or_multipart(server):
+    evil = {**AUTH, "Origin": "https://evil.example"}
+    with httpx.Client(base_url=server.url, timeout=30) as client:
+        response = client.post("/jobs", json=JOB, headers=evil)
+        assert response.status_code == 403 and "https://evil.example" in response.json()["detail"]
+        form = client.post("/jobs", headers=evil, data={"spec": json.dumps({"scene": "scene.xml"})},
+                           files={"bundle": ("scene.zip", b"PK\x05\x06" + bytes(18), "application/zip")})
+        assert form.status_code == 403
+        assert client.request("DELETE", "/jobs/x", headers=evil).status_code == 403
+        assert client.put("/jobs/x/lambda", json={"value": 2}, headers=evil).status_code == 403
+        assert client.post("/jobs/x/cancel", headers={**AUTH, "Origin": "null"}).status_code == 403
+        cross_site = client.post("/jobs", json=JOB, headers={**AUTH, "Sec-Fetch-Site": "cross-site"})
+        assert cross_site.status_code == 403 and "Sec-Fetch-Site" in cross_site.json()["detail"]
+        assert client.post("/jobs", json=JOB, headers={**AUTH, "Sec-Fetch-Site": "same-site"}).status_code == 403
+        assert client.get("/jobs", headers=evil).status_code == 200  # reads: CORS keeps the answer from the page
+
+
+def test_the_pages_own_origin_and_configured_origins_may_write(server):
+    with httpx.Client(base_url=server.url, timeout=30, headers=AUTH) as client:
+        own = client.post("/jobs", json=JOB, headers={"Origin": server.url, "Sec-Fetch-Site": "same-origin"})
+        assert own.status_code == 202, own.text
+        assert client.post("/jobs", json=JOB, headers={"Origin": server.url.replace("127.0.0.1", "localhost")},
+                           ).status_code == 403  # another name is another origin
+        allowed = client.post("/jobs", json=JOB, headers={"Origin": ALLOWED_ORIGIN, "Sec-Fetch-Site": "cross-site"})
+        assert allowed.status_code == 202, allowed.text
+        assert client.post("/jobs", json=JOB).status_code == 202  # no Origin: curl, service.client
+
+
+def test_json_bodies_are_capped_at_1_mib_by_header_and_while_streaming(server):
+    big = json.dumps({"value": 2, "rects": [{"x": 0, "y": 0, "w": 1, "h": 1, "value": 2}] * 40000}).encode()
+    assert len(big) > 2**20
+    with httpx.Client(base_url=server.url, timeout=30, headers=AUTH) as client:
+        declared = client.put("/jobs/x/lambda", content=big, headers={"Content-Type": "application/json"})
+        assert declared.status_code == 413 and "1 MiB" in declared.json()["detail"]
+        streamed = client.post("/jobs", content=iter([big[:2**19], big[2**19:]]),
+                               headers={"Content-Type": "application/json"})  # chunked: no length to check
+        assert streamed.status_code == 413, streamed.text
 
 
 def test_a_foreign_host_header_is_refused_dns_rebinding(server):
