@@ -9,7 +9,7 @@ from typing import Annotated, Any, Literal, get_type_hints
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, create_model, model_validator
 
 from service.jobs.store import JobRecord
-from service.loop.spec import (ALLOCATORS, LAMBDA_RANGE, MAX_SEED, SERVICE_LIMITS, LoopSpec, LoopSpecError,
+from service.loop.spec import (ALLOCATORS, LAMBDA_RANGE, MAX_SEED, PRIORITY_RANGE, SERVICE_LIMITS, LoopSpec, LoopSpecError,
                                lambda_problem, validate_spec)
 
 MAX_RECTS = 1024
@@ -41,6 +41,8 @@ _BOUNDS: dict[str, dict[str, Any]] = {
     "seed": {"ge": 0, "le": MAX_SEED},
     "params": {"description": "the scene's $name parameters, like Mitsuba's -D name=value"},
     "allocator": {"description": "null: 'error' with the denoiser, 'variance' without"},
+    "priority": {"ge": PRIORITY_RANGE[0], "le": PRIORITY_RANGE[1],
+                 "description": "queue order: higher-priority queued jobs start first"},
 }
 # Strict: "32" is not a width and "yes" not a boolean; NaN and ±Infinity are no numbers here.
 _STRICT = ConfigDict(extra="forbid", populate_by_name=True, strict=True, allow_inf_nan=False)
@@ -52,7 +54,7 @@ def _spec_fields() -> dict[str, tuple[Any, Any]]:
     hints["allocator"] = Allocator | None
     out = {}
     for f in dataclasses.fields(LoopSpec):
-        if f.name == "scene":
+        if f.name in ("scene", "budget_source"):  # budget_source is set by the server, never asked for
             continue
         default = f.default if f.default is not dataclasses.MISSING else None
         factory = f.default_factory if f.default_factory is not dataclasses.MISSING else None
@@ -136,6 +138,7 @@ class JobStatus(BaseModel):
     lambda_value: float | None = Field(None, description="global λ last set; null once a per-pixel map is used")
     resumed_from: int | None = Field(None, description="iteration a restart resumed this job at")
     effects: dict | None = Field(None, description="the effects report: which integrator runs and why, what is simulated")
+    priority: int = Field(0, description="queue order: higher-priority queued jobs start first")
     spec: dict
 
     @classmethod
@@ -156,6 +159,7 @@ class JobStatus(BaseModel):
             lambda_value=record.lambda_value,
             resumed_from=record.resumed_from,
             effects=record.effects,
+            priority=record.priority,
             spec=record.spec,
         )
 

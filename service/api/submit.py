@@ -15,8 +15,9 @@ from starlette.datastructures import UploadFile
 from service.api.schemas import BundleJobCreate, JobCreate
 from service.jobs import bundle
 from service.jobs.artifacts import JobFiles
+from service.loop.budget import names_a_stopping_rule, scene_budget
 from service.loop.spec import SERVICE_LIMITS, JobLimits, LoopSpec, LoopSpecError, check_limits
-from service.render.scenes import SceneError, builtin_scene_names, check_scene, film_size
+from service.render.scenes import SceneError, builtin_scene_names, check_scene, film_size, scene_sample_count
 
 JSON_MEDIA_TYPE = "application/json"
 
@@ -70,6 +71,15 @@ def check_effective_job(spec: LoopSpec, root: Path | None = None, limits: JobLim
         raise invalid("spec", str(exc)) from exc
 
 
+def with_scene_budget(spec: LoopSpec, root: Path) -> LoopSpec:
+    """A bundle job that gives no stopping rule: the scene's own sample_count is its budget
+    (service/loop/budget.py); built-in scenes keep the default iterations."""
+    try:
+        return scene_budget(spec, scene_sample_count(spec.scene, params=spec.params, root=root))
+    except SceneError as exc:
+        raise invalid("spec", str(exc)) from exc
+
+
 def builtin_job(body: object, limits: JobLimits = SERVICE_LIMITS) -> LoopSpec:
     """The LoopSpec of a JSON request naming a built-in scene, limits checked."""
     request: JobCreate = validated(JobCreate, body)
@@ -101,6 +111,8 @@ def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, reque
         entry = bundle.prepare_bundle(root, request.scene, params=request.params)
         relative = entry.relative_to(root).as_posix()
         spec = request.loop_spec(str(entry))
+        if not names_a_stopping_rule(request.model_fields_set):
+            spec = with_scene_budget(spec, root)
         check_effective_job(spec, root, job_limits)
     except BaseException:
         shutil.rmtree(files.root, ignore_errors=True)

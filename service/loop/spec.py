@@ -26,6 +26,8 @@ MAX_SEED = 2**31 - 1
 # Scene parameters are Mitsuba's `-D name=value`: identifiers, short values.
 PARAM_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
 MAX_PARAMS, MAX_PARAM_VALUE = 64, 1024
+# A service job's place in the queue: higher runs first; the loop itself ignores it.
+PRIORITY_RANGE = (-100, 100)
 
 
 class LoopSpecError(ValueError):
@@ -85,6 +87,10 @@ class LoopSpec:
     lam: float = 1.0  # default λ (1 = symmetric loss)
     seed: int = 0
     params: dict[str, str] = field(default_factory=dict)  # the scene's `$name` parameters (Mitsuba's -D)
+    # "scene": spp_budget is the scene's own <sampler> sample_count, set because the job gave no
+    # stopping rule (service/loop/budget.py); None: the budget is the request's (or the default).
+    budget_source: str | None = None
+    priority: int = 0  # queue order on a service (PRIORITY_RANGE); no effect on the image
 
     def __post_init__(self) -> None:
         if self.allocator is None:
@@ -164,6 +170,9 @@ def validate_spec(spec: LoopSpec) -> None:
     if not _is_int(spec.seed) or not 0 <= spec.seed <= MAX_SEED:
         raise LoopSpecError(f"seed must be an integer in [0, {MAX_SEED}], got {spec.seed!r}")
     _validate_params(spec.params)
+    low, high = PRIORITY_RANGE
+    if not _is_int(spec.priority) or not low <= spec.priority <= high:
+        raise LoopSpecError(f"priority must be an integer in [{low}, {high}], got {spec.priority!r}")
     if not spec.denoise and spec.allocator == "error" and spec.max_iterations != 1:
         raise LoopSpecError("the error allocator needs the denoiser; use allocator 'variance' or 'uniform' without it")
     if spec.max_iterations is None and spec.spp_budget is None and spec.time_limit is None and spec.target_error is None:

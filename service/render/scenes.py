@@ -143,6 +143,21 @@ def film_size(source: str | Path, *, width: int | None = None, height: int | Non
     return crop[0], crop[1]
 
 
+def scene_sample_count(source: str | Path, *, params: dict[str, str] | None = None,
+                       root: str | Path | None = None) -> int | None:
+    """The `sample_count` of the scene's own `<sampler>` (after `params`), read from the parsed
+    description: what `mi.render` would take per pixel, the job's default budget
+    (service/loop/budget.py). None for a built-in scene or one that declares no sample count."""
+    if not isinstance(source, Path) and str(source) in BUILTIN_BY_NAME:
+        return None
+    mi = mitsuba()
+    parsed = _parse_scene(mi, source, None, None, 0, params, root)
+    samplers = [node.props for node in parsed.state.nodes if node.type == mi.ObjectType.Sampler]
+    if not samplers or "sample_count" not in samplers[0]:
+        return None
+    return int(samplers[0]["sample_count"])
+
+
 @dataclass
 class _Parsed:
     config: object  # mi.parser.ParserConfig

@@ -203,7 +203,9 @@ def test_with_a_token_the_page_asks_for_it_and_then_renders(driver, token_server
     wait_until(lambda: not page.find("#token-form").is_displayed(), "the token field to close")
     job_id = page.submit(width=32, height=32, max_iterations=2)
     wait_until(lambda: page.state(job_id) == "completed", "the job to complete")
-    wait_until(lambda: page.shown_version() == 2, "the preview, fetched with ?token=")
+    wait_until(lambda: page.shown_version() == 2, "the preview, fetched with a signed URL")
+    urls = page.resource_urls()  # the token rides in headers only, never in a URL
+    assert not any(TOKEN in url for url in urls) and any("sig=" in url and "/preview" in url for url in urls), urls
     assert not page.finds("#messages .error"), page.messages()
     assert page.script_errors() == []
 

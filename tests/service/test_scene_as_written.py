@@ -42,3 +42,26 @@ def test_bundle_with_a_misspelt_property_is_422_naming_it_and_its_line(server, c
     assert response.json()["detail"] == ("spec: "  # the location, as every 422 of a bundle spec
                                          'scene.xml:4: unreferenced property "max_dpeth" in integrator plugin of type '
                                          '"path", which reads no property of that name (misspelt?)')
+
+
+def test_bundle_job_without_a_stopping_rule_ends_at_the_scenes_sample_count(server, client):
+    response = submit(client, "max_depth", {"params": {"spp": "32"}, "denoise": False})
+    assert response.status_code == 202, response.text
+    job = wait_for(client, response.json()["id"], finished)
+    assert job["state"] == "completed", job
+    assert job["spp"] == pytest.approx(32.0)
+    assert job["stop_reason"] == "spp_budget"
+    assert (job["spec"]["spp_budget"], job["spec"]["budget_source"], job["spec"]["max_iterations"]) == (32.0, "scene", None)
+
+
+def test_bundle_job_with_a_stopping_rule_keeps_it(server, client):
+    response = submit(client, "max_depth", {"params": {"spp": "32"}, "denoise": False, "max_iterations": 1})
+    assert response.status_code == 202, response.text
+    job = wait_for(client, response.json()["id"], finished)
+    assert job["state"] == "completed" and job["spp"] == pytest.approx(16.0), job
+    assert job["spec"]["budget_source"] is None
+
+
+def test_budget_source_is_the_servers_to_set_not_the_clients(server, client):
+    response = submit(client, "max_depth", {"budget_source": "scene"})
+    assert response.status_code == 422, response.text

@@ -29,6 +29,14 @@ def server(tmp_path_factory) -> Iterator[CliServer]:
     server.stop()
 
 
+@pytest.fixture(scope="module")
+def quick_server(tmp_path_factory) -> Iterator[CliServer]:
+    root = tmp_path_factory.mktemp("edge_quick")
+    server = CliServer(root / "data", root / "server.log", ["--header-timeout", "1", "--keep-alive-timeout", "60"])
+    yield server.start()
+    server.stop()
+
+
 def raw_socket(server: CliServer, data: bytes) -> socket.socket:
     sock = socket.create_connection(("127.0.0.1", server.port), timeout=30)
     sock.sendall(data)
@@ -68,6 +76,32 @@ def test_fifty_half_open_connections_do_not_starve_a_new_request(server):
         assert time.monotonic() - started < 20
         closed = sum(closed_by_server(sock) for sock in sockets)
         assert closed >= 50 - MAX_CONNECTIONS, closed  # the longest-waiting ones made room
+
+
+def seconds_until_closed(sock: socket.socket, limit: float = 30) -> float:
+    started = time.monotonic()
+    sock.settimeout(limit)
+    try:
+        while sock.recv(4096):
+            pass  # a response before the close (the keep-alive case) is read and skipped
+    except ConnectionResetError:
+        pass
+    return time.monotonic() - started
+
+
+def test_a_connection_that_never_finishes_its_headers_is_closed_after_the_header_timeout(quick_server):
+    with raw_socket(quick_server, PARTIAL_REQUEST) as sock:
+        assert 0.5 < seconds_until_closed(sock) < 20
+
+
+def test_the_header_deadline_also_holds_between_keep_alive_requests(quick_server):
+    # One full request, its answer, then a second request that never ends: with a 60 s
+    # keep-alive the header deadline (1 s) is what must close it.
+    with raw_socket(quick_server, b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n") as sock:
+        sock.settimeout(30)
+        assert sock.recv(4096).startswith(b"HTTP/1.1 200")
+        sock.sendall(PARTIAL_REQUEST)
+        assert seconds_until_closed(sock) < 20
 
 
 def test_beyond_the_connection_cap_requests_get_503(server):

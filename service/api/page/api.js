@@ -1,6 +1,7 @@
-// The HTTP API as the page uses it: the bearer token on every fetch, `?token=` only where a
-// browser cannot send headers (EventSource, <img>: the server accepts it on /events and
-// /preview only), and every refusal turned into an ApiError carrying the server's message.
+// The HTTP API as the page uses it: the bearer token on every fetch, and every refusal turned
+// into an ApiError carrying the server's message. Where a browser cannot send headers
+// (EventSource, <img>) the page asks GET /jobs/{id}/links for short-lived signed URLs: the
+// token never goes into a URL (the server refuses it there).
 
 const TOKEN_KEY = "renderloop.token";
 
@@ -27,6 +28,7 @@ export function token() {
 export function setToken(value) {
   if (value) sessionStorage.setItem(TOKEN_KEY, value);
   else sessionStorage.removeItem(TOKEN_KEY);
+  forgetLinks();
 }
 
 /** `listener(error)` runs on every 401, so the page can ask for a (new) token. */
@@ -76,13 +78,34 @@ export async function sendJSON(method, path, json) {
   return response.status === 204 ? null : response.json();
 }
 
-/** A URL for elements that cannot send headers: the token rides in the query. */
-export function browserURL(path, params = {}) {
-  const query = new URLSearchParams(params);
-  const t = token();
-  if (t) query.set("token", t);
-  const text = query.toString();
-  return text ? `${path}?${text}` : path;
+// Signed links are reused until this close to their expiry (seconds), then asked for again.
+const LINK_MARGIN_S = 60;
+const links = new Map();  // job id → Promise of {events, preview, expires}
+
+function freshLinks(id) {
+  const cached = links.get(id);
+  if (cached) return cached;
+  const pending = getJSON(`/jobs/${encodeURIComponent(id)}/links`).then((answer) => {
+    // A null expiry: the server has no token and its links never expire.
+    const ttl = answer.expires === null ? Infinity : (answer.expires - Date.now() / 1000 - LINK_MARGIN_S) * 1000;
+    if (ttl !== Infinity) setTimeout(() => { if (links.get(id) === pending) links.delete(id); }, Math.max(ttl, 0));
+    return answer;
+  });
+  links.set(id, pending);
+  pending.catch(() => { if (links.get(id) === pending) links.delete(id); });
+  return pending;
+}
+
+/** Forget every signed link (the token changed: they were signed under the old one). */
+export function forgetLinks() {
+  links.clear();
+}
+
+/** A URL for elements that cannot send headers: the job's signed link plus `params`. */
+export async function browserURL(id, kind, params = {}) {
+  const url = new URL((await freshLinks(id))[kind], window.location.href);
+  for (const [name, value] of Object.entries(params)) url.searchParams.set(name, value);
+  return url.pathname + url.search;
 }
 
 export const api = {
@@ -101,6 +124,6 @@ export const api = {
   remove: (id) => sendJSON("DELETE", `/jobs/${encodeURIComponent(id)}`),
   setLambda: (id, body) => sendJSON("PUT", `/jobs/${encodeURIComponent(id)}/lambda`, body),
   result: (id, frame) => request("GET", `/jobs/${encodeURIComponent(id)}/result.exr?frame=${frame}`),
-  eventsURL: (id) => browserURL(`/jobs/${encodeURIComponent(id)}/events`),
-  previewURL: (id, params) => browserURL(`/jobs/${encodeURIComponent(id)}/preview`, params),
+  eventsURL: (id) => browserURL(id, "events"),
+  previewURL: (id, params) => browserURL(id, "preview", params),
 };

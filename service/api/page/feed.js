@@ -13,7 +13,7 @@ export class JobFeed {
   constructor({onStatus, onEnd}) {
     this.onStatus = onStatus;
     this.onEnd = onEnd;
-    this.streams = new Map();  // id → EventSource or interval handle
+    this.streams = new Map();  // id → EventSource, interval handle, or null while its signed URL is fetched
   }
 
   /** Follow these job ids (most wanted first); stop following the others. */
@@ -35,7 +35,7 @@ export class JobFeed {
     const stream = this.streams.get(id);
     if (stream === undefined) return;
     if (typeof stream === "number") clearInterval(stream);
-    else stream.close();
+    else if (stream !== null) stream.close();
     this.streams.delete(id);
   }
 
@@ -44,11 +44,19 @@ export class JobFeed {
       this.streams.set(id, setInterval(() => this.poll(id), POLL_MS));
       return;
     }
-    const source = new EventSource(api.eventsURL(id));
+    this.streams.set(id, null);
+    api.eventsURL(id).then((url) => {
+      if (this.streams.get(id) === null) this.open(id, url);  // else stopped meanwhile
+    }, () => { if (this.streams.get(id) === null) this.finish(id); });
+  }
+
+  open(id, url) {
+    const source = new EventSource(url);
     source.addEventListener("status", (event) => this.onStatus(JSON.parse(event.data)));
     source.addEventListener("end", () => this.finish(id));  // else EventSource reconnects
     source.addEventListener("error", () => {
-      // CLOSED: refused (401, 404) and not retried; CONNECTING: the browser retries itself.
+      // CLOSED: refused (401, 404, 429; an expired link) and not retried; CONNECTING: the
+      // browser retries itself. A finished stream is followed again with a fresh link.
       if (source.readyState === EventSource.CLOSED) this.finish(id);
     });
     this.streams.set(id, source);

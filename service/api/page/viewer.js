@@ -154,8 +154,16 @@ export class Viewer {
     this.placeSplit();
   }
 
-  loadImage(img, url, load, main) {
+  /** `url`: a Promise of the signed preview URL (api.previewURL). */
+  async loadImage(img, url, load, main) {
     const version = this.version;
+    try {
+      url = await url;
+    } catch (error) {
+      if (load === this.loads) this.hooks.onError(error);
+      return;
+    }
+    if (load !== this.loads) return;  // a newer reload started while the link was fetched
     img.onload = () => {
       if (load !== this.loads) return;
       img.dataset.version = String(version);
