@@ -21,6 +21,7 @@ from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.jobs.db.url import is_postgres_url, without_password
 from service.jobs.errors import StoreUnavailable
 from service.jobs.retention import Retention
+from service.loop.budget import describe_budget, names_a_stopping_rule, scene_budget
 from service.loop.spec import (ALLOCATORS, DEFAULT_ITERATIONS, LAMBDA_RANGE, SERVICE_LIMITS, LoopSpec, LoopSpecError,
                                default_allocator)
 from service.dataset import command as dataset_command
@@ -57,7 +58,8 @@ def add_render_parser(sub) -> None:
     p.add_argument("--spp", type=int, help="one uniform pass of N samples per pixel, no adaptive iterations")
     p.add_argument("--spp-first", type=int, default=d.spp_first,
                    help=f"samples per pixel of iteration 0 (default {d.spp_first})")
-    stop = p.add_argument_group(f"stopping rules (whichever comes first; default --iterations {DEFAULT_ITERATIONS})")
+    stop = p.add_argument_group("stopping rules (whichever comes first; default: the scene's <sampler> sample_count "
+                                f"as --spp-budget, else --iterations {DEFAULT_ITERATIONS})")
     stop.add_argument("--iterations", type=int, help="maximum iterations")
     stop.add_argument("--spp-budget", type=float, help="mean samples per pixel, all iterations together")
     stop.add_argument("--time-limit", type=float, help="seconds")
@@ -109,6 +111,17 @@ def render_spec(args) -> LoopSpec:
     )
 
 
+def default_budget(args, spec: LoopSpec) -> LoopSpec:
+    """With no stopping rule given, the scene's own sample_count is the budget (service/loop/budget.py)."""
+    given = {"max_iterations": args.iterations, "spp_budget": args.spp_budget, "time_limit": args.time_limit,
+             "target_error": args.target_error}
+    if args.spp is not None or names_a_stopping_rule(name for name, value in given.items() if value is not None):
+        return spec
+    from service.render.scenes import scene_sample_count
+
+    return scene_budget(spec, scene_sample_count(spec.scene, params=spec.params))
+
+
 def run_render(args) -> int:
     from service.render.scenes import describe_builtin_scenes
 
@@ -118,13 +131,14 @@ def run_render(args) -> int:
         return 0
     if not args.scene:
         raise CliError("render needs a SCENE (an XML file or a built-in name; see --list)")
-    spec = render_spec(args)
+    spec = default_budget(args, render_spec(args))
     if args.explain:
         from service.render.effects import explain_effects, inspect_scene
 
         effects = inspect_scene(spec.scene, frames=spec.frames, width=spec.width, height=spec.height,
                                 params=spec.params)
         print(explain_effects(effects))
+        print(describe_budget(spec))
         return 0
     if args.output is None:
         raise CliError("render needs -o OUT.exr")
@@ -152,7 +166,8 @@ def run_render(args) -> int:
         if args.png:
             print(f"wrote {write_png(path.with_suffix('.png'), tonemap(frame.color))}")
     if record is not None:
-        print(f"{record.iteration + 1} iterations, {record.spp_mean:.1f} spp mean, stop: {record.stop_reason}")
+        print(f"{record.iteration + 1} iterations, {record.spp_mean:.1f} spp mean, stop: {record.stop_reason}; "
+              f"{describe_budget(spec)}")
     return 0
 
 
