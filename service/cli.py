@@ -20,6 +20,8 @@ from service.jobs.worker_settings import WorkerSettings
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.jobs.db.url import is_postgres_url, without_password
 from service.jobs.errors import StoreUnavailable
+from service.jobs.quotas import (DEFAULT_MAX_QUEUED, DEFAULT_MAX_QUEUED_PER_CLIENT, MAX_QUEUED_ENV,
+                                 MAX_QUEUED_PER_CLIENT_ENV, Quotas)
 from service.jobs.retention import Retention
 from service.loop.budget import describe_budget, names_a_stopping_rule, scene_budget
 from service.loop.spec import (ALLOCATORS, DEFAULT_ITERATIONS, LAMBDA_RANGE, SERVICE_LIMITS, LoopSpec, LoopSpecError,
@@ -215,7 +217,15 @@ def add_serve_parser(sub) -> None:
     p.add_argument("--keep-days", type=float, default=None,
                    help="remove finished jobs (record and files) this many days after they end (default: keep)")
     p.add_argument("--max-disk-gb", type=float, default=None,
-                   help="keep the data folder under this size by removing the oldest finished jobs (default: no cap)")
+                   help="keep the data folder under this size by removing the oldest finished jobs; a submit that "
+                        "finds it full of queued and running jobs gets 507 (default: no cap)")
+    p.add_argument("--max-queued", type=int, default=int(os.environ.get(MAX_QUEUED_ENV) or DEFAULT_MAX_QUEUED),
+                   help="queued jobs at most, all clients together; beyond: 429 with Retry-After "
+                        f"(default: ${MAX_QUEUED_ENV}, else {DEFAULT_MAX_QUEUED})")
+    p.add_argument("--max-queued-per-client", type=int,
+                   default=int(os.environ.get(MAX_QUEUED_PER_CLIENT_ENV) or DEFAULT_MAX_QUEUED_PER_CLIENT),
+                   help="queued jobs at most per client (its bearer token, else its address); beyond: 429 "
+                        f"(default: ${MAX_QUEUED_PER_CLIENT_ENV}, else {DEFAULT_MAX_QUEUED_PER_CLIENT})")
     p.add_argument("--insecure-no-auth", action="store_true",
                    help="allow binding a non-loopback address without a token")
     add_edge_arguments(p)
@@ -298,6 +308,9 @@ def run_serve(args) -> int:
                           max_disk_bytes=args.max_disk_gb * 2**30 if args.max_disk_gb else None)
     if args.db and not is_postgres_url(args.db):
         raise CliError(f"--db must be a postgresql:// URL (got {without_password(args.db)!r})")
+    if args.max_queued < 1 or args.max_queued_per_client < 1:
+        raise CliError("--max-queued and --max-queued-per-client must be >= 1")
+    quotas = Quotas(max_queued=args.max_queued, max_queued_per_client=args.max_queued_per_client)
     auth = " -H 'authorization: Bearer $RENDERLOOP_TOKEN'" if security.token else ""
     jobs = f", jobs: {without_password(args.db)}" if args.db else ""
     print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir}{jobs})")
@@ -307,7 +320,7 @@ def run_serve(args) -> int:
     try:
         serve(args.host, args.port, args.data_dir, workers, networks=load_cli_networks(args.weights),
               security=security, bundle_limits=limits, job_limits=job_limits, retention=retention, db_url=args.db,
-              edge=edge)
+              edge=edge, quotas=quotas)
     except StoreUnavailable as exc:
         raise CliError(str(exc)) from exc
     return 0

@@ -19,6 +19,8 @@ from service.api.routes import router
 from service.api.schemas import BundleJobCreate, JobCreate, LambdaUpdate
 from service.api.security import RequestGuard, SecuritySettings
 from service.jobs import bundle
+from service.jobs.leases import Leases
+from service.jobs.quotas import Quotas
 from service.jobs.retention import Housekeeper, Retention
 from service.jobs.store import JobStore
 from service.jobs.backends import make_worker
@@ -36,10 +38,10 @@ def create_app(data_dir: Path, *, networks: Networks, workers: WorkerSettings = 
                security: SecuritySettings = SecuritySettings(),
                bundle_limits: bundle.BundleLimits = bundle.BundleLimits(),
                job_limits: JobLimits = SERVICE_LIMITS, retention: Retention = Retention(),
-               db_url: str | None = None) -> FastAPI:
+               db_url: str | None = None, quotas: Quotas = Quotas(), leases: Leases = Leases()) -> FastAPI:
     """`db_url`: None for the SQLite file in `data_dir`, or a postgresql:// URL; job files stay
     under `data_dir` either way. `workers`: the thread backend (default) or Ray."""
-    store = JobStore(Path(data_dir), db_url)
+    store = JobStore(Path(data_dir), db_url, leases=leases)
     metrics = ServiceMetrics(store)
     worker = make_worker(store, networks, workers, observer=metrics)
     housekeeper = Housekeeper(store, retention)
@@ -60,6 +62,7 @@ def create_app(data_dir: Path, *, networks: Networks, workers: WorkerSettings = 
     app = FastAPI(title="renderloop", version="0.1.0", lifespan=lifespan)
     app.state.store, app.state.worker, app.state.metrics = store, worker, metrics
     app.state.bundle_limits, app.state.job_limits = bundle_limits, job_limits
+    app.state.quotas, app.state.retention = quotas, retention  # POST /jobs: queue and disk caps
     app.add_middleware(BodySizeLimit, max_bytes=bundle_limits.max_bytes + FORM_OVERHEAD_BYTES)
     if security.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(security.cors_origins), allow_credentials=False,

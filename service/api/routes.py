@@ -10,11 +10,12 @@ from functools import lru_cache
 from typing import Annotated, AsyncIterator
 
 import numpy as np
-from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from service.api import imaging
+from service.api.admission import admit, check_disk, create_job, discard, idempotency_key, submitter
 from service.api.metrics import MEDIA_TYPE as METRICS_MEDIA_TYPE, ServiceMetrics
 from service.api.lambda_map import constant, decode_map, paint_rects
 from service.api.links import JobLinks, job_links, request_signer
@@ -108,10 +109,20 @@ def check_frame(record: JobRecord, frame: int) -> None:
 
 # -- submit -----------------------------------------------------------------------------------
 
-@router.post("/jobs", status_code=202, response_model=JobCreated, openapi_extra=SUBMIT_BODY)
-async def submit_job(request: Request, store: Store, worker: Worker) -> JobCreated:
+@router.post("/jobs", status_code=202, response_model=JobCreated, openapi_extra=SUBMIT_BODY, responses={
+    200: {"model": JobCreated, "description": "this Idempotency-Key was used before: the job it created"},
+    429: _error("the queue is full, for the server or for this client (see Retry-After)"),
+    507: _error("the data folder is at its cap (--max-disk-gb)")})
+async def submit_job(request: Request, response: Response, store: Store, worker: Worker) -> JobCreated:
     """JSON body naming a built-in scene, or multipart: `spec` (JSON) plus `bundle` (zip)
-    or `files` (scene XML and assets, sub-folders in the file names)."""
+    or `files` (scene XML and assets, sub-folders in the file names). An `Idempotency-Key`
+    header makes a retry safe: the same key (and client) gives back the first job."""
+    client, key = submitter(request), idempotency_key(request)
+    first = await run_in_threadpool(store.find_submitted, client, key)
+    if first is not None:
+        response.status_code = 200
+        return JobCreated(id=first.id, state=first.state)
+    await run_in_threadpool(admit, store, request, client)
     if is_multipart(request):
         limits: bundle.BundleLimits = request.app.state.bundle_limits
         form = await request.form(max_files=limits.max_files + 1, max_fields=8)
@@ -122,10 +133,19 @@ async def submit_job(request: Request, store: Store, worker: Worker) -> JobCreat
         job_id = store.new_id()
         stored = await run_in_threadpool(unpack_bundle, worker.files(job_id), archives or files, bool(archives),
                                          spec_request, limits, request.app.state.job_limits)
-        record = store.create(stored, stored["lambda"], job_id=job_id)
+        try:
+            await run_in_threadpool(check_disk, store, request)
+        except HTTPException:
+            discard(store, job_id)
+            raise
+        record, created = await run_in_threadpool(create_job, store, request, stored, stored["lambda"], client, key,
+                                                  job_id)
     else:
         spec = await run_in_threadpool(builtin_job, await json_body(request), request.app.state.job_limits)
-        record = await run_in_threadpool(store.create, spec.to_stored(), spec.lam)
+        record, created = await run_in_threadpool(create_job, store, request, spec.to_stored(), spec.lam, client, key)
+    if not created:
+        response.status_code = 200
+        return JobCreated(id=record.id, state=record.state)
     worker.submit(record.id)
     return JobCreated(id=record.id, state=record.state)
 

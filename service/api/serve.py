@@ -4,7 +4,8 @@ or PostgreSQL with `--db postgresql://…`; job files stay in the data dir).
 `app_from_env` is a uvicorn factory (`uvicorn --factory service.api.serve:app_from_env`)
 reading RENDERLOOP_DATA_DIR / RENDERLOOP_DB / RENDERLOOP_CONCURRENCY (the thread backend) or
 RENDERLOOP_WORKERS / RENDERLOOP_RAY_ADDRESS (Ray, the default) / RENDERLOOP_WEIGHTS_DIR /
-RENDERLOOP_TORCH_THREADS / RENDERLOOP_TOKEN / RENDERLOOP_ALLOWED_HOSTS / RENDERLOOP_CORS_ORIGINS.
+RENDERLOOP_TORCH_THREADS / RENDERLOOP_TOKEN / RENDERLOOP_ALLOWED_HOSTS / RENDERLOOP_CORS_ORIGINS /
+RENDERLOOP_MAX_QUEUED / RENDERLOOP_MAX_QUEUED_PER_CLIENT / RENDERLOOP_LEASE_SECONDS (the lease only here).
 `renderloop serve` (service/cli.py) is the one command line.
 """
 from __future__ import annotations
@@ -22,6 +23,8 @@ from service.api.app import create_app
 from service.api.edge import EdgeSettings, uvicorn_options
 from service.api.security import SecuritySettings
 from service.jobs.worker_settings import WorkerSettings
+from service.jobs.leases import Leases
+from service.jobs.quotas import Quotas
 from service.jobs.retention import Retention
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.loop.spec import SERVICE_LIMITS, JobLimits
@@ -60,7 +63,8 @@ def app_from_env() -> FastAPI:
     return create_app(default_data_dir(), networks=load_networks(),
                       workers=worker_settings_from_env(), security=SecuritySettings.from_env(),
                       bundle_limits=bundle_limits_from_env(), job_limits=job_limits_from_env(),
-                      retention=retention_from_env(), db_url=os.environ.get(DB_ENV) or None)
+                      retention=retention_from_env(), db_url=os.environ.get(DB_ENV) or None,
+                      quotas=Quotas.from_env(), leases=Leases.from_env())
 
 
 def worker_settings_from_env() -> WorkerSettings:
@@ -85,11 +89,13 @@ def job_limits_from_env() -> JobLimits:
 def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | None = None,
           workers: WorkerSettings = WorkerSettings(), *, networks: Networks, security: SecuritySettings = SecuritySettings(),
           bundle_limits: BundleLimits = BundleLimits(), job_limits: JobLimits = SERVICE_LIMITS,
-          retention: Retention = Retention(), db_url: str | None = None, edge: EdgeSettings = EdgeSettings()) -> None:
+          retention: Retention = Retention(), db_url: str | None = None, edge: EdgeSettings = EdgeSettings(),
+          quotas: Quotas = Quotas()) -> None:
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
     app = create_app(data_dir, networks=networks, workers=workers, security=security,
-                     bundle_limits=bundle_limits, job_limits=job_limits, retention=retention, db_url=db_url)
+                     bundle_limits=bundle_limits, job_limits=job_limits, retention=retention, db_url=db_url,
+                     quotas=quotas, leases=Leases.from_env())
     log_service_messages()
     uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS,
                 **uvicorn_options(edge))

@@ -1,6 +1,8 @@
 """Housekeeping: finished jobs older than `keep_days` are removed, and while the data folder is
 over `max_disk_bytes` the oldest finished jobs go first. Queued and running jobs are never
-touched (serve --keep-days, --max-disk-gb)."""
+touched (serve --keep-days, --max-disk-gb). Their bundles count all the same: a submit that
+finds the folder at its cap, after the finished jobs that may go are gone, is refused
+(`check_room`, a 507), so queued uploads cannot grow the disk without bound."""
 from __future__ import annotations
 
 import threading
@@ -8,6 +10,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from service.jobs.quotas import DiskFull
 from service.jobs.store import TERMINAL_STATES, JobStore
 
 SWEEP_SECONDS = 600.0  # how often a running server sweeps
@@ -47,6 +50,19 @@ def sweep(store: JobStore, retention: Retention, now: float | None = None) -> li
             store.delete(record.id)
             removed.append(record.id)
     return removed
+
+
+def check_room(store: JobStore, retention: Retention) -> None:
+    """DiskFull when the data folder (queued and running jobs' bundles and files included) is
+    over `max_disk_bytes` even after sweeping what the policy lets go."""
+    cap = retention.max_disk_bytes
+    if cap is None or folder_bytes(store.data_dir) <= cap:
+        return
+    sweep(store, retention)
+    used = folder_bytes(store.data_dir)
+    if used > cap:
+        raise DiskFull(f"the server's data folder is full ({used / 2**20:.1f} MiB of {cap / 2**20:.1f} MiB, "
+                       "held by queued and running jobs); retry when some have finished")
 
 
 class Housekeeper:

@@ -149,7 +149,7 @@ class JobStore:
         with self._admission:
             self._check_repeat(client, idempotency_key)
             if quotas is not None:
-                self._check_queue(client, quotas)
+                self.check_queue(client, quotas)
             try:
                 self._db.execute(
                     "INSERT INTO jobs (id, state, spec, created_at, lambda_value, priority, client, idempotency_key) "
@@ -184,7 +184,8 @@ class JobStore:
         where, params = ("state = ? AND client = ?", (QUEUED, client)) if client else ("state = ?", (QUEUED,))
         return int(self._db.query(f"SELECT COUNT(*) AS n FROM jobs WHERE {where}", params)[0]["n"])
 
-    def _check_queue(self, client: str | None, quotas: Quotas) -> None:
+    def check_queue(self, client: str | None, quotas: Quotas) -> None:
+        """QuotaExceeded when no more jobs may wait, in all or for `client`."""
         queued = self.count_queued()
         if queued >= quotas.max_queued:
             raise QuotaExceeded(f"the server's queue is full ({queued} jobs waiting, cap {quotas.max_queued}); "

@@ -1,7 +1,11 @@
 """Runs render loops off the event loop and keeps each job's record, checkpoint and previews
 current.
 
-One thread pool (`concurrency` threads, default 1) runs jobs in submission order. After every
+One thread pool (`concurrency` threads, default 1) runs jobs: each thread takes the store's next
+queued job (highest priority, then oldest) until none is left, so priority decides between
+jobs waiting here and jobs any other server on the database queued. A lease thread renews the
+leases of the jobs this server runs and requeues (then runs) jobs whose lease lapsed because
+their server died (service/jobs/leases.py). After every
 iteration the worker checkpoints the loop state, writes the preview layers and bumps the
 preview version, then updates the record, in that order, so the record never claims an
 iteration a restart could not resume from. λ changes go through a per-job latest-wins
@@ -25,7 +29,7 @@ from service.exr import ExrFrame
 from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
-from service.jobs.store import CANCELED, COMPLETED, FAILED, QUEUED, JobRecord, JobStore
+from service.jobs.store import CANCELED, COMPLETED, FAILED, JobRecord, JobStore
 from service.loop.loop import IterationInterrupted, RenderLoop
 from service.loop.spec import IterationRecord, LoopSpec
 from service.loop.state import LoopState
@@ -139,15 +143,19 @@ class JobWorker:
         self._publish_locks: dict[str, threading.Lock] = {}
         self._lambda: dict[str, LatestWins[tuple[np.ndarray, float | None], LambdaApplied]] = {}
         self._stopping = threading.Event()
+        self._concurrency = concurrency
+        self._draining = 0  # pool tasks taking queued jobs (at most `concurrency`)
+        self._leases = threading.Thread(target=self._keep_leases, name="leases", daemon=True)
 
     # -- lifecycle ----------------------------------------------------------------------------
 
     def start(self) -> None:
-        """Jobs that were running when the last server died resume; queued ones run."""
-        for job_id in self.store.requeue_running():
-            log.info("job %s was running at shutdown: resuming from its checkpoint", job_id)
-        for job_id in self.store.ids_in_state(QUEUED):
-            self.submit(job_id)
+        """Jobs whose server died (this one's last life, or another whose lease lapsed) resume;
+        queued ones run. A live other server's running jobs stay its own."""
+        for job_id in self.store.requeue_abandoned():
+            log.info("job %s was running on a server that is gone: resuming from its checkpoint", job_id)
+        self._leases.start()
+        self._kick()
 
     def delete(self, job_id: str, wait_seconds: float = DELETE_WAIT_SECONDS) -> None:
         """Forget a job and its files; a queued or running job is canceled first."""
@@ -174,7 +182,68 @@ class JobWorker:
         self._pool.shutdown(wait=False, cancel_futures=True)
 
     def submit(self, job_id: str) -> None:
-        self._pool.submit(self._run_guarded, job_id)
+        """A job was queued: a free thread takes the queue's next job (the queue's order, by
+        priority, decides which; it may be this one or a more urgent one)."""
+        self._kick()
+
+    def _kick(self) -> None:
+        """Bring the threads taking queued jobs up to `concurrency`; busy ones take the next job
+        themselves when theirs ends."""
+        with self._lock:
+            if self._stopping.is_set():
+                return
+            missing = self._concurrency - self._draining
+            self._draining += missing
+        for _ in range(missing):
+            try:
+                self._pool.submit(self._drain)
+            except RuntimeError:  # the pool shut down meanwhile: the server is stopping
+                with self._lock:
+                    self._draining -= 1
+
+    def _drain(self) -> None:
+        """Run the store's next queued job until none is left. A job another server claimed
+        first is skipped (the claim in _run fails) and the next one tried."""
+        try:
+            while not self._stopping.is_set():
+                job_id = self.store.next_queued()
+                if job_id is None:
+                    break
+                self._run_guarded(job_id)
+        except Exception:
+            log.exception("taking the next queued job failed; the lease thread retries")
+        finally:
+            with self._lock:
+                self._draining -= 1
+        # A job queued between the empty look-up and the count above found every thread busy.
+        if not self._stopping.is_set() and self._safe(self.store.next_queued) is not None:
+            self._kick()
+
+    # -- leases -------------------------------------------------------------------------------
+
+    def _keep_leases(self) -> None:
+        """Renew this server's leases; requeue and run jobs whose lease lapsed."""
+        leases = self.store.leases
+        next_sweep = time.monotonic() + leases.sweep_seconds
+        while not self._stopping.wait(min(leases.renew_seconds, leases.sweep_seconds)):
+            self._safe(self.store.renew_leases)
+            if time.monotonic() < next_sweep:
+                continue
+            next_sweep = time.monotonic() + leases.sweep_seconds
+            for job_id in self._safe(self.store.requeue_lapsed) or []:
+                log.warning("job %s: its server's lease lapsed (the server is gone); requeued to resume "
+                            "from its checkpoint", job_id)
+            if self._safe(self.store.next_queued) is not None:
+                self._kick()  # lapsed jobs, or ones a failed look-up left waiting
+
+    @staticmethod
+    def _safe(call: Callable):
+        """A store call from a background thread: a database hiccup is logged, never fatal."""
+        try:
+            return call()
+        except Exception:
+            log.exception("job store call %s failed; retrying on the next round", getattr(call, "__name__", call))
+            return None
 
     def files(self, job_id: str) -> JobFiles:
         return JobFiles(self.store.job_dir(job_id))

@@ -30,9 +30,9 @@ WORKERS = 2
 @pytest.fixture(scope="module")
 def ray_runtime():
     """One local Ray runtime (two CPUs: two workers) for the module; starting one costs ~8 s."""
-    runtime = start_local_ray(WORKERS)
+    start_local_ray(WORKERS)
     yield
-    runtime.stop()
+    ray.shutdown()
 
 
 @pytest.fixture
