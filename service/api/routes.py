@@ -44,6 +44,7 @@ def _error(description: str) -> dict:
 COMMON_ERRORS = {
     400: _error("the Host header is not served here"),
     401: _error("the server needs a bearer token"),
+    403: _error("a browser request from another web origin may not change anything"),
     413: _error("the request body is over the upload cap"),
     415: _error("a body that is neither application/json nor multipart/form-data"),
     422: _error("invalid input; the message names the field"),
@@ -294,7 +295,9 @@ async def event_stream(store: JobStore, job_id: str, request: Request) -> AsyncI
 
 
 @router.get("/jobs/{job_id}/events", responses={
-    **JOB_ERRORS, 200: {"content": {"text/event-stream": {}}, "description": "status events until the job ends"}})
+    **JOB_ERRORS, 200: {"content": {"text/event-stream": {}}, "description": "status events until the job ends"},
+    429: _error("this client has its most event streams open (serve --max-event-streams)"),
+    503: _error("the server has its most event streams open")})
 async def job_events(job_id: str, request: Request, store: Store) -> StreamingResponse:
     """Server-sent events: `status` on every change of the job record, `end` when it ends."""
     await run_in_threadpool(require_job, store, job_id)

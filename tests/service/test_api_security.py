@@ -171,3 +171,12 @@ def test_serve_refuses_a_public_bind_without_a_token():
                             cwd=REPO, capture_output=True, text=True, timeout=120,
                             env={k: v for k, v in os.environ.items() if k != "RENDERLOOP_TOKEN"})
     assert result.returncode == 2 and "--token" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_the_openapi_document_lists_the_links_route_and_the_edge_refusals(server):
+    document = httpx.get(server.url + "/openapi.json", headers=AUTH, timeout=30).json()
+    paths = document["paths"]
+    assert "403" in paths["/jobs"]["post"]["responses"] and "403" in paths["/jobs/{job_id}"]["delete"]["responses"]
+    assert {"429", "503"} <= set(paths["/jobs/{job_id}/events"]["get"]["responses"])
+    assert "JobLinks" in json.dumps(paths["/jobs/{job_id}/links"]["get"]["responses"]["200"])
+    assert "expires" in document["components"]["schemas"]["JobLinks"]["properties"]
