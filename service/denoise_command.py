@@ -8,8 +8,11 @@ from service.loop.spec import LAMBDA_RANGE, LoopSpec, lambda_problem
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("denoise", help="denoise an EXR in the renderloop layout")
-    p.add_argument("input", type=Path, help="EXR with noisy.*, variance.*, albedo.*, N.*, Z layers")
+    p = sub.add_parser("denoise", help="denoise an EXR in the renderloop layout or an aov render of Mitsuba's")
+    p.add_argument("input", type=Path, help="EXR with noisy.*, variance.*, albedo.*, N.*, Z layers (renderloop render "
+                   "--no-denoise), or Mitsuba's: R,G,B with albedo.*, sh_normal.* or nn.*, and optionally Z.T or dd.T")
+    p.add_argument("--spp", type=int, help="samples per pixel of an input without an spp layer (e.g. the scene's "
+                   "sample_count for mi.render's EXR); the error layer needs it")
     lam = p.add_mutually_exclusive_group()
     default_lam = LoopSpec(scene="").lam
     lam.add_argument("--lambda", dest="lam", type=float, default=default_lam,
@@ -28,18 +31,23 @@ def run_denoise(args) -> int:
     # torch, OpenEXR and the networks: imported only when the command runs (`--help` stays fast)
     from models.pretrained import load_networks
     from service.exr import ExrError, require_exr_path
-    from service.exr_denoise import denoise_exr
+    from service.exr_denoise import NO_VARIANCE_NOTE, denoise_exr
     from service.images import tonemap, write_png
     from service.loop.tensors import configure_torch_threads
 
     require_exr_path(args.output)
     if args.lambda_map is None and lambda_problem(args.lam):  # fail before the weights load
         raise ExrError(f"--lambda: {lambda_problem(args.lam)} (got {args.lam})")
+    if args.spp is not None and args.spp < 1:
+        raise ExrError(f"--spp must be >= 1 (got {args.spp})")
     configure_torch_threads()
     networks = load_networks(args.weights)
-    frame = denoise_exr(args.input, args.output, networks, lam=args.lam, lambda_map=args.lambda_map, frames=args.frames)
+    frame = denoise_exr(args.input, args.output, networks, lam=args.lam, lambda_map=args.lambda_map, frames=args.frames,
+                        spp=args.spp)
+    if frame.variance is None:
+        print(f"note: {NO_VARIANCE_NOTE}")
     estimate = (f"mean predicted SMAPE {frame.error.mean():.4f}" if frame.error is not None
-                else "no error estimate: the input has no spp layer, which the error network reads")
+                else "no error estimate: the input has no spp layer, which the error network reads (give --spp N)")
     print(f"wrote {args.output}  ({estimate})")
     if args.png:
         print(f"wrote {write_png(args.output.with_suffix('.png'), tonemap(frame.color))}")

@@ -29,6 +29,12 @@ SCALAR_LAYERS: dict[str, str] = {"depth": "Z", "spp": "spp", "error": "error", "
 HEADER_KEYS = ("scene", "iteration", "total_samples", "variant", "frame")
 # Provenance a reference image carries (bench/dev_references.py).
 REFERENCE_HEADER_KEYS = ("content_hash", "spp", "passes", "seeds", "film_scale")
+# Mitsuba's own names for the same layers, read where ours are absent (an `aov` integrator's
+# output: `aovs="albedo:albedo,nn:sh_normal,dd:depth"` gives albedo.R/G/B, nn.X/Y/Z, dd.T; the
+# radiance is R,G,B, and again under the wrapped integrator's name, e.g. img.R/G/B/A).
+MITSUBA_NORMAL_PREFIXES = ("sh_normal.", "nn.")
+MITSUBA_DEPTH_CHANNELS = ("Z.T", "dd.T", "depth.T")
+RGB = ("R", "G", "B")
 # Optional extra channels (an integrator's AOVs, named as Mitsuba names them) live under this
 # prefix so they can never clobber the layers above (`albedo.R` vs `aov.albedo.R`).
 EXTRA_PREFIX = "aov."
@@ -151,10 +157,34 @@ def _frame_from_channels(channels: dict[str, np.ndarray], raw_header: dict, sour
         if channel in channels:
             dtype = np.uint32 if name == "spp" else np.float32
             setattr(frame, name, channels[channel].astype(dtype))
+    _read_mitsuba_names(frame, channels)
     frame.extra = {n[len(EXTRA_PREFIX):]: c.astype(np.float32) for n, c in channels.items() if n.startswith(EXTRA_PREFIX)}
     if all(getattr(frame, f) is None for f in list(VECTOR_LAYERS) + list(SCALAR_LAYERS)):
         raise ExrError(f"{source}: no renderloop layers (expected R,G,B or noisy.R/G/B)")
     return frame
+
+
+def _read_mitsuba_names(frame: ExrFrame, channels: dict[str, np.ndarray]) -> None:
+    """Fill layers our names left empty from Mitsuba's names for them (see MITSUBA_*)."""
+    def stacked(names: list[str]) -> np.ndarray:
+        return np.stack([channels[n].astype(np.float32) for n in names], axis=-1)
+
+    if frame.normal is None:
+        for prefix in MITSUBA_NORMAL_PREFIXES:
+            names = [prefix + axis for axis in ("X", "Y", "Z")]
+            if all(n in channels for n in names):
+                frame.normal = stacked(names)
+                break
+    if frame.depth is None:
+        frame.depth = next((channels[n].astype(np.float32) for n in MITSUBA_DEPTH_CHANNELS if n in channels), None)
+    if frame.color is None and frame.noisy is None:
+        # Radiance only under an integrator's name (`<name>.R/G/B`): the first such group that is
+        # none of the layers above.
+        ours = {prefix for prefix, _ in VECTOR_LAYERS.values()} | set(MITSUBA_NORMAL_PREFIXES) | {EXTRA_PREFIX}
+        prefixes = sorted({n[: -1] for n in channels if n.endswith(".R") and not n.startswith(EXTRA_PREFIX)} - ours)
+        prefix = next((p for p in prefixes if all(p + c in channels for c in RGB)), None)
+        if prefix is not None:
+            frame.color = stacked([prefix + c for c in RGB])
 
 
 # OpenEXR's Python binding reads and writes named files only: bytes go through one private

@@ -1,11 +1,20 @@
-"""Denoise a file in the project's EXR layout (as written by `renderloop render --no-denoise`):
-`R,G,B` (denoised) and `error` (predicted SMAPE) are written beside the input layers."""
+"""Denoise a file in the project's EXR layout (as written by `renderloop render --no-denoise`)
+or one Mitsuba wrote itself (an `aov` integrator's output, read by service/exr.py under
+Mitsuba's names): `R,G,B` (denoised) and `error` (predicted SMAPE) are written beside the input
+layers.
+
+Mitsuba's EXRs carry no variance of the mean and no sample counts. Without a variance layer it
+is estimated from the image itself (estimate_variance: each pixel against its four neighbours,
+which assumes uncorrelated pixel noise — a box-filtered film); without depth the depth plane is
+zero; without an spp layer the error network, which reads sample counts, needs `spp` given.
+"""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.ndimage import uniform_filter
 
 from models.error_predictor import reads_disagreement
 from models.frames import FrameTensors
@@ -16,25 +25,48 @@ from service.loop.oidn import candidate_for
 from service.loop.spec import lambda_problem
 from service.loop.tensors import lam_tensor, nchw, to_image
 
-REQUIRED_LAYERS = ("noisy", "variance", "albedo", "normal", "depth")
+REQUIRED_LAYERS = ("albedo", "normal")
 # EXR layer names of each required field, for the message (service/exr.py owns the layout).
-LAYER_NAMES = {"noisy": "noisy.R/G/B", "variance": "variance.R/G/B", "albedo": "albedo.R/G/B",
-               "normal": "N.X/Y/Z", "depth": "Z"}
+LAYER_NAMES = {"albedo": "albedo.R/G/B", "normal": "N.X/Y/Z (Mitsuba: sh_normal.X/Y/Z or nn.X/Y/Z)"}
+MITSUBA_RECIPE = ('render it with an aov integrator around yours: <integrator type="aov"><string name="aovs" '
+                  'value="albedo:albedo,nn:sh_normal,dd:depth"/><integrator type="path" name="img"/></integrator>, '
+                  'or use `renderloop render SCENE --no-denoise -o x.exr`')
+# One line on what an input without a variance layer loses (printed by `renderloop denoise`).
+NO_VARIANCE_NOTE = ("no variance layer: the noise was estimated from the image itself (pixel against neighbours, "
+                    "right only for a box filter), so the error layer and the λ tail, which weigh the denoised image "
+                    "against the noisy one in units of that variance, are only as good as that estimate")
+# Var(x − mean of its 4 neighbours) = σ²(1 + 1/4) for uncorrelated noise of equal σ.
+NEIGHBOUR_RESIDUAL_GAIN = 1.25
+NOISE_WINDOW = 7  # pixels on a side over which the squared residuals are averaged
 
 
-def frame_from_exr(path: Path, frame: ExrFrame) -> FrameTensors:
-    """ExrFrame → models.frames.FrameTensors (1, C, H, W)."""
+def estimate_variance(radiance: np.ndarray) -> np.ndarray:
+    """The variance of each pixel's mean, (H, W, 3), from the image alone: the squared residual
+    against the mean of the four neighbours, averaged over NOISE_WINDOW² pixels. Edges and
+    texture count as noise too (an overestimate there); spatially correlated noise (a tent or
+    Gaussian film) partly cancels (an underestimate)."""
+    padded = np.pad(radiance.astype(np.float64), ((1, 1), (1, 1), (0, 0)), mode="edge")
+    neighbours = (padded[:-2, 1:-1] + padded[2:, 1:-1] + padded[1:-1, :-2] + padded[1:-1, 2:]) / 4.0
+    squared = (radiance - neighbours) ** 2 / NEIGHBOUR_RESIDUAL_GAIN
+    return uniform_filter(squared, size=(NOISE_WINDOW, NOISE_WINDOW, 1), mode="nearest").astype(np.float32)
+
+
+def frame_from_exr(path: Path, frame: ExrFrame, spp: int | None = None) -> FrameTensors:
+    """ExrFrame → models.frames.FrameTensors (1, C, H, W); `spp` stands in for a missing spp layer."""
+    radiance = frame.noisy if frame.noisy is not None else frame.color
+    if radiance is None:
+        raise ExrError(f"{path}: no radiance layer (noisy.R/G/B, R,G,B or <integrator name>.R/G/B)")
     missing = [name for name in REQUIRED_LAYERS if getattr(frame, name) is None]
     if missing:
-        # An EXR from mi.render (even with the aov integrator's albedo/normal) has no per-pixel
-        # variance of the mean, which the denoiser's features need: say so and how to get one.
-        raise ExrError(f"{path}: missing layers {', '.join(LAYER_NAMES[m] for m in missing)}; an EXR written by "
-                       f"mi.render lacks at least the variance of the mean — render the scene with "
-                       f"`renderloop render SCENE --no-denoise -o x.exr` to get every layer")
-    return FrameTensors(color=nchw(frame.noisy), variance=nchw(frame.variance), albedo=nchw(frame.albedo),
-                        normal=nchw(frame.normal), depth=nchw(frame.depth),
+        raise ExrError(f"{path}: missing layers {', '.join(LAYER_NAMES[m] for m in missing)}; {MITSUBA_RECIPE}")
+    variance = frame.variance if frame.variance is not None else estimate_variance(radiance)
+    depth = frame.depth if frame.depth is not None else np.zeros(radiance.shape[:2], np.float32)
+    counts = frame.spp.astype(np.float32) if frame.spp is not None else (
+        None if spp is None else np.full(radiance.shape[:2], spp, np.float32))
+    return FrameTensors(color=nchw(radiance), variance=nchw(variance), albedo=nchw(np.clip(frame.albedo, 0.0, 1.0)),
+                        normal=nchw(frame.normal), depth=nchw(depth),
                         motion=None if frame.motion is None else nchw(frame.motion),
-                        spp=None if frame.spp is None else nchw(frame.spp.astype(np.float32)))
+                        spp=None if counts is None else nchw(counts))
 
 
 def load_lambda(lam: float, lambda_map: Path | None, shape: tuple[int, int]) -> np.ndarray:
@@ -55,9 +87,10 @@ def load_lambda(lam: float, lambda_map: Path | None, shape: tuple[int, int]) -> 
 
 
 def denoise_exr(source: Path, output: Path, networks: Networks, *, lam: float = 1.0, lambda_map: Path | None = None,
-                frames: list[Path] | None = None) -> ExrFrame:
+                frames: list[Path] | None = None, spp: int | None = None) -> ExrFrame:
     """Denoise `source` (with its temporal neighbours `frames`, the source among them) and
-    write the result to `output`; returns the written frame."""
+    write the result to `output`; returns the written frame. `spp`: the samples per pixel of
+    inputs without an spp layer (Mitsuba's sample_count)."""
     centre_frame = read_exr(source)
     paths = [Path(p) for p in frames or []]
     if paths and source.resolve() not in [p.resolve() for p in paths]:
@@ -68,7 +101,7 @@ def denoise_exr(source: Path, output: Path, networks: Networks, *, lam: float = 
         if f.shape != centre_frame.shape:
             raise ExrError(f"{p}: size {f.shape[::-1]} differs from the input's {centre_frame.shape[::-1]}")
     centre = [p.resolve() for p in paths].index(source.resolve())
-    window = [frame_from_exr(p, f) for p, f in zip(paths, loaded)]
+    window = [frame_from_exr(p, f, spp) for p, f in zip(paths, loaded)]
     lam_map = load_lambda(lam, lambda_map, centre_frame.shape)
     with torch.no_grad():
         window, centre = networks.denoiser.filtered_window(window, centre)  # a single-frame network pools it
@@ -83,6 +116,10 @@ def denoise_exr(source: Path, output: Path, networks: Networks, *, lam: float = 
         wants_spp = networks.error_predictor.config.sample_count_input
         error = None if (wants_spp and filtered.spp is None) else networks.error_predictor(filtered, denoised,
                                                                                             disagreement)
+    if centre_frame.noisy is None:  # Mitsuba's file: its radiance is the noisy input, kept beside the result
+        centre_frame.noisy = centre_frame.color
+    if centre_frame.spp is None and spp is not None:
+        centre_frame.spp = np.full(centre_frame.shape, spp, np.uint32)
     centre_frame.color = to_image(denoised)
     centre_frame.error = None if error is None else to_image(error)
     centre_frame.lam = lam_map

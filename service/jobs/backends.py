@@ -18,5 +18,6 @@ def make_worker(store: JobStore, networks: Networks, settings: WorkerSettings = 
     # Imported here: Ray takes ~0.8 s to import, which thread-backend servers need not pay.
     from service.jobs.ray_worker import RaySettings, RayJobWorker, default_workers
 
-    ray_settings = RaySettings(workers=settings.workers or default_workers(), address=settings.ray_address)
+    ray_settings = RaySettings(workers=settings.workers or default_workers(), address=settings.ray_address,
+                               insecure=settings.insecure_ray)
     return RayJobWorker(store, networks, ray_settings, observer=observer)

@@ -30,6 +30,7 @@ from ray.exceptions import RayActorError, RayTaskError
 
 from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles
+from service.jobs.ray_runtime import LocalRay, join_cluster
 from service.jobs.ray_actor import ACTOR_THREADS, FAILURE_FILE, ActorPlan, IterationReport, JobActor
 from service.jobs.store import CANCELED, COMPLETED, FAILED, JobRecord, JobStore
 from service.jobs.worker import (JobWorker, NoObserver, Relambda, WorkerObserver, add_timings, bundle_scene,
@@ -43,18 +44,14 @@ log = logging.getLogger(__name__)
 CANCEL_GRACE_SECONDS = 1.5  # a cooperative stop takes one wavefront chunk; then the actor is killed
 MAX_WORKER_RESTARTS = 3  # a job whose workers keep dying fails instead of looping forever
 CPUS_PER_ACTOR = 1
-# Ray starts its worker processes at nice 15 to keep its own daemons responsive; here the workers
-# are the service's whole work (the thread backend renders at the server's priority), and on a
-# shared host nice 15 starves them: measured beside two nice-5/10 jobs on 2 cores, two workers
-# took twice the compute time of one. A cluster joined with --ray-address keeps its own setting
-# (RAY_worker_niceness, see docker/compose.yaml).
-WORKER_NICENESS = 0
 
 
-def start_local_ray(cpus: int) -> None:
-    """The local runtime `serve --workers N` starts (the tests and `bench --scale` start the same)."""
-    ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False,
-             _system_config={"worker_niceness": WORKER_NICENESS})
+def start_local_ray(cpus: int) -> LocalRay:
+    """The local runtime `serve --workers N` starts (the tests and `bench --scale` start the same):
+    loopback only, token auth, none of the service's secrets in its processes."""
+    runtime = LocalRay(cpus)
+    runtime.start()
+    return runtime
 
 
 @dataclass(frozen=True)
@@ -65,6 +62,7 @@ class RaySettings:
 
     workers: int = 1
     address: str | None = None
+    insecure: bool = False  # join `address` even without Ray's token auth (--insecure-ray)
 
     def __post_init__(self) -> None:
         if self.workers < 1:
@@ -101,7 +99,8 @@ class RayJobWorker(JobWorker):
         super().__init__(store, networks, concurrency=settings.workers, observer=observer)
         self.settings = settings
         self._groups: dict[str, list] = {}  # job id → its actors, leader first
-        self._started_ray = False
+        self._runtime: LocalRay | None = None  # the local runtime this worker started, if it did
+        self._joined = False
         self._networks_ref = None
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -109,10 +108,10 @@ class RayJobWorker(JobWorker):
     def start(self) -> None:
         if not ray.is_initialized():
             if self.settings.address:
-                ray.init(address=self.settings.address, log_to_driver=False)
+                join_cluster(self.settings.address, self.settings.insecure)
+                self._joined = True
             else:
-                start_local_ray(self.settings.workers * CPUS_PER_ACTOR)
-            self._started_ray = True
+                self._runtime = start_local_ray(self.settings.workers * CPUS_PER_ACTOR)
         self._networks_ref = ray.put(self.networks)  # shipped once; every actor gets it from the store
         super().start()
 
@@ -128,7 +127,9 @@ class RayJobWorker(JobWorker):
             time.sleep(0.05)
         for group in groups:
             self._kill(group)
-        if self._started_ray:
+        if self._runtime is not None:
+            self._runtime.stop()
+        elif self._joined:
             ray.shutdown()
 
     def _live_jobs(self) -> bool:

@@ -9,11 +9,12 @@ from dataclasses import dataclass
 class WorkerSettings:
     """`concurrency` set: the thread backend with that many threads. Otherwise Ray: `workers`
     jobs at once on a local runtime this server starts (None: one per core), or the cluster at
-    `ray_address`."""
+    `ray_address` (refused without Ray's token auth unless `insecure_ray`)."""
 
     concurrency: int | None = None
     workers: int | None = None
     ray_address: str | None = None
+    insecure_ray: bool = False
 
     def __post_init__(self) -> None:
         if self.concurrency is not None and (self.workers is not None or self.ray_address):

@@ -30,8 +30,9 @@ def free_port() -> int:
 
 class Server:
     def __init__(self, data_dir: Path, log_path: Path, env: dict[str, str] | None = None,
-                 cwd: Path = REPO) -> None:
+                 cwd: Path = REPO, startup_seconds: float = STARTUP_SECONDS) -> None:
         self.env = env or {}
+        self.startup_seconds = startup_seconds  # a Ray runtime on a loaded machine takes longer
         self.cwd = cwd  # the server's working directory: a relative data_dir is relative to it
         self.data_dir = data_dir
         self.log_path = log_path
@@ -47,7 +48,7 @@ class Server:
         command = [sys.executable, str(LAUNCHER), str(self.port)]
         log = open(self.log_path, "ab")
         self.process = subprocess.Popen(command, cwd=self.cwd, env=env, stdout=log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + STARTUP_SECONDS
+        deadline = time.monotonic() + self.startup_seconds
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
                 raise RuntimeError(f"server exited early:\n{self.log()}")

@@ -30,9 +30,9 @@ WORKERS = 2
 @pytest.fixture(scope="module")
 def ray_runtime():
     """One local Ray runtime (two CPUs: two workers) for the module; starting one costs ~8 s."""
-    start_local_ray(WORKERS)
+    runtime = start_local_ray(WORKERS)
     yield
-    ray.shutdown()
+    runtime.stop()
 
 
 @pytest.fixture
