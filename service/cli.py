@@ -16,6 +16,7 @@ from service.api.security import (LOOPBACK_HOSTS, TOKEN_ENV, TOKEN_FILE_ENV, Sec
                                   is_loopback, read_token_file)
 from service.api.edge import HEADER_TIMEOUT_SECONDS, KEEP_ALIVE_SECONDS, MAX_CONNECTIONS, EdgeSettings
 from service.api.streams import MAX_STREAMS_PER_CLIENT
+from service.jobs.ray_auth import cluster_auth_problem
 from service.jobs.worker_settings import WorkerSettings
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.jobs.db.url import is_postgres_url, without_password
@@ -191,10 +192,14 @@ def add_serve_parser(sub) -> None:
                               "$RENDERLOOP_WORKERS, $RENDERLOOP_RAY_ADDRESS decide")
     backend.add_argument("--ray-address", metavar="ADDRESS", default=None,
                          help="join the Ray cluster at ADDRESS (e.g. 10.0.0.5:6379, from `ray start --head`) instead "
-                              "of starting one; all nodes must share the data dir")
+                              "of starting one; all nodes must share the data dir. Needs Ray's token auth "
+                              "(RAY_AUTH_MODE=token, RAY_AUTH_TOKEN_PATH) unless --insecure-ray")
     backend.add_argument("--concurrency", type=int, default=None,
                          help="no Ray: render N jobs at once in threads of the server process (the in-process "
                               "backend; a job cannot be killed mid-iteration nor limited in memory)")
+    p.add_argument("--insecure-ray", action="store_true",
+                   help="join --ray-address even without Ray's token auth (anyone who reaches the cluster can run "
+                        "code as this server)")
     p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
                    "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
     token = p.add_mutually_exclusive_group()
@@ -292,8 +297,11 @@ def run_serve(args) -> int:
             raise CliError(f"--{name} must be >= 1")
     explicit = args.concurrency is not None or args.workers is not None or args.ray_address
     # No flag: $RENDERLOOP_CONCURRENCY / $RENDERLOOP_WORKERS / $RENDERLOOP_RAY_ADDRESS, else local Ray.
-    workers = (WorkerSettings(concurrency=args.concurrency, workers=args.workers, ray_address=args.ray_address)
-               if explicit else worker_settings_from_env())
+    workers = (WorkerSettings(concurrency=args.concurrency, workers=args.workers, ray_address=args.ray_address,
+                              insecure_ray=args.insecure_ray)
+               if explicit else replace(worker_settings_from_env(), insecure_ray=args.insecure_ray))
+    if workers.ray_address and not workers.insecure_ray and cluster_auth_problem() is not None:
+        raise CliError(cluster_auth_problem())
     security, edge = serve_security(args), serve_edge(args)
     if args.max_bundle_mb < 1 or args.max_bundle_files < 1:
         raise CliError("--max-bundle-mb and --max-bundle-files must be >= 1")
