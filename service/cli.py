@@ -24,6 +24,7 @@ from service.jobs.errors import StoreUnavailable
 from service.jobs.quotas import (DEFAULT_MAX_QUEUED, DEFAULT_MAX_QUEUED_PER_CLIENT, MAX_QUEUED_ENV,
                                  MAX_QUEUED_PER_CLIENT_ENV, Quotas)
 from service.jobs.retention import Retention
+from service.render.scene_probe import MEMORY_ENV, SECONDS_ENV, ProbeLimits
 from service.loop.budget import describe_budget, names_a_stopping_rule, scene_budget
 from service.loop.spec import (ALLOCATORS, DEFAULT_ITERATIONS, LAMBDA_RANGE, SERVICE_LIMITS, LoopSpec, LoopSpecError,
                                default_allocator)
@@ -234,6 +235,7 @@ def add_serve_parser(sub) -> None:
     p.add_argument("--insecure-no-auth", action="store_true",
                    help="allow binding a non-loopback address without a token")
     add_edge_arguments(p)
+    add_scene_check_arguments(p)
     p.set_defaults(handler=run_serve)
 
 
@@ -287,6 +289,23 @@ def serve_security(args) -> SecuritySettings:
                             max_streams_per_client=args.max_event_streams)
 
 
+def add_scene_check_arguments(p) -> None:
+    """Limits of the child process that checks an uploaded scene at submit (service/render/scene_probe.py)."""
+    limits = ProbeLimits.from_env()
+    checks = p.add_argument_group("scene checks at submit")
+    checks.add_argument("--scene-check-memory-mb", type=float, default=limits.memory_bytes / 2**20, metavar="MB",
+                        help="memory a scene's check may use (flattening, parsing, loading it in a child process); "
+                             f"beyond: 422 (default ${MEMORY_ENV}, else {limits.memory_bytes // 2**20})")
+    checks.add_argument("--scene-check-seconds", type=float, default=limits.seconds, metavar="S",
+                        help=f"time a scene's check may take; beyond: 422 (default ${SECONDS_ENV}, else {limits.seconds:g})")
+
+
+def scene_check_limits(args) -> ProbeLimits:
+    if not (args.scene_check_memory_mb > 0 and args.scene_check_seconds > 0):
+        raise CliError("--scene-check-memory-mb and --scene-check-seconds must be > 0")
+    return ProbeLimits(memory_bytes=int(args.scene_check_memory_mb * 2**20), seconds=args.scene_check_seconds)
+
+
 def run_serve(args) -> int:
     from service.api.serve import serve, worker_settings_from_env  # uvicorn, the app, the loop: only when serving
 
@@ -319,6 +338,7 @@ def run_serve(args) -> int:
     if args.max_queued < 1 or args.max_queued_per_client < 1:
         raise CliError("--max-queued and --max-queued-per-client must be >= 1")
     quotas = Quotas(max_queued=args.max_queued, max_queued_per_client=args.max_queued_per_client)
+    scene_checks = scene_check_limits(args)
     auth = " -H 'authorization: Bearer $RENDERLOOP_TOKEN'" if security.token else ""
     jobs = f", jobs: {without_password(args.db)}" if args.db else ""
     print(f"renderloop serving on http://{args.host}:{args.port}  (data: {args.data_dir}{jobs})")
@@ -328,7 +348,7 @@ def run_serve(args) -> int:
     try:
         serve(args.host, args.port, args.data_dir, workers, networks=load_cli_networks(args.weights),
               security=security, bundle_limits=limits, job_limits=job_limits, retention=retention, db_url=args.db,
-              edge=edge, quotas=quotas)
+              edge=edge, quotas=quotas, scene_checks=scene_checks)
     except StoreUnavailable as exc:
         raise CliError(str(exc)) from exc
     return 0

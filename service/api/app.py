@@ -27,6 +27,7 @@ from service.jobs.backends import make_worker
 from service.jobs.worker_settings import THREADS, WorkerSettings
 from service.loop.spec import SERVICE_LIMITS, JobLimits
 from service.render.sandbox import wall_support
+from service.render.scene_probe import ProbeLimits, SceneProber
 
 log = logging.getLogger(__name__)
 
@@ -38,13 +39,15 @@ def create_app(data_dir: Path, *, networks: Networks, workers: WorkerSettings = 
                security: SecuritySettings = SecuritySettings(),
                bundle_limits: bundle.BundleLimits = bundle.BundleLimits(),
                job_limits: JobLimits = SERVICE_LIMITS, retention: Retention = Retention(),
-               db_url: str | None = None, quotas: Quotas = Quotas(), leases: Leases = Leases()) -> FastAPI:
+               db_url: str | None = None, quotas: Quotas = Quotas(), leases: Leases = Leases(),
+               scene_checks: ProbeLimits = ProbeLimits()) -> FastAPI:
     """`db_url`: None for the SQLite file in `data_dir`, or a postgresql:// URL; job files stay
     under `data_dir` either way. `workers`: the thread backend (default) or Ray."""
     store = JobStore(Path(data_dir), db_url, leases=leases)
     metrics = ServiceMetrics(store)
     worker = make_worker(store, networks, workers, observer=metrics)
     housekeeper = Housekeeper(store, retention)
+    prober = SceneProber(scene_checks, preload="service.api.submit")  # uploaded scenes are checked in children
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
@@ -53,15 +56,18 @@ def create_app(data_dir: Path, *, networks: Networks, workers: WorkerSettings = 
             log.info("scene files load behind a Landlock wall (ABI %d): the job's folder and installed software only", wall.abi)
         else:
             log.warning("scene files load WITHOUT the kernel wall (%s); the flattener's check is the only wall", wall.reason)
+        prober.start()
         worker.start()
         housekeeper.start()
         yield
         housekeeper.stop()
         worker.stop()
+        prober.close()
 
     app = FastAPI(title="renderloop", version="0.1.0", lifespan=lifespan)
     app.state.store, app.state.worker, app.state.metrics = store, worker, metrics
     app.state.bundle_limits, app.state.job_limits = bundle_limits, job_limits
+    app.state.scene_prober = prober
     app.state.quotas, app.state.retention = quotas, retention  # POST /jobs: queue and disk caps
     app.add_middleware(BodySizeLimit, max_bytes=bundle_limits.max_bytes + FORM_OVERHEAD_BYTES)
     if security.cors_origins:

@@ -133,7 +133,8 @@ async def submit_job(request: Request, response: Response, store: Store, worker:
             raise invalid("bundle", "upload one zip as 'bundle', or the XML and assets as 'files'")
         job_id = store.new_id()
         stored = await run_in_threadpool(unpack_bundle, worker.files(job_id), archives or files, bool(archives),
-                                         spec_request, limits, request.app.state.job_limits)
+                                         spec_request, limits, request.app.state.job_limits,
+                                         request.app.state.scene_prober)
         try:
             await run_in_threadpool(check_disk, store, request)
         except HTTPException:

@@ -22,12 +22,14 @@ from models.pretrained import Networks, load_networks
 from service.api.app import create_app
 from service.api.edge import EdgeSettings, uvicorn_options
 from service.api.security import SecuritySettings
+from service.api.shutdown import sigterm_exits_0
 from service.jobs.worker_settings import WorkerSettings
 from service.jobs.leases import Leases
 from service.jobs.quotas import Quotas
 from service.jobs.retention import Retention
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.loop.spec import SERVICE_LIMITS, JobLimits
+from service.render.scene_probe import ProbeLimits
 from service.loop.tensors import configure_torch_threads
 
 DATA_DIR_ENV = "RENDERLOOP_DATA_DIR"
@@ -64,7 +66,7 @@ def app_from_env() -> FastAPI:
                       workers=worker_settings_from_env(), security=SecuritySettings.from_env(),
                       bundle_limits=bundle_limits_from_env(), job_limits=job_limits_from_env(),
                       retention=retention_from_env(), db_url=os.environ.get(DB_ENV) or None,
-                      quotas=Quotas.from_env(), leases=Leases.from_env())
+                      quotas=Quotas.from_env(), leases=Leases.from_env(), scene_checks=ProbeLimits.from_env())
 
 
 def worker_settings_from_env() -> WorkerSettings:
@@ -90,15 +92,16 @@ def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | N
           workers: WorkerSettings = WorkerSettings(), *, networks: Networks, security: SecuritySettings = SecuritySettings(),
           bundle_limits: BundleLimits = BundleLimits(), job_limits: JobLimits = SERVICE_LIMITS,
           retention: Retention = Retention(), db_url: str | None = None, edge: EdgeSettings = EdgeSettings(),
-          quotas: Quotas = Quotas()) -> None:
+          quotas: Quotas = Quotas(), scene_checks: ProbeLimits = ProbeLimits()) -> None:
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
     app = create_app(data_dir, networks=networks, workers=workers, security=security,
                      bundle_limits=bundle_limits, job_limits=job_limits, retention=retention, db_url=db_url,
-                     quotas=quotas, leases=Leases.from_env())
+                     quotas=quotas, leases=Leases.from_env(), scene_checks=scene_checks)
     log_service_messages()
-    uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS,
-                **uvicorn_options(edge))
+    with sigterm_exits_0():
+        uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS,
+                    **uvicorn_options(edge))
 
 
 def log_service_messages() -> None:

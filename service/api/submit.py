@@ -3,11 +3,13 @@ spec (service/loop/spec.py), unpack a bundle, and check the service's limits on 
 job — the film size read from the scene when the request gives none."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
 
 from fastapi import Request
+from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from starlette.datastructures import UploadFile
@@ -17,6 +19,7 @@ from service.jobs import bundle
 from service.jobs.artifacts import JobFiles
 from service.loop.budget import names_a_stopping_rule, scene_budget
 from service.loop.spec import SERVICE_LIMITS, JobLimits, LoopSpec, LoopSpecError, check_limits
+from service.render.scene_probe import ProbeLimitExceeded, SceneProber
 from service.render.scenes import SceneError, builtin_scene_names, check_scene, film_size, scene_sample_count
 
 JSON_MEDIA_TYPE = "application/json"
@@ -98,9 +101,10 @@ def parse_bundle_spec(raw: object) -> BundleJobCreate:
 
 
 def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, request: BundleJobCreate,
-                  limits: bundle.BundleLimits = bundle.BundleLimits(), job_limits: JobLimits = SERVICE_LIMITS) -> dict:
+                  limits: bundle.BundleLimits, job_limits: JobLimits, prober: SceneProber) -> dict:
     """Store the upload under the job's folder and return the stored spec (scene relative to
-    the bundle); on any problem the folder is removed and the error propagates."""
+    the bundle); on any problem the folder is removed and the error propagates. The scene is
+    checked in a child process (`prober`), never in the API process."""
     root = files.bundle_dir.resolve()  # the bundle's checks compare resolved paths
     root.mkdir(parents=True, exist_ok=True)
     try:
@@ -108,15 +112,47 @@ def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, reque
             bundle.extract_zip(items[0].file, root, limits)
         else:
             bundle.save_files(((u.filename or "", u.file) for u in items), root, limits)
-        entry = bundle.prepare_bundle(root, request.scene, params=request.params)
-        relative = entry.relative_to(root).as_posix()
-        spec = request.loop_spec(str(entry))
-        if not names_a_stopping_rule(request.model_fields_set):
-            spec = with_scene_budget(spec, root)
-        check_effective_job(spec, root, job_limits)
+        return checked_in_child(prober, root, request, job_limits)
     except BaseException:
         shutil.rmtree(files.root, ignore_errors=True)
         raise
+
+
+def checked_in_child(prober: SceneProber, root: Path, request: BundleJobCreate, job_limits: JobLimits) -> dict:
+    """`check_unpacked` in the scene-check child, its answer raised or returned as if it had
+    run here; a check over the child's memory or time limit is a 422 naming the limit."""
+    payload = {"root": str(root), "request": request.model_dump_json(exclude_unset=True, by_alias=True),
+               "job_limits": dataclasses.asdict(job_limits)}
+    try:
+        reply = prober.run(check_unpacked, payload, [root])
+    except ProbeLimitExceeded as exc:
+        raise invalid("bundle", str(exc)) from exc
+    if "bundle_error" in reply:
+        raise bundle.BundleError(reply["bundle_error"])
+    if "invalid" in reply:
+        raise RequestValidationError(reply["invalid"])
+    return reply["stored"]
+
+
+def check_unpacked(payload: dict) -> dict:
+    """Runs in the scene-check child (service/render/scene_probe.py): the unpacked bundle's
+    scene flattened, parsed and loaded, the job's limits checked; answers JSON."""
+    request = BundleJobCreate.model_validate_json(payload["request"])
+    try:
+        return {"stored": stored_bundle_spec(Path(payload["root"]), request, JobLimits(**payload["job_limits"]))}
+    except bundle.BundleError as exc:
+        return {"bundle_error": str(exc)}
+    except RequestValidationError as exc:
+        return {"invalid": jsonable_encoder(exc.errors())}
+
+
+def stored_bundle_spec(root: Path, request: BundleJobCreate, job_limits: JobLimits) -> dict:
+    entry = bundle.prepare_bundle(root, request.scene, params=request.params)
+    relative = entry.relative_to(root).as_posix()
+    spec = request.loop_spec(str(entry))
+    if not names_a_stopping_rule(request.model_fields_set):
+        spec = with_scene_budget(spec, root)
+    check_effective_job(spec, root, job_limits)
     stored = spec.to_stored()
     stored["scene"] = relative
     return {**stored, "bundle_scene": relative}
