@@ -22,7 +22,6 @@ from models.pretrained import Networks, load_networks
 from service.api.app import create_app
 from service.api.edge import EdgeSettings, uvicorn_options
 from service.api.security import SecuritySettings
-from service.api.shutdown import sigterm_exits_0
 from service.jobs.worker_settings import WorkerSettings
 from service.jobs.leases import Leases
 from service.jobs.quotas import Quotas
@@ -99,9 +98,8 @@ def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | N
                      bundle_limits=bundle_limits, job_limits=job_limits, retention=retention, db_url=db_url,
                      quotas=quotas, leases=Leases.from_env(), scene_checks=scene_checks)
     log_service_messages()
-    with sigterm_exits_0():
-        uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS,
-                    **uvicorn_options(edge))
+    uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS,
+                **uvicorn_options(edge))
 
 
 def log_service_messages() -> None:
