@@ -292,12 +292,24 @@ def serve_security(args) -> SecuritySettings:
 def add_scene_check_arguments(p) -> None:
     """Limits of the child process that checks an uploaded scene at submit (service/render/scene_probe.py)."""
     limits = ProbeLimits.from_env()
-    checks = p.add_argument_group("scene checks at submit")
+    checks = p.add_argument_group("untrusted uploads")
     checks.add_argument("--scene-check-memory-mb", type=float, default=limits.memory_bytes / 2**20, metavar="MB",
                         help="memory a scene's check may use (flattening, parsing, loading it in a child process); "
                              f"beyond: 422 (default ${MEMORY_ENV}, else {limits.memory_bytes // 2**20})")
     checks.add_argument("--scene-check-seconds", type=float, default=limits.seconds, metavar="S",
                         help=f"time a scene's check may take; beyond: 422 (default ${SECONDS_ENV}, else {limits.seconds:g})")
+    checks.add_argument("--trust-uploads", action="store_true",
+                        help="allow --concurrency (the thread backend: no memory cap per job) on a non-loopback "
+                             "--host; only when everyone who can submit a job is trusted")
+
+
+def refuse_untrusted_threads(host: str, workers: WorkerSettings, trust_uploads: bool) -> None:
+    """The thread backend renders in the server process with no memory cap per job (a 10⁵-sphere
+    job took 8.4 GB there): only for trusted submitters, so not on a reachable address unless said."""
+    if workers.concurrency and not is_loopback(host) and not trust_uploads:
+        raise CliError(f"--concurrency (the in-process thread backend) bounds no job's memory, so one upload can take "
+                       f"the server down; on {host} use the Ray backend (--workers N), or --trust-uploads if everyone "
+                       "who can submit is trusted")
 
 
 def scene_check_limits(args) -> ProbeLimits:
@@ -338,6 +350,7 @@ def run_serve(args) -> int:
     if args.max_queued < 1 or args.max_queued_per_client < 1:
         raise CliError("--max-queued and --max-queued-per-client must be >= 1")
     quotas = Quotas(max_queued=args.max_queued, max_queued_per_client=args.max_queued_per_client)
+    refuse_untrusted_threads(args.host, workers, args.trust_uploads)
     scene_checks = scene_check_limits(args)
     auth = " -H 'authorization: Bearer $RENDERLOOP_TOKEN'" if security.token else ""
     jobs = f", jobs: {without_password(args.db)}" if args.db else ""
