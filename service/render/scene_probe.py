@@ -42,6 +42,7 @@ MEMORY_FLAG = "--scene-check-memory-mb"
 SECONDS_FLAG = "--scene-check-seconds"
 STARTUP_SECONDS = 120.0  # a cold child on a loaded machine; not counted against the scene
 POLL_SECONDS = 0.02  # the memory watchdog's period
+ORPHAN_GRACE_SECONDS = 5  # a child whose parent died ends this long after its time limit
 STDERR_FD = 2  # the server log: Mitsuba writes its warnings to stdout
 # What the child's environment keeps (names, or prefixes ending in "_").
 ENV_KEEP = ("PATH", "HOME", "LANG", "TZ", "TMPDIR", "LD_LIBRARY_PATH", "LC_", "PYTHON", "DRJIT_", "CUDA_",
@@ -180,7 +181,7 @@ class SceneProber:
     def run(self, check: Check, payload: dict, readable: list[Path]) -> dict:
         """`check(payload)` in a child that may read only `readable` (and the software)."""
         request = {"check": f"{check.__module__}:{check.__qualname__}", "payload": payload,
-                   "readable": [str(Path(p).resolve()) for p in readable]}
+                   "readable": [str(Path(p).resolve()) for p in readable], "seconds": self.limits.seconds}
         with self._slots:
             child = self._take()
             try:
@@ -197,8 +198,12 @@ class SceneProber:
         with self._lock:
             if self._closed:
                 raise ProbeFailed("the scene checker is shut down")
-            child, self._standby = self._standby or _Child(self.preload), _Child(self.preload)
-            return child
+            child, self._standby = self._standby, _Child(self.preload)
+        if child is None or child.process.poll() is not None:  # none waiting, or it died while idle
+            if child is not None:
+                child.close()
+            child = _Child(self.preload)
+        return child
 
     def close(self) -> None:
         with self._lock:
@@ -236,6 +241,8 @@ def _child_main(reply_fd: int, preload: str) -> None:
     if not line:
         return  # the parent closed without a request (shutdown)
     request = json.loads(line)
+    # The parent enforces the limits; should it die mid-check, the alarm still ends this process.
+    signal.alarm(int(request["seconds"]) + ORPHAN_GRACE_SECONDS)
     try:
         check = _resolve(request["check"])
         if wall_support().available:

@@ -36,3 +36,11 @@ def test_the_child_environment_holds_no_service_secrets(monkeypatch):
     environment = child_environment()
     assert not {"RENDERLOOP_TOKEN", "RENDERLOOP_DB", "RAY_AUTH_TOKEN"} & set(environment)
     assert "PATH" in environment
+
+
+def test_a_standby_child_that_died_while_idle_is_replaced(prober, tmp_path):
+    prober.start()
+    standby = prober._standby
+    standby.process.kill()
+    standby.process.wait()
+    assert prober.run(dict, {"after": "a dead standby"}, [tmp_path]) == {"after": "a dead standby"}
