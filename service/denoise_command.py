@@ -46,8 +46,12 @@ def run_denoise(args) -> int:
                         spp=args.spp)
     if frame.variance is None:
         print(f"note: {NO_VARIANCE_NOTE}")
-    estimate = (f"mean predicted SMAPE {frame.error.mean():.4f}" if frame.error is not None
-                else "no error estimate: the input has no spp layer, which the error network reads (give --spp N)")
+    if frame.error is not None:
+        estimate = f"mean predicted SMAPE {frame.error.mean():.4f}"
+    elif frame.variance is None:
+        estimate = "no error estimate: no variance layer"
+    else:
+        estimate = "no error estimate: the input has no spp layer, which the error network reads (give --spp N)"
     print(f"wrote {args.output}  ({estimate})")
     if args.png:
         print(f"wrote {write_png(args.output.with_suffix('.png'), tonemap(frame.color))}")
