@@ -6,10 +6,10 @@ layers.
 Mitsuba's EXRs carry no variance of the mean and no sample counts. Without a variance layer the
 denoiser gets one estimated from the image itself (estimate_variance: each pixel against its four
 neighbours, which assumes uncorrelated pixel noise — a box-filtered film). Measured on the Cornell
-box at 64², 16 spp, two seeds (our own EXRs, their variance layer removed): the denoised image is
-as good as with the true variance (SMAPE 0.0362 / 0.0360 vs 0.0360 / 0.0362), but the error
-network's mean predicted SMAPE read 0.75–0.80 for a true 0.036 (0.022 with the true variance), so
-no error layer is written on an estimate. Without depth the depth plane is zero; without an spp
+box at 64², 16 spp, two seeds (our own EXRs, `python -m bench.experiments.mitsuba_exr_denoise`):
+the denoised image is as good as with the true variance (SMAPE 0.0439 / 0.0426 vs 0.0439 /
+0.0427), but the error network's mean predicted SMAPE read 0.62–0.63 for a true 0.043 (0.018
+with the true variance), so no error layer is written on an estimate. Without depth the depth plane is zero; without an spp
 layer the error network, which reads sample counts, needs `spp` given.
 """
 from __future__ import annotations
@@ -37,7 +37,7 @@ MITSUBA_RECIPE = ('render it with an aov integrator around yours: <integrator ty
                   'or use `renderloop render SCENE --no-denoise -o x.exr`')
 # One line on what an input without a variance layer loses (printed by `renderloop denoise`).
 NO_VARIANCE_NOTE = ("no variance layer: the denoiser used one estimated from the image itself (each pixel against its "
-                    "neighbours; right for a box filter), so no error layer is written (on an estimate it reads ~20x "
+                    "neighbours; right for a box filter), so no error layer is written (on an estimate it reads ~15x "
                     "too high) and the λ tail trades noise for detail against that estimate, in which edges and "
                     "texture count as noise")
 # Var(x − mean of its 4 neighbours) = σ²(1 + 1/4) for uncorrelated noise of equal σ.
