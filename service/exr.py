@@ -1,8 +1,9 @@
 """The one module that reads and writes the project's multi-layer EXR layout (DESIGN.md).
 
-Layers (float32 unless noted): `R,G,B` final radiance; `noisy.*` sample mean; `variance.*`
-variance of the mean; `albedo.*`; `N.X/Y/Z`; `Z`; `motion.X/Y` when the scene moves; `spp`
-(uint32); `error`; `lambda`. Header attributes: scene, iteration, total_samples, variant.
+Layers (float32 unless noted): `R,G,B` final radiance; `noisy.*` the raw image (the samples
+splatted through the film's filter, as hdrfilm develops them); `variance.*` its variance;
+`albedo.*`; `N.X/Y/Z`; `Z`; `motion.X/Y` when the scene moves; `spp` (uint32); `error`; `lambda`.
+Header attributes: scene, iteration, total_samples, variant.
 """
 from __future__ import annotations
 
@@ -74,7 +75,7 @@ def result_frame(buffer: FrameBuffer, color: np.ndarray, *, error: np.ndarray | 
                  header: dict) -> ExrFrame:
     """A rendered frame in the project layout: final colour, the buffer's statistics and AOVs."""
     return ExrFrame(
-        color=color, noisy=buffer.mean, variance=buffer.variance, albedo=buffer.albedo, normal=buffer.normal,
+        color=color, noisy=buffer.raw, variance=buffer.raw_variance, albedo=buffer.albedo, normal=buffer.normal,
         depth=buffer.depth, motion=buffer.motion, spp=buffer.spp.astype(np.uint32), error=error, lam=lam,
         extra=buffer.aov_layers(),
         header={**header, "total_samples": int(buffer.spp.sum())},

@@ -117,8 +117,8 @@ def preview_layers(loop: RenderLoop, record: IterationRecord) -> list[dict[str, 
     lam = loop.state.lam_map
     return [
         {
-            "denoised": record.denoised[f] if record.denoised else buf.mean,
-            "noisy": buf.mean,
+            "denoised": record.denoised[f] if record.denoised else buf.raw,
+            "noisy": buf.raw,
             "error": record.error[f] if f < len(record.error) else None,
             "spp": buf.spp.astype(np.float32),
             "lambda": lam,

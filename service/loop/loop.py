@@ -247,7 +247,7 @@ class RenderLoop:
         if self.session is None:
             with self.lock:
                 for f in self.owned:
-                    self._denoised[f] = self.state.buffers[f].mean
+                    self._denoised[f] = self.state.buffers[f].raw  # --no-denoise: the splatted raw image
             return
         t0 = time.perf_counter()
         with self.lock:
@@ -357,7 +357,7 @@ class RenderLoop:
         images = self.denoised()
         header = {"scene": self.scene_label, "iteration": self.state.iteration, "variant": active_variant()}
         return [
-            result_frame(buf, images[f] if images else buf.mean, error=self.state.error_maps[f],
+            result_frame(buf, images[f] if images else buf.raw, error=self.state.error_maps[f],
                          lam=self.state.lam_map if self.spec.denoise else None, header={**header, "frame": f})
             for f, buf in enumerate(self.state.buffers)
         ]

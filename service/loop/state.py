@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.render.framebuffer import FrameBuffer
+from service.render.framebuffer import SPLAT_ARRAYS, FrameBuffer
 
 STATE_VERSION = 1
 BUFFER_ARRAYS = ("radiance_sum", "radiance_sq_sum", "spp", "albedo_sum", "normal_sum", "depth_sum")
@@ -48,6 +48,7 @@ class LoopState:
                 arrays["motion_sum"] = buf.motion_sum
             if buf.aov_sum is not None:  # the scene integrator's own AOV channels
                 arrays["aov_sum"] = buf.aov_sum
+            arrays.update({name: getattr(buf, name) for name in SPLAT_ARRAYS if getattr(buf, name) is not None})
             if self.error_maps[i] is not None:
                 arrays["error"] = self.error_maps[i]
             np.savez(tmp / f"frame_{i}.npz", **arrays)
@@ -86,6 +87,8 @@ class LoopState:
                 buf = FrameBuffer(**{name: data[name] for name in BUFFER_ARRAYS})
                 buf.motion_sum = data["motion_sum"] if "motion_sum" in data else None
                 buf.aov_sum = data["aov_sum"] if "aov_sum" in data else None
+                for name in SPLAT_ARRAYS:  # the raw image's splat sums (absent under a box filter)
+                    setattr(buf, name, data[name] if name in data else None)
                 buf.aov_names = tuple(meta.get("aov_names", [[]] * meta["frames"])[i])
                 buf.passes = meta["passes"][i]
                 errors.append(data["error"] if "error" in data else None)

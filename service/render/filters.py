@@ -53,9 +53,12 @@ class PixelFilter:
         if self.uniform:
             return
         self.radius = float(rfilter.radius())
+        # Pixels per axis whose filter can cover one film position (centres within the radius).
+        self.taps = math.ceil(2.0 * self.radius)
         # The tent's CDF inverts in closed form: no table search (the default film filter of
         # many scenes, and a binary search per axis costs ~10 % of a cheap integrator's pass).
         self.tent = self.name == "TentFilter"
+        self.negative_lobes = False
         if self.tent:
             self.columns = self._tent_axis(width, sample_border)
             self.rows = self._tent_axis(height, sample_border)
@@ -72,6 +75,7 @@ class PixelFilter:
         abs_cdf = np.concatenate([[0.0], np.cumsum(abs_mass)])
         signed_cdf = np.concatenate([[0.0], np.cumsum(signed_mass)])
         self.bins = bins
+        self.negative_lobes = bool((f_mids < 0).any())
         self.cdf = mi.Float(abs_cdf.astype(np.float32))
         self.mass = mi.Float(abs_mass.astype(np.float32))
         self.columns = self._axis(width, abs_cdf, signed_cdf, sample_border)
@@ -146,3 +150,21 @@ class PixelFilter:
         oy, wy = self._offset(u.y, row, self.rows)
         position = mi.Vector2f(mi.Float(column) + 0.5 + ox, mi.Float(row) + 0.5 + oy)
         return position, wx * wy
+
+    def value(self, distance):
+        """The filter along one axis at `distance` from a pixel centre (0 beyond its radius)."""
+        return dr.select(dr.abs(distance) < self.radius, self.rfilter.eval(distance), 0.0)
+
+    def density(self, offset, index, axis):
+        """The density (per pixel of offset) with which `sample` draws `offset` along one axis
+        for the pixel `index` on that axis: what splat.py divides by so that samples drawn for
+        different pixels, at different rates, weigh as if they had been spread uniformly."""
+        mi = self.mi
+        span = dr.gather(mi.Float, axis[1], index)
+        if self.tent:
+            shape = dr.maximum(1.0 - dr.abs(offset) / self.radius, 0.0) / self.radius
+            return shape / dr.maximum(span, 1e-20)
+        k = mi.Int32(dr.floor((offset + self.half) / self.bin_width))
+        inside = (k >= 0) & (k < self.bins)
+        mass = dr.gather(mi.Float, self.mass, mi.UInt32(dr.clip(k, 0, self.bins - 1)), inside)
+        return dr.select(inside, mass / (self.bin_width * dr.maximum(span, 1e-20)), 0.0)

@@ -5,11 +5,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from service.render.splat import RADIANCE, SQ_RADIANCE, SQ_RADIANCE_SQ, WEIGHT, WEIGHT_SQ
+
 
 # A pixel counts as converged once this many samples all agreed (FrameBuffer.converged); the
 # tolerance absorbs float64 rounding of the sums of identical values.
 CONVERGED_MIN_SPP = 16
 CONVERGED_REL_TOLERANCE = 1e-9
+# The raw image's sums, optional (None under the box filter): checkpoints keep them by these names.
+SPLAT_ARRAYS = ("splat_weight", "splat_radiance", "splat_sq_radiance", "splat_sq_radiance_sq", "splat_weight_sq")
 
 def _finite(values: np.ndarray) -> np.ndarray:
     """NaN/±Inf → 0. A running sum that went non-finite (a corrupted or overflowed accumulator;
@@ -58,6 +62,13 @@ class FrameBuffer:
     # How many pixels beyond its own a sample can land: the film filter's reach
     # (service.render.filters.footprint_pixels; 0 for a box). The loop sets it from its scene.
     footprint: int = 0
+    # The same samples splatted through the film's filter (service/render/splat.py): the raw
+    # image users look at (`raw`). None under the box filter, where the splat is `mean` itself.
+    splat_weight: np.ndarray | None = None  # (H, W) Σw
+    splat_radiance: np.ndarray | None = None  # (H, W, 3) Σw·L
+    splat_sq_radiance: np.ndarray | None = None  # (H, W, 3) Σw²·L
+    splat_sq_radiance_sq: np.ndarray | None = None  # (H, W, 3) Σw²·L²
+    splat_weight_sq: np.ndarray | None = None  # (H, W) Σw²
 
     @classmethod
     def empty(cls, height: int, width: int) -> "FrameBuffer":
@@ -98,6 +109,48 @@ class FrameBuffer:
         )
         var_of_mean = np.divide(np.maximum(sample_var, 0.0), n, out=np.zeros_like(mean), where=n > 1)
         return _finite(var_of_mean).astype(np.float32)
+
+    def add_splat(self, sums: np.ndarray) -> None:
+        """Add one render call's splat sums ((H, W, 11) columns of splat.py)."""
+        if self.splat_weight is None:
+            h, w = self.shape
+            self.splat_weight, self.splat_weight_sq = np.zeros((h, w)), np.zeros((h, w))
+            self.splat_radiance = np.zeros((h, w, 3))
+            self.splat_sq_radiance, self.splat_sq_radiance_sq = np.zeros((h, w, 3)), np.zeros((h, w, 3))
+        self.splat_weight += sums[..., WEIGHT]
+        self.splat_radiance += sums[..., RADIANCE]
+        self.splat_sq_radiance += sums[..., SQ_RADIANCE]
+        self.splat_sq_radiance_sq += sums[..., SQ_RADIANCE_SQ]
+        self.splat_weight_sq += sums[..., WEIGHT_SQ]
+
+    def _splat_mean(self) -> np.ndarray:
+        weight = self.splat_weight[..., None]
+        mean = np.divide(self.splat_radiance, weight, out=np.zeros_like(self.splat_radiance), where=weight > 0)
+        # A pixel no splat reached with positive weight keeps its own samples' estimate.
+        return _finite(np.where(weight > 0, mean, self._per_sample(self.radiance_sum)))
+
+    @property
+    def raw(self) -> np.ndarray:
+        """The raw image users look at (`noisy` layer, `--no-denoise`): hdrfilm's estimate
+        Σw·L / Σw from every sample under the pixel's filter (splat.py); `mean` for the box."""
+        if self.splat_weight is None:
+            return self.mean
+        return self._splat_mean().astype(np.float32)
+
+    @property
+    def raw_variance(self) -> np.ndarray:
+        """Variance of `raw`, the ratio estimator's (delta method): Σw²·(L − R)² / (Σw)², times
+        n_eff / (n_eff − 1) with n_eff = (Σw)² / Σw² (Kish) — for equal weights exactly the
+        unbiased variance of the mean, `variance`. Every term carries w², so negative lobes add
+        to it and never cancel; 0 where n_eff ≤ 1, as `variance` is where n < 2."""
+        if self.splat_weight is None:
+            return self.variance
+        mean = self._splat_mean()
+        weight, weight_sq = self.splat_weight[..., None], self.splat_weight_sq[..., None]
+        spread = np.maximum(self.splat_sq_radiance_sq - 2 * mean * self.splat_sq_radiance + mean**2 * weight_sq, 0.0)
+        n_eff = np.divide(weight**2, weight_sq, out=np.zeros_like(weight), where=(weight_sq > 0) & (weight > 0))
+        scale = np.divide(1.0, weight**2 * (1 - 1 / np.maximum(n_eff, 1.0)), out=np.zeros_like(weight), where=n_eff > 1)
+        return _finite(spread * scale).astype(np.float32)
 
     def converged(self, min_spp: int = CONVERGED_MIN_SPP) -> np.ndarray:
         """(H, W) bool: at least `min_spp` samples and every one returned the same value — an
@@ -171,4 +224,5 @@ class FrameBuffer:
             passes=self.passes,
             meta=dict(self.meta),
             footprint=self.footprint,
+            **{name: None if getattr(self, name) is None else getattr(self, name).copy() for name in SPLAT_ARRAYS},
         )

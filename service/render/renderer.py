@@ -22,6 +22,7 @@ from service.render.integrators import instance_refusal, sample_lane, to_rgb
 from service.render.object_motion import ShapeMotion, previous_position
 from service.render.runtime import mitsuba
 from service.render.scenes import SceneError
+from service.render.splat import FilmSplat
 
 # 2^22 lanes ≈ a few hundred MB of Dr.Jit state on the LLVM backend: a 1024² × 64 spp pass
 # (67 M samples) runs in 16 chunks instead of one 10+ GB wavefront.
@@ -74,6 +75,8 @@ class _Setup:
     direct: DirectSettings | None = None
     # Set when shapes move between the previous frame and this one (object motion vectors).
     shape_motion: ShapeMotion | None = None
+    # The raw image's sums (splat.py); None for the box filter, whose splat is the pixel itself.
+    splat: FilmSplat | None = None
 
 
 def _first_hit_flags(mi):
@@ -119,9 +122,9 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.n
         # First-hit features from a separate primary intersection along the same
         # (filter-offset) ray (~17-27 % extra, docs/fidelity.md).
         si = scene.ray_intersect(mi.Ray3f(ray), _first_hit_flags(mi), True)
-    radiance = to_rgb(mi, value * ray_weight, ray.wavelengths)
+    sample_value = to_rgb(mi, value * ray_weight, ray.wavelengths)
+    radiance = sample_value if weight is None else sample_value * weight
     if weight is not None:
-        radiance = radiance * weight
         aovs = [a * weight for a in aovs]
 
     # The features are averaged unweighted, so they stay in range.
@@ -153,6 +156,8 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.n
     for a in aovs:
         finite &= dr.isfinite(a)
     radiance = dr.select(finite, radiance, 0.0)
+    if setup.splat is not None:  # the same samples through the film's filter, for the raw image
+        setup.splat.add(position, dr.select(finite, sample_value, 0.0))
     channels = [radiance[0], radiance[1], radiance[2],
                 dr.square(radiance[0]), dr.square(radiance[1]), dr.square(radiance[2]),
                 albedo[0], albedo[1], albedo[2], normal.x, normal.y, normal.z, depth]
@@ -172,7 +177,7 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.n
     for c, value in enumerate(channels):
         dr.scatter_reduce(dr.ReduceOp.Add, sums, value, (idx - offset) * stride + c)
     nonfinite = dr.count(~finite)
-    dr.eval(sums, nonfinite)
+    dr.eval(sums, nonfinite, *([setup.splat.sums] if setup.splat is not None else []))
     per_pixel = np.asarray(sums, dtype=np.float64)[:span * stride].reshape(span, stride)
     return per_pixel, first, int(np.asarray(nonfinite).ravel()[0])
 
@@ -253,16 +258,18 @@ def render_samples(
     if prev_sensor is not None and buffer.motion_sum is None:
         buffer.motion_sum = np.zeros((height, width, 2))
     film = sensor.film()
+    pixel_filter = PixelFilter(mi, film.rfilter(), width, height, film.sample_border())
     setup = _Setup(
         scene=scene, integrator=integrator, sensor=sensor,
         prev_projection=film_projection(mi, prev_sensor) if prev_sensor is not None else None,
-        pixel_filter=PixelFilter(mi, film.rfilter(), width, height, film.sample_border()),
+        pixel_filter=pixel_filter,
         width=width, pixel_count=height * width, aov_count=len(aov_names),
         # Ray differentials describe the footprint of one sample: shrink them with the mean
         # per-pixel rate as mi.render does with 1/sqrt(spp).
         diff_scale=1.0 / np.sqrt(max(buffer.spp.mean() + counts.mean(), 1.0)),
         direct=direct_settings(mi, integrator),
         shape_motion=prev_shapes if prev_sensor is not None else None,
+        splat=None if pixel_filter.uniform or not total else FilmSplat(mi, pixel_filter, counts),
     )
     chunks = max(1, -(-total // max_wavefront))
     for chunk in range(chunks if total else 0):
@@ -273,6 +280,8 @@ def render_samples(
         _add_sums(buffer, sums, first, prev_sensor is not None)
         if progress is not None:
             progress(len(pixels))
+    if setup.splat is not None:
+        buffer.add_splat(setup.splat.host())
     buffer.spp += counts.astype(np.int64)
     buffer.passes += 1
     return RenderPass(samples=total, chunks=chunks if total else 0, seconds=perf_counter() - start)

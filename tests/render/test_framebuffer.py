@@ -62,3 +62,58 @@ def test_a_copy_keeps_the_filters_reach():
     buffer = FrameBuffer.empty(2, 2)
     buffer.footprint = 2
     assert buffer.copy().footprint == 2
+
+
+def splat_buffer(weights: list[list[float]], values: list[list[float]]) -> FrameBuffer:
+    """A 1×N buffer whose pixel i got splats of grey `values[i]` with weights `weights[i]`."""
+    buffer = buffer_with([[0.0]] * len(weights))
+    buffer.add_splat(np.zeros((1, len(weights), 11)))
+    for i, (w, v) in enumerate(zip(weights, values)):
+        w, v = np.asarray(w, dtype=np.float64), np.asarray(v, dtype=np.float64)
+        buffer.splat_weight[0, i] = w.sum()
+        buffer.splat_radiance[0, i] = (w * v).sum()
+        buffer.splat_sq_radiance[0, i] = (w * w * v).sum()
+        buffer.splat_sq_radiance_sq[0, i] = (w * w * v * v).sum()
+        buffer.splat_weight_sq[0, i] = (w * w).sum()
+    return buffer
+
+
+def test_the_raw_image_is_the_weight_normalised_splat_and_its_variance_that_of_the_mean_for_equal_weights():
+    values = [0.2, 0.5, 0.9, 1.4]
+    buffer = splat_buffer([[0.5] * 4], [values])
+    assert np.allclose(buffer.raw[0, 0], np.mean(values))
+    # equal weights: the unbiased variance of the mean, whatever the weights' scale
+    assert np.allclose(buffer.raw_variance[0, 0], np.var(values, ddof=1) / 4, rtol=1e-5)
+
+
+def test_negative_lobe_weights_add_to_the_raw_variance_instead_of_cancelling_it():
+    values, weights = np.array([0.2, 0.5, 0.9, 1.4, 3.0]), np.array([1.0, 1.0, 1.0, 1.0, -0.3])
+    lobed = splat_buffer([weights], [values])
+    estimate = (weights * values).sum() / weights.sum()
+    assert np.allclose(lobed.raw[0, 0], estimate, rtol=1e-6)
+    # A signed second moment Σw·L²/Σw − R² goes negative here: the bright sample's negative weight
+    # subtracts its spread. The ratio estimator's variance carries w² in every term.
+    assert (weights * values**2).sum() / weights.sum() - estimate**2 < 0
+    n_eff = weights.sum() ** 2 / (weights**2).sum()
+    delta = (weights**2 * (values - estimate) ** 2).sum() / weights.sum() ** 2 * n_eff / (n_eff - 1)
+    assert np.allclose(lobed.raw_variance[0, 0], delta, rtol=1e-5) and delta > 0
+
+
+def test_a_box_filtered_buffer_reads_its_raw_image_from_its_own_samples():
+    buffer = buffer_with([[0.2, 0.4], [1.0, 3.0]])
+    assert buffer.splat_weight is None
+    np.testing.assert_array_equal(buffer.raw, buffer.mean)
+    np.testing.assert_array_equal(buffer.raw_variance, buffer.variance)
+
+
+def test_copies_and_checkpoints_keep_the_splat_sums(tmp_path):
+    from service.loop.state import LoopState
+
+    buffer = splat_buffer([[0.5, 0.7], [1.0]], [[0.2, 0.4], [2.0]])
+    copy = buffer.copy()
+    buffer.splat_weight[0, 0] = 99.0
+    assert copy.splat_weight[0, 0] == 1.2
+    state = LoopState(iteration=1, buffers=[copy], lam_map=np.ones((1, 2), np.float32), error_maps=[None])
+    restored = LoopState.load(state.save(tmp_path / "checkpoint")).buffers[0]
+    np.testing.assert_array_equal(restored.raw, copy.raw)
+    np.testing.assert_array_equal(restored.raw_variance, copy.raw_variance)
