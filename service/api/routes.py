@@ -341,6 +341,11 @@ def metrics(service_metrics: Annotated[ServiceMetrics, Depends(get_metrics)]) ->
     return Response(service_metrics.exposition(), media_type=METRICS_MEDIA_TYPE)
 
 
-@router.get("/healthz", response_model=Health)
-def health(store: Store) -> Health:
-    return Health(status="ok", jobs={state: len(store.ids_in_state(state)) for state in STATES})
+@router.get("/healthz", response_model=Health, responses={503: {"model": Health, "description": "no job can run"}})
+def health(store: Store, worker: Worker, response: Response) -> Health:
+    """200 when jobs can run; 503 with a message when they cannot (the backend is down or stopping)."""
+    problem = worker.health_problem()
+    if problem is not None:
+        response.status_code = 503
+    return Health(status="unavailable" if problem else "ok", message=problem,
+                  jobs={state: len(store.ids_in_state(state)) for state in STATES})

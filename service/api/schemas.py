@@ -225,5 +225,6 @@ class SceneList(BaseModel):
 
 
 class Health(BaseModel):
-    status: str
+    status: str  # "ok", or "unavailable" (503) when no job can run
     jobs: dict[str, int]
+    message: str | None = None  # why it is unavailable

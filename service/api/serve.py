@@ -22,6 +22,7 @@ from models.pretrained import Networks, load_networks
 from service.api.app import create_app
 from service.api.edge import EdgeSettings, uvicorn_options
 from service.api.security import SecuritySettings
+from service.api.shutdown import sigterm_exits_0
 from service.jobs.worker_settings import WorkerSettings
 from service.jobs.leases import Leases
 from service.jobs.quotas import Quotas
@@ -98,8 +99,9 @@ def serve(host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, data_dir: Path | N
                      bundle_limits=bundle_limits, job_limits=job_limits, retention=retention, db_url=db_url,
                      quotas=quotas, leases=Leases.from_env(), scene_checks=scene_checks)
     log_service_messages()
-    uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS,
-                **uvicorn_options(edge))
+    with sigterm_exits_0():
+        uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS,
+                    **uvicorn_options(edge))
 
 
 def log_service_messages() -> None:

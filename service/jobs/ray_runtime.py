@@ -29,7 +29,8 @@ import tempfile
 import threading
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from types import FrameType
+from typing import Callable, Iterator
 
 import ray
 
@@ -41,13 +42,16 @@ log = logging.getLogger(__name__)
 SINGLE_MACHINE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"  # "0": Ray's node address is loopback
 # The service's own secrets: none is needed by a Ray worker (actors never touch the job store).
 SECRET_ENV = ("RENDERLOOP_TOKEN", "RENDERLOOP_TOKEN_FILE", "RENDERLOOP_DB", "PGPASSWORD", "PGPASSFILE")
-# On a loaded 2-core machine the GCS can take well over Ray's 60 s default to answer
-# ("Failed to connect to GCS within 60 seconds", issue 42 item 10); an operator's value wins.
-STARTUP_TIMEOUTS = {
+# Ray's timeouts, for this server's life (an operator's value wins). Start-up: on a loaded
+# 2-core machine the GCS can take well over Ray's 60 s default to answer ("Failed to connect to
+# GCS within 60 seconds"). Shutdown: the driver flushes task events to the GCS for up to 5 s
+# before it lets go, which a SIGTERM to the whole process group (the GCS already gone) turns
+# into a plain wait: 7 s of ray.shutdown, measured, 2.4 s with the flush cut to 0.3 s.
+RAY_TIMEOUTS = {
     "RAY_gcs_rpc_server_connect_timeout_s": "300",
     "RAY_py_gcs_connect_timeout_s": "300",
     "RAY_gcs_server_request_timeout_seconds": "300",
-    "RAY_raylet_start_wait_time_s": "300",
+    "RAY_task_events_shutdown_flush_timeout_ms": "300",
 }
 # Ray starts its worker processes at nice 15 to keep its own daemons responsive; here the workers
 # are the service's whole work (the thread backend renders at the server's priority), and on a
@@ -55,6 +59,10 @@ STARTUP_TIMEOUTS = {
 # took twice the compute time of one. A cluster joined with --ray-address keeps its own setting
 # (RAY_worker_niceness, see docker/compose.yaml).
 WORKER_NICENESS = 0
+START_ATTEMPTS = 2
+# Without these no job runs: the GCS, the raylet, and the dashboard agent (Ray 2.60's raylet
+# ends when its agent dies — issue 42 item 11).
+VITAL_DAEMONS = ("ray", "gcs_server", "raylet", "dashboard_agent", "runtime_env_agent")
 
 
 def secret_names(environ: dict[str, str] | os._Environ) -> list[str]:
@@ -95,6 +103,25 @@ def signal_handlers_kept() -> Iterator[None]:
                 signal.signal(number, handler)
 
 
+def chain_sigterm(first: Callable[[], None]) -> None:
+    """Run `first` on SIGTERM, then whatever handler was there (uvicorn's graceful shutdown):
+    the backend learns of the stop at once, not after uvicorn's grace for open responses — a
+    SIGTERM to the whole process group ends Ray's workers in the same instant, and a job must
+    not take that for a crash and start new ones."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        first()
+        if callable(previous):
+            previous(signum, frame)
+        elif previous == signal.SIG_DFL:
+            raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+
+
 def private_token_file() -> Path:
     """A fresh random token in a folder only this user can read (the folder 0700, the file 0600)."""
     folder = Path(tempfile.mkdtemp(prefix="renderloop-ray-"))  # mkdtemp: mode 0700
@@ -123,15 +150,28 @@ class LocalRay:
         # (set beforehand, the driver keeps the mode it read at import); an operator's
         # RAY_AUTH_MODE=disabled is not honoured here.
         os.environ.pop(AUTH_MODE_ENV, None)
-        for name, value in STARTUP_TIMEOUTS.items():
+        for name, value in RAY_TIMEOUTS.items():
             os.environ.setdefault(name, value)
         with environment({SINGLE_MACHINE_ENV: "0"}, secret_names(os.environ)), signal_handlers_kept():
             _loopback_node_address()
-            ray.init(num_cpus=self.cpus, include_dashboard=False, log_to_driver=False,
-                     _system_config={"worker_niceness": WORKER_NICENESS})
+            self._init_with_retries()
         if os.environ.get(AUTH_MODE_ENV) != "token":
             self.stop()
             raise RuntimeError("Ray did not enable token auth for the local runtime; refusing to run without it")
+
+    def _init_with_retries(self) -> None:
+        """ray.init, tried again after a failed start: on a loaded machine a start can time out
+        in places Ray does not let us tune (the raylet's registration waits 30 s)."""
+        for attempt in range(1, START_ATTEMPTS + 1):
+            try:
+                ray.init(num_cpus=self.cpus, include_dashboard=False, log_to_driver=False,
+                         _system_config={"worker_niceness": WORKER_NICENESS})
+                return
+            except Exception as exc:  # Ray raises plain Exception/RuntimeError on a timed-out start
+                ray.shutdown()
+                if attempt == START_ATTEMPTS:
+                    raise
+                log.warning("starting the local Ray runtime failed (%s); trying again", exc)
 
     def stop(self) -> None:
         with signal_handlers_kept():
@@ -139,6 +179,11 @@ class LocalRay:
         if self.token_path is not None:
             shutil.rmtree(self.token_path.parent, ignore_errors=True)
             self.token_path = None
+
+    def failure(self) -> str | None:
+        """Which of Ray's daemons this runtime cannot work without has died, if one has."""
+        dead = [name for name in self.dead_daemons() if name in VITAL_DAEMONS]
+        return f"the local Ray runtime lost its {', '.join(dead)}" if dead else None
 
     @staticmethod
     def dead_daemons() -> list[str]:

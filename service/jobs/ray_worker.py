@@ -30,7 +30,7 @@ from ray.exceptions import RayActorError, RayTaskError
 
 from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles
-from service.jobs.ray_runtime import LocalRay, join_cluster
+from service.jobs.ray_runtime import LocalRay, chain_sigterm, join_cluster
 from service.jobs.ray_actor import ACTOR_THREADS, FAILURE_FILE, ActorPlan, IterationReport, JobActor
 from service.jobs.store import CANCELED, COMPLETED, FAILED, JobRecord, JobStore
 from service.jobs.worker import (JobWorker, NoObserver, Relambda, WorkerObserver, add_timings, bundle_scene,
@@ -44,6 +44,9 @@ log = logging.getLogger(__name__)
 CANCEL_GRACE_SECONDS = 1.5  # a cooperative stop takes one wavefront chunk; then the actor is killed
 MAX_WORKER_RESTARTS = 3  # a job whose workers keep dying fails instead of looping forever
 CPUS_PER_ACTOR = 1
+DEATH_SETTLE_SECONDS = 0.5
+RUNTIME_POLL_SECONDS = 1.0
+RUNTIME_DIED_EXIT_CODE = 75  # EX_TEMPFAIL: systemd's Restart=on-failure, docker's on-failure restart it
 
 
 def start_local_ray(cpus: int) -> LocalRay:
@@ -101,6 +104,7 @@ class RayJobWorker(JobWorker):
         self._groups: dict[str, list] = {}  # job id → its actors, leader first
         self._runtime: LocalRay | None = None  # the local runtime this worker started, if it did
         self._joined = False
+        self._gpus = 0
         self._networks_ref = None
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -112,11 +116,16 @@ class RayJobWorker(JobWorker):
                 self._joined = True
             else:
                 self._runtime = start_local_ray(self.settings.workers * CPUS_PER_ACTOR)
+        chain_sigterm(self._stopping.set)
+        if self._runtime is not None:
+            threading.Thread(target=self._watch_runtime, name="ray-watch", daemon=True).start()
+        self._gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0  # asked once: the GCS may be gone later
         self._networks_ref = ray.put(self.networks)  # shipped once; every actor gets it from the store
         super().start()
 
     def stop(self) -> None:
         """Running jobs stop (cooperatively, then killed) and are requeued to resume next start."""
+        started = time.monotonic()
         super().stop()
         with self._lock:
             groups = list(self._groups.values())
@@ -131,6 +140,7 @@ class RayJobWorker(JobWorker):
             self._runtime.stop()
         elif self._joined:
             ray.shutdown()
+        log.info("Ray backend stopped in %.1f s (running jobs requeued)", time.monotonic() - started)
 
     def _live_jobs(self) -> bool:
         with self._lock:
@@ -199,6 +209,9 @@ class RayJobWorker(JobWorker):
                 if failure is not None:
                     self.store.finish(job_id, FAILED, error=failure)
                     return
+                if self._stopped_underneath(cancel):
+                    self.store.requeue(job_id)  # resumes from its checkpoint on the next start
+                    return
                 if cancel.is_set() or self._stopping.is_set():
                     self._interrupted(job_id, cancel)
                     return
@@ -206,6 +219,44 @@ class RayJobWorker(JobWorker):
                 if restarts > MAX_WORKER_RESTARTS:
                     raise RuntimeError(f"the job's worker died {restarts} times; last: {died}") from died
                 log.warning("job %s: its worker died (%s); resuming from the last checkpoint", job_id, died)
+
+    def _stopped_underneath(self, cancel: threading.Event) -> bool:
+        """Ray itself died under the job (not just its worker). A signal to the whole process
+        group reaches Ray's processes in the same instant as this one: give the signal handler
+        and a dying raylet a moment before deciding a worker died on its own."""
+        if not cancel.is_set():
+            time.sleep(DEATH_SETTLE_SECONDS)
+        return self._runtime is not None and self._runtime.failure() is not None
+
+    def _watch_runtime(self) -> None:
+        """A local Ray runtime that lost a vital daemon (a raylet killed, or its dashboard agent,
+        which takes the raylet down) cannot run jobs again: its running jobs are requeued and
+        the server exits non-zero, so its supervisor starts a fresh one that resumes them from
+        their checkpoints. Restarting Ray inside this process would leave the driver's Ray
+        client half-connected to the dead one."""
+        while not self._stopping.wait(RUNTIME_POLL_SECONDS):
+            failure = self._runtime.failure() if self._runtime is not None else None
+            # A SIGTERM to the process group ends Ray's daemons too: that is a stop, not a failure.
+            if failure is None or self._stopping.wait(DEATH_SETTLE_SECONDS):
+                continue
+            log.error("%s: no job can run; requeuing the running ones and exiting (status %d) so a supervisor "
+                      "restarts the server", failure, RUNTIME_DIED_EXIT_CODE)
+            for job_id in self._claimed():
+                self.store.requeue(job_id)
+            logging.shutdown()
+            os._exit(RUNTIME_DIED_EXIT_CODE)
+
+    def _claimed(self) -> list[str]:
+        with self._lock:
+            return list(self._groups)
+
+    def health_problem(self) -> str | None:
+        """Why no job can run here now, or None (GET /healthz answers 503 with it)."""
+        if self._stopping.is_set():
+            return "the server is stopping"
+        if not ray.is_initialized():
+            return "not connected to Ray"
+        return self._runtime.failure() if self._runtime is not None else None
 
     def _interrupted(self, job_id: str, cancel: threading.Event) -> None:
         """Stopped inside an iteration: a user cancel keeps what the checkpoint holds; a
@@ -270,7 +321,7 @@ class RayJobWorker(JobWorker):
         root = files.bundle_dir if bundle_scene(record) else None
         width, height = film_size(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root,
                                   frames=spec.frames)
-        gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0
+        gpus = self._gpus
         group = []
         for share in shares(spec.frames, self.settings.workers):
             memory = estimated_memory(width, height, share[1] - share[0])

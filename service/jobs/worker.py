@@ -176,6 +176,10 @@ class JobWorker:
         with self._lock:
             return job_id in self._live
 
+    def health_problem(self) -> str | None:
+        """Why no job can run here now, or None (GET /healthz answers 503 with it)."""
+        return "the server is stopping" if self._stopping.is_set() else None
+
     def stop(self) -> None:
         """Ask running loops to stop within one wavefront chunk; they stay resumable."""
         self._stopping.set()
