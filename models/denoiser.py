@@ -26,6 +26,7 @@ from torch import Tensor
 from models.accumulation import accumulate_window
 from models.candidate import CandidateGate, blend, clamp_around
 from models.energy import SampleEnergy, measure_energy, restore_energy
+from models.exposure import Exposure
 from models.features import (HDR_MAX, demodulate, demodulation_albedo, feature_set, log_transform, remodulate, sanitize,
                              sanitize_frame)
 from models.frames import FrameTensors
@@ -249,6 +250,9 @@ class DenoiserCache:
     size: tuple[int, int]          # original (H, W) to crop back to
     n_bad: int = 0                 # NaN/Inf values replaced while sanitising the filtered window
     energy: SampleEnergy | None = None   # the center's samples' energy (models.energy)
+    # the center's exposure (models.exposure): every cached radiance is exposed by it, and
+    # merge_levels takes the output back out, so a λ edit stays in the same units
+    exposure: Exposure | None = None
 
 
 class Denoiser(nn.Module):
@@ -287,7 +291,10 @@ class Denoiser(nn.Module):
             return window, center
         if not self.config.accumulate:
             return [window[center]], 0
-        return [accumulate_window([sanitize_frame(f)[0] for f in window], center % len(window))], 0
+        # pooled in the networks' exposure, so sanitising clamps fireflies relative to the image
+        exposure = Exposure.of(window[center % len(window)].color)
+        pooled = accumulate_window([sanitize_frame(exposure.forward_frame(f))[0] for f in window], center % len(window))
+        return [exposure.inverse_frame(pooled)], 0
 
     def prepare(self, window: list[FrameTensors], center: int, candidate: Tensor | None = None) -> DenoiserCache:
         """candidate: (N,3,H,W) linear radiance of an external denoiser on the center of
@@ -302,7 +309,10 @@ class Denoiser(nn.Module):
             window, center = self.filtered_window(window, center)
         if len(window) == 1:       # nothing to warp, and no feature reads the sample count
             window = [dataclasses.replace(window[0], motion=None, spp=None)]
-        cleaned = [sanitize_frame(f) for f in window]
+        # One exposure for the whole window, the center's: radiance enters the networks' range
+        # before sanitising, so the firefly clamp (HDR_MAX) is relative to the image's exposure.
+        exposure = Exposure.of(window[center].color)
+        cleaned = [sanitize_frame(exposure.forward_frame(f)) for f in window]
         frames, n_bad = [f for f, _ in cleaned], sum(n for _, n in cleaned)
         size = frames[center].size
         energy = (measure_energy(frames[center].color, frames[center].variance, self.config.energy_block)
@@ -316,7 +326,8 @@ class Denoiser(nn.Module):
         # (D(c)/D(a) ≠ D(c/a) on textures and albedo edges) made every coarse result differ
         # from D(fine) by a texture-shaped bias, and eq. 5 then learned α → 0.
         images = [demodulate(f.color, a) for f, a in zip(frames, albedos)]
-        extra = self._demodulated_candidate(candidate, frames[center].variance, albedo, align) if candidate is not None else None
+        extra = (self._demodulated_candidate(exposure.forward(candidate), frames[center].variance, albedo, align)
+                 if candidate is not None else None)
         n_bad += extra[2] if extra is not None else 0
         guide = extra[0] if self.config.candidate_features else None
         trunk_features = self._unet_features(frames, guide) if self.config.trunk == "unet" else None
@@ -335,7 +346,7 @@ class Denoiser(nn.Module):
                 cache.candidate = extra[0]
                 cache.gate_hidden = self.gate.prepare(cache.hidden[:, 0, :-1], images[center], extra[0], extra[1])
             levels.append(cache)
-        return DenoiserCache(levels, albedo, size, n_bad, energy)
+        return DenoiserCache(levels, albedo, size, n_bad, energy, exposure)
 
     @staticmethod
     def _demodulated_candidate(candidate: Tensor, variance: Tensor, albedo: Tensor, align: int) -> tuple[Tensor, Tensor, int]:
@@ -465,7 +476,7 @@ class Denoiser(nn.Module):
         out = remodulate(out, cache.albedo)[..., :h, :w]
         if cache.energy is not None:
             out = restore_energy(out, cache.energy, self.config.energy_tolerance)
-        return out
+        return out if cache.exposure is None else cache.exposure.inverse(out)
 
     def _lambda_code(self, cache: DenoiserCache, lam: float | Tensor) -> Tensor:
         """λ (float, (H,W) or (N|1,1,H,W)) → log-code at the padded size, or (N,1,1,1) if global."""

@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from models.candidate import box_mean, disagreement as noise_units_squared
+from models.exposure import Exposure
 from models.features import (HDR_MAX, demodulate, feature_set, log_transform, sample_count_feature, sanitize,
                              sanitize_frame)
 from models.frames import FrameTensors
@@ -75,8 +76,11 @@ class ErrorPredictor(nn.Module):
         """frame: the noisy input; denoised (N,3,H,W) → (N,1,H,W) predicted SMAPE ≥ 0.
         disagreement (N,1,H,W): models.kernel_disagreement's D, read only by a network with
         `disagreement_input` (and then required)."""
-        f, _ = sanitize_frame(frame)
-        d, _ = sanitize(denoised.float(), 0.0, HDR_MAX)
+        # Both images in the noisy frame's exposure (models.exposure), like the denoiser's inputs:
+        # SMAPE is relative, so the prediction does not change with the scene's units.
+        exposure = Exposure.of(frame.color)
+        f, _ = sanitize_frame(exposure.forward_frame(frame))
+        d, _ = sanitize(exposure.forward(denoised.float()), 0.0, HDR_MAX)
         inputs = [*self.features.planes(f), log_transform(demodulate(d, f.albedo))]
         if self.config.sample_count_input:
             if f.spp is None:

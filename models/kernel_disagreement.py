@@ -56,4 +56,6 @@ def apply_for_error_network(denoiser: "Denoiser", cache: "DenoiserCache", candid
         raise ValueError("an error network reading the kernels/candidate disagreement needs a denoiser with a "
                          "candidate image (oidn_candidate)")
     output, kernels = apply_with_kernels_image(denoiser, cache, lam)
+    if cache.exposure is not None:   # compared in the networks' exposure: D's ε is absolute
+        kernels, candidate = cache.exposure.forward(kernels), cache.exposure.forward(candidate)
     return output, kernel_disagreement(kernels, candidate)

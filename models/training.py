@@ -91,6 +91,8 @@ def coarse_levels_loss(model: Denoiser, cache: DenoiserCache, levels: list[Tenso
     """Mean of eq. 6 over the coarse levels, in the demodulated space the levels filter, with
     reference, noisy input and λ pooled like the pyramid pools its inputs."""
     align = model.config.alignment
+    if cache.exposure is not None:   # the levels filter exposed radiance (models.exposure)
+        reference, noisy = cache.exposure.forward(reference), cache.exposure.forward(noisy)
     target = demodulate(pad_to(reference, align), cache.albedo)
     noisy = demodulate(pad_to(torch.nan_to_num(noisy, nan=0.0, posinf=0.0, neginf=0.0), align), cache.albedo)
     lam = pad_to(torch.as_tensor(lam, dtype=target.dtype, device=target.device).expand_as(reference[:, :1]), align)

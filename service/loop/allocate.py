@@ -16,7 +16,10 @@ from __future__ import annotations
 import math
 import operator
 import numpy as np
+import torch
 
+from models.exposure import Exposure
+from models.features import relative_variance
 from service.loop.spec import ALLOCATORS  # one list of kinds for the spec, CLI, API and here
 
 __all__ = [
@@ -26,6 +29,7 @@ __all__ = [
     "allocate_samples",
     "allocation_weights",
     "error_weights",
+    "exposed_relative_variance",
     "iteration_budget",
     "uniform_weights",
     "variance_weights",
@@ -74,6 +78,18 @@ def variance_weights(relative_variance: np.ndarray) -> np.ndarray:
     if rv.ndim == 2:
         return rv
     raise ValueError(f"relative_variance must be (H, W) or (H, W, C), got shape {rv.shape}")
+
+
+def exposed_relative_variance(mean: np.ndarray, variance: np.ndarray) -> np.ndarray:
+    """(H, W, 3) sample mean and variance of the mean → Var/(mean² + ε) per channel, taken at the
+    networks' exposure (models.exposure): ε is absolute, so without it a scene at 10⁻⁶ had every
+    pixel's weight ∝ its raw variance and one at 10¹² ∝ 1/mean² in the dark. Inside the trained
+    range the exposure is 1 and this is FrameBuffer.relative_variance."""
+    m = torch.from_numpy(np.asarray(mean, dtype=np.float64)).permute(2, 0, 1)[None]
+    v = torch.from_numpy(np.asarray(variance, dtype=np.float64)).permute(2, 0, 1)[None]
+    exposure = Exposure.of(m)
+    rv = relative_variance(exposure.forward_variance(v), exposure.forward(m))
+    return rv[0].permute(1, 2, 0).numpy().astype(np.float32)
 
 
 def error_weights(predicted_smape: np.ndarray) -> np.ndarray:

@@ -15,12 +15,13 @@ from typing import Callable, Iterator
 import numpy as np
 
 from models.error_predictor import change_scale_of
+from models.exposure import Exposure
 from models.pretrained import Networks
 from service.exr import ExrFrame, result_frame
-from service.loop.allocate import allocate_samples, allocation_weights, iteration_budget
+from service.loop.allocate import allocate_samples, allocation_weights, exposed_relative_variance, iteration_budget
 from service.loop.change_calibration import calibrate_by_change, image_change
 from service.loop.denoise_session import DenoiseSession
-from service.loop.tensors import to_image as to_hwc
+from service.loop.tensors import nchw, to_image as to_hwc
 from service.loop.spec import IterationRecord, LoopSpec, LoopSpecError, lambda_problem, validate_spec
 from service.loop.state import LoopState
 from service.render.effects import inspect_frames, load_frames, make_integrator
@@ -37,9 +38,17 @@ def next_counts(allocator: str, buffer: FrameBuffer, predicted_error: np.ndarray
     weights. Pixels whose samples all agreed (empty background, flat emitters) gain nothing
     from more: they get only the allocator's uniform floor."""
     weights = allocation_weights(allocator, predicted_error=predicted_error,
-                                 relative_variance=buffer.relative_variance(), shape=buffer.shape)
+                                 relative_variance=exposed_relative_variance(buffer.mean, buffer.variance),
+                                 shape=buffer.shape)
     settled = buffer.converged() if allocator != "uniform" else None
     return allocate_samples(weights, budget, seed=seed, floor_only=settled)
+
+
+def exposed_change(previous: np.ndarray, current: np.ndarray, samples: np.ndarray) -> float:
+    """image_change of two denoised images at the networks' exposure of the samples' mean
+    (models.exposure): SMAPE's ε is absolute, and the change calibrates the error map's mean."""
+    exposure = Exposure.of(nchw(samples))
+    return image_change(*(to_hwc(exposure.forward(nchw(x))) for x in (previous, current)))
 
 
 def converged_error(converged: np.ndarray, error: np.ndarray) -> np.ndarray:
@@ -282,7 +291,8 @@ class RenderLoop:
         for f, (image, samples) in previous.items():
             now = self._denoised_samples[f] = int(self.state.buffers[f].spp.sum())
             if samples is not None and 2 * samples == now:        # the previous iteration's image
-                self._change[f] = image_change(image, self._denoised[f]) if same_lam else None
+                self._change[f] = (exposed_change(image, self._denoised[f], self.state.buffers[f].mean)
+                                   if same_lam else None)
             elif samples != now:                                  # none (first pass, resumed loop)
                 self._change[f] = None
             # (the same samples again: a repeated pass keeps the change it measured first)

@@ -9,6 +9,7 @@ import pyoidn
 import torch
 
 from models.denoiser import Denoiser
+from models.exposure import Exposure
 from models.features import HDR_MAX
 from models.frames import FrameTensors
 
@@ -22,10 +23,15 @@ def _hwc(a: np.ndarray, lo: float, hi: float) -> np.ndarray:
 
 
 def oidn_image(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """(H, W, 3) noisy HDR radiance, albedo, normal → OIDN's (H, W, 3) estimate, ≥ 0."""
-    out = pyoidn.denoise(_hwc(color, 0.0, HDR_MAX), _hwc(albedo, 0.0, 1.0), _hwc(normal, -1.0, 1.0),
-                         hdr=True, quality="high")
-    return np.maximum(np.asarray(out, dtype=np.float32), 0.0)
+    """(H, W, 3) noisy HDR radiance, albedo, normal → OIDN's (H, W, 3) estimate, ≥ 0.
+    The colour goes in at the networks' exposure (models.exposure) and comes out in the scene's
+    units again: the HDR_MAX clamp is then relative to the image, as the denoiser's is."""
+    radiance = torch.from_numpy(np.ascontiguousarray(color, dtype=np.float32))   # (H, W, 3): one scale broadcasts
+    exposure = Exposure.of(radiance.permute(2, 0, 1)[None])
+    out = pyoidn.denoise(_hwc(exposure.forward(radiance[None])[0].numpy(), 0.0, HDR_MAX), _hwc(albedo, 0.0, 1.0),
+                         _hwc(normal, -1.0, 1.0), hdr=True, quality="high")
+    out = torch.from_numpy(np.maximum(np.asarray(out, dtype=np.float32), 0.0))
+    return exposure.inverse(out[None])[0].numpy()
 
 
 def oidn_tensor(frame: FrameTensors) -> torch.Tensor:

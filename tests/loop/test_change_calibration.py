@@ -11,7 +11,7 @@ import torch
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.pretrained import Networks
 from service.loop.change_calibration import calibrate_by_change, calibrated_mean, image_change
-from service.loop.loop import RenderLoop
+from service.loop.loop import RenderLoop, exposed_change
 from service.loop.spec import LoopSpec
 from service.loop.state import LoopState
 
@@ -69,11 +69,13 @@ def make_loop(networks: Networks, **overrides) -> RenderLoop:
 
 
 def test_the_first_iteration_reports_the_network_and_later_ones_the_change_calibrated_mean(calibrated_networks):
-    records = list(make_loop(calibrated_networks).run())
+    # the change is measured at the exposure of the samples then (models.exposure): keep each mean
+    runs = [(r, r.buffers[0].mean.copy()) for r in make_loop(calibrated_networks).run()]
+    records = [r for r, _ in runs]
     first, *later = records
     assert first.predicted_error == pytest.approx(first.network_error)  # nothing to compare with yet
-    for before, record in zip(records, later):
-        change = image_change(before.denoised[0], record.denoised[0])
+    for before, (record, samples) in zip(records, runs[1:]):
+        change = exposed_change(before.denoised[0], record.denoised[0], samples)
         assert change > 0
         assert record.predicted_error == pytest.approx(calibrated_mean(record.network_error, change, SCALE), rel=1e-4)
         assert record.predicted_error != pytest.approx(record.network_error, rel=1e-3)
@@ -101,7 +103,7 @@ def test_a_lambda_edit_between_iterations_still_compares_images_made_with_one_la
     lam = np.full((SIZE, SIZE), 4.0, np.float32)
     before = loop.set_lambda(lam)[0].copy()  # the first iteration's image, now at λ = 4
     second = next(run)
-    change = image_change(before, second.denoised[0])
+    change = exposed_change(before, second.denoised[0], second.buffers[0].mean)
     assert second.predicted_error == pytest.approx(calibrated_mean(second.network_error, change, SCALE), rel=1e-4)
 
 
@@ -114,7 +116,8 @@ def test_a_resumed_loop_reports_the_network_until_it_has_an_image_of_its_own(cal
     second, third = list(resumed.run())
     assert second.predicted_error == pytest.approx(second.network_error)
     assert third.predicted_error == pytest.approx(
-        calibrated_mean(third.network_error, image_change(second.denoised[0], third.denoised[0]), SCALE), rel=1e-4)
+        calibrated_mean(third.network_error, exposed_change(second.denoised[0], third.denoised[0], third.buffers[0].mean),
+                        SCALE), rel=1e-4)
 
 
 def test_the_calibration_changes_the_reported_error_never_where_samples_go(calibrated_networks):
@@ -140,7 +143,7 @@ def test_a_job_with_a_target_error_splits_its_first_iteration_and_calibrates_tha
     first = next(loop.run())
     assert first.spp_mean == 16 and loop.state.buffers[0].passes == 2
     assert loop.session.full_calls == 2  # the half, then the whole
-    change = image_change(half.denoised[0], first.denoised[0])
+    change = exposed_change(half.denoised[0], first.denoised[0], first.buffers[0].mean)
     assert first.predicted_error == pytest.approx(calibrated_mean(first.network_error, change, SCALE), rel=1e-4)
 
 

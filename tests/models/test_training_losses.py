@@ -16,12 +16,12 @@ def test_coarse_levels_loss_is_zero_for_the_pooled_reference_and_positive_for_th
     den = Denoiser(TINY)
     frames, reference = window(), make_frame(seed=7).color
     cache = den.prepare(frames, 1)
-    pooled = [demodulate(reference, cache.albedo)]
+    pooled = [demodulate(cache.exposure.forward(reference), cache.albedo)]   # the levels' exposure (models.exposure)
     for _ in range(TINY.levels - 1):
         pooled.append(down(pooled[-1]))
     lam = torch.ones(1, 1, 12, 16)
     assert float(coarse_levels_loss(den, cache, pooled, frames[1].color, reference, lam)) == 0.0
-    noisy = [demodulate(frames[1].color, cache.albedo)]
+    noisy = [demodulate(cache.exposure.forward(frames[1].color), cache.albedo)]
     for _ in range(TINY.levels - 1):
         noisy.append(down(noisy[-1]))
     assert float(coarse_levels_loss(den, cache, noisy, frames[1].color, reference, lam)) > 0.0
