@@ -8,57 +8,17 @@ import os
 import signal
 import sqlite3
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import httpx
 import pytest
 
-from service_harness import REPO, finished, free_port, wait_for
+from serve_process import BACKENDS, ServeProcess
+from service_harness import finished, wait_for
 
 EXIT_SECONDS = 10
-RAY_STARTUP_SECONDS = 300  # a Ray runtime on a loaded 2-core machine can take minutes
-BACKENDS = {"threads": ["--concurrency", "1"], "ray": ["--workers", "1"]}
 JOB = {"scene": "cornell-box", "width": 64, "height": 64, "spp_first": 64, "max_iterations": 6}
-
-
-class ServeProcess:
-    """`renderloop serve` itself (the console script's code path, not the test launcher)."""
-
-    def __init__(self, data_dir: Path, log_path: Path, backend: list[str]) -> None:
-        self.data_dir, self.log_path, self.backend = data_dir, log_path, backend
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.process: subprocess.Popen | None = None
-
-    def start(self) -> "ServeProcess":
-        command = [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port),
-                   "--data-dir", str(self.data_dir), *self.backend]
-        env = {k: v for k, v in os.environ.items() if k not in ("RENDERLOOP_TOKEN", "RENDERLOOP_CONCURRENCY")}
-        with open(self.log_path, "ab") as log:
-            # Its own session: a process-group signal reaches this server's group and nothing of pytest.
-            self.process = subprocess.Popen(command, cwd=REPO, env={**env, "PYTHONUNBUFFERED": "1"}, stdout=log,
-                                            stderr=subprocess.STDOUT, start_new_session=True)
-        deadline = time.monotonic() + RAY_STARTUP_SECONDS
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                raise RuntimeError(f"server exited early:\n{self.log()}")
-            try:
-                if httpx.get(self.url + "/healthz", timeout=2).status_code == 200:
-                    return self
-            except httpx.TransportError:
-                pass
-            time.sleep(0.2)
-        raise RuntimeError(f"server did not come up:\n{self.log()}")
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
-
-    def close(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            os.killpg(self.process.pid, signal.SIGKILL)
-            self.process.wait(30)
 
 
 @pytest.fixture
