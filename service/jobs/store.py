@@ -225,6 +225,14 @@ class JobStore:
         )
         return [r["id"] for r in rows]
 
+    def renew_lease(self, job_id: str) -> bool:
+        """Extend one job's lease; False when this store no longer holds it (another server took
+        the job over): the caller must not write the job's files or record any more."""
+        return self._db.execute(
+            "UPDATE jobs SET lease_expires_at = ? WHERE id = ? AND state = ? AND lease_owner = ?",
+            (time.time() + self.leases.seconds, job_id, RUNNING, self.owner),
+        ) == 1
+
     def requeue_lapsed(self) -> list[str]:
         """running → queued for every job whose lease lapsed (its server is gone), oldest first.
         A job without a lease was claimed by a server from before leases: it counts as lapsed."""
@@ -282,10 +290,11 @@ class JobStore:
     def finish(self, job_id: str, state: str, stop_reason: str | None = None, error: str | None = None) -> None:
         if state not in TERMINAL_STATES:
             raise ValueError(f"{state!r} is not a terminal state")
+        # Not over a job another server took over (this one stalled past its lease): theirs to end.
         self._db.execute(
             "UPDATE jobs SET state = ?, stop_reason = COALESCE(?, stop_reason), error = ?, finished_at = ? "
-            "WHERE id = ?",
-            (state, stop_reason, error, time.time(), job_id),
+            "WHERE id = ? AND (lease_owner = ? OR lease_owner IS NULL)",
+            (state, stop_reason, error, time.time(), job_id, self.owner),
         )
 
     def delete(self, job_id: str) -> None:

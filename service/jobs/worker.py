@@ -77,6 +77,10 @@ class Relambda:
     results: Callable[[], list[ExrFrame]] | None = None
 
 
+class LeaseLost(RuntimeError):
+    """Another server took this job over (this one stalled past its lease): stop, write nothing."""
+
+
 def _failure_message(exc: BaseException) -> str:
     text = str(exc).strip() or exc.__class__.__name__
     return f"{exc.__class__.__name__}: {text}" if not isinstance(exc, ValueError) else text
@@ -145,6 +149,7 @@ class JobWorker:
         self._stopping = threading.Event()
         self._concurrency = concurrency
         self._draining = 0  # pool tasks taking queued jobs (at most `concurrency`)
+        self._lost: set[str] = set()  # live jobs whose lease another server took over
         self._leases = threading.Thread(target=self._keep_leases, name="leases", daemon=True)
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -230,7 +235,9 @@ class JobWorker:
         leases = self.store.leases
         next_sweep = time.monotonic() + leases.sweep_seconds
         while not self._stopping.wait(min(leases.renew_seconds, leases.sweep_seconds)):
-            self._safe(self.store.renew_leases)
+            held = self._safe(self.store.renew_leases)
+            if held is not None:
+                self._mark_lost(set(held))
             if time.monotonic() < next_sweep:
                 continue
             next_sweep = time.monotonic() + leases.sweep_seconds
@@ -239,6 +246,20 @@ class JobWorker:
                             "from its checkpoint", job_id)
             if self._safe(self.store.next_queued) is not None:
                 self._kick()  # lapsed jobs, or ones a failed look-up left waiting
+
+    def _mark_lost(self, held: set[str]) -> None:
+        """A job rendering here whose lease is no longer ours (this server stalled past its
+        lease and another resumed the job) stops at the next chunk and writes nothing more."""
+        with self._lock:
+            lost = [job_id for job_id in self._live if job_id not in held and job_id not in self._lost]
+            self._lost.update(lost)
+        for job_id in lost:
+            log.error("job %s: this server lost its lease (stalled longer than a lease?); another server runs "
+                      "it now, stopping here", job_id)
+
+    def _lease_lost(self, job_id: str) -> bool:
+        with self._lock:
+            return job_id in self._lost
 
     @staticmethod
     def _safe(call: Callable):
@@ -286,6 +307,7 @@ class JobWorker:
             with self._lock:
                 self._live.pop(job_id, None)
                 self._cancel.pop(job_id, None)
+                self._lost.discard(job_id)
 
     def _run(self, job_id: str) -> None:
         if self._stopping.is_set() or not self.store.claim(job_id):
@@ -294,7 +316,7 @@ class JobWorker:
         files = self.files(job_id)
         cancel = self._cancel_event(job_id)
         loop = self._open_loop(job_id, record, files)
-        should_stop = lambda: cancel.is_set() or self._stopping.is_set()  # noqa: E731
+        should_stop = lambda: cancel.is_set() or self._stopping.is_set() or self._lease_lost(job_id)  # noqa: E731
         timings = dict(record.timings)
         last: IterationRecord | None = None
         samples = total_samples(loop.state.buffers)  # a resumed job's earlier samples are not counted again
@@ -303,9 +325,15 @@ class JobWorker:
                 timings = self._finish_iteration(job_id, loop, files, last, timings)
                 self.observer.iteration_finished(last.timings, total_samples(last.buffers) - samples)
                 samples = total_samples(last.buffers)
+        except LeaseLost:
+            log.error("job %s: this server lost its lease (stalled longer than a lease?); another server runs it "
+                      "now, stopping here without writing", job_id)
+            return
         except IterationInterrupted:
             # Stopped inside an iteration (within one wavefront chunk): the in-memory buffers
             # are partial, the checkpoint of the last finished iteration is what counts.
+            if self._lease_lost(job_id):
+                return  # stopped because another server took it over: nothing here to write
             if not cancel.is_set():
                 self.store.requeue(job_id)  # server shutdown: resume from the checkpoint next start
                 return
@@ -315,6 +343,8 @@ class JobWorker:
         if not finished and not cancel.is_set() and self._stopping.is_set():
             self.store.requeue(job_id)  # server shutdown, not a user cancel: resume next start
             return
+        if self._lease_lost(job_id):
+            return  # another server resumed it from the checkpoint: the job and its files are theirs
         # A cancel that arrives during the last iteration comes too late: the job is complete.
         self._complete(job_id, loop, files, last, canceled=cancel.is_set() and not finished)
 
@@ -346,6 +376,10 @@ class JobWorker:
     def _finish_iteration(
         self, job_id: str, loop: RenderLoop, files: JobFiles, record: IterationRecord, timings: dict[str, float]
     ) -> dict[str, float]:
+        if not self.store.renew_lease(job_id):  # the checkpoint is only ours to write while we hold the job
+            with self._lock:
+                self._lost.add(job_id)
+            raise LeaseLost(job_id)
         started = time.perf_counter()
         loop.state.save(files.state_dir)
         self._publish(job_id, files, preview_layers(loop, record))

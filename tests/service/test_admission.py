@@ -14,9 +14,9 @@ import pytest
 
 from service_harness import Server, finished, wait_for, zip_bytes
 
-# Long enough (7 iterations, 16 → 1024 spp at 64²) to hold the one render thread while a test
-# fills the queue behind it; canceled at the end of each test.
-BLOCKER = {"scene": "cornell-box", "width": 64, "height": 64, "max_iterations": 7}
+# Long enough (up to 16 → 8192 spp at 64², minutes) to hold the one render thread while a test
+# fills the queue behind it, however slow the uploads; canceled at the end of each test.
+BLOCKER = {"scene": "cornell-box", "width": 64, "height": 64, "max_iterations": 10}
 SMALL = {"scene": "cornell-box", "width": 16, "height": 16, "max_iterations": 1, "denoise": False,
          "allocator": "uniform"}
 TINY_SCENE = ('<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm"><integer name="width" '
@@ -41,7 +41,9 @@ def serve(tmp_path) -> Iterator:
 def client_from(server: Server, address: str = "127.0.0.1") -> httpx.Client:
     """A client whose connections come from `address` (any 127.x address reaches the loopback
     server): without a token, that address is who the per-client cap counts."""
-    return httpx.Client(base_url=server.url, timeout=60, transport=httpx.HTTPTransport(local_address=address))
+    # No kept-alive connections: one the server closes as idle just as it is reused reads as a reset.
+    transport = httpx.HTTPTransport(local_address=address, limits=httpx.Limits(max_keepalive_connections=0))
+    return httpx.Client(base_url=server.url, timeout=60, transport=transport)
 
 
 def hold_the_render_thread(client: httpx.Client) -> str:
@@ -98,6 +100,7 @@ def test_queued_bundles_count_in_the_disk_cap_and_a_submit_beyond_it_gets_507(se
         blocker = hold_the_render_thread(client)
         accepted = [upload(client, os.urandom(bundle_mib * 2**20)) for _ in range(2)]
         assert [r.status_code for r in accepted] == [202, 202], [r.text for r in accepted]
+        assert client.get(f"/jobs/{blocker}").json()["state"] == "running"  # so both uploads are still queued
         refused = upload(client, os.urandom(bundle_mib * 2**20))
         assert refused.status_code == 507 and "data folder is full" in refused.json()["detail"]
         jobs_dir = Path(tmp_path / "data" / "jobs")

@@ -4,6 +4,7 @@ when that server is killed (-9) mid-job its lease lapses and the other server re
 from the dead one's checkpoint and finishes it."""
 from __future__ import annotations
 
+import signal
 import time
 
 import httpx
@@ -23,14 +24,14 @@ def test_a_job_whose_server_is_killed_is_resumed_by_the_other_server_from_its_ch
     first = Server(data, tmp_path / "first.log", env=env).start()
     second = Server(data, tmp_path / "second.log", env=env)
     try:
-        with httpx.Client(base_url=first.url, timeout=60) as a:
+        with fresh_client(first) as a:
             body = {"scene": "cornell-box", "width": 64, "height": 64, "max_iterations": ITERATIONS}
             job_id = a.post("/jobs", json=body).json()["id"]
             wait_for(a, job_id, lambda job: job["iteration"] >= 1)
         owner, expires = lease(postgres_url, job_id)
         assert owner.split("/")[1] == str(first.process.pid)  # host/pid/nonce of the first server
         second.start()  # its start-up must not take the live server's job
-        with httpx.Client(base_url=second.url, timeout=60) as b:
+        with fresh_client(second) as b:
             at_kill = wait_for(b, job_id, lambda job: job["iteration"] >= 2)
             assert at_kill["state"] == "running" and at_kill["resumed_from"] is None, at_kill
             renewed_owner, renewed = lease(postgres_url, job_id)
@@ -57,3 +58,47 @@ def lease(url: str, job_id: str) -> tuple[str, float]:
     """The job's lease as the database holds it: owner and expiry."""
     with psycopg.connect(url) as conn:
         return conn.execute("SELECT lease_owner, lease_expires_at FROM jobs WHERE id = %s", (job_id,)).fetchone()
+
+
+def test_a_server_that_stalls_past_its_lease_stops_its_copy_and_leaves_the_job_to_the_one_that_took_it(
+        tmp_path, postgres_url):
+    """SIGSTOP (a frozen VM, a long GC pause) past the lease: the other server resumes the job;
+    when the stalled one wakes up it must not write a checkpoint, a record or an end state."""
+    env = {"RENDERLOOP_DB": postgres_url, "RENDERLOOP_LEASE_SECONDS": str(LEASE_SECONDS),
+           "RENDERLOOP_CONCURRENCY": "1"}
+    data = tmp_path / "data"
+    first = Server(data, tmp_path / "first.log", env=env).start()
+    second = Server(data, tmp_path / "second.log", env=env)
+    try:
+        with fresh_client(first) as a:
+            body = {"scene": "cornell-box", "width": 64, "height": 64, "max_iterations": ITERATIONS}
+            job_id = a.post("/jobs", json=body).json()["id"]
+            wait_for(a, job_id, lambda job: job["iteration"] >= 1)
+        second.start()
+        with fresh_client(second) as b:
+            first.process.send_signal(signal.SIGSTOP)
+            deadline = time.monotonic() + FINISH_SECONDS
+            while lease(postgres_url, job_id)[0].split("/")[1] != str(second.process.pid):
+                assert time.monotonic() < deadline, "the second server never took the job over"
+                time.sleep(0.2)
+            first.process.send_signal(signal.SIGCONT)
+            final = wait_for(b, job_id, finished, timeout=FINISH_SECONDS)
+            assert final["state"] == "completed" and final["iteration"] == ITERATIONS, final
+            assert final["resumed_from"] is not None
+        deadline = time.monotonic() + 30
+        while "lost its lease" not in first.log():
+            assert time.monotonic() < deadline, first.log()
+            time.sleep(0.2)
+        assert first.process.poll() is None  # the stalled server lives on, it only let the job go
+    finally:
+        if first.process is not None and first.process.poll() is None:
+            first.process.send_signal(signal.SIGCONT)
+        first.kill()
+        second.stop()
+
+
+def fresh_client(server: Server) -> httpx.Client:
+    """No kept-alive connections: this test waits on the database for seconds between requests,
+    and a connection the server closes as idle (serve --keep-alive-timeout) at the moment the
+    client reuses it would read as a reset."""
+    return httpx.Client(base_url=server.url, timeout=60, limits=httpx.Limits(max_keepalive_connections=0))
