@@ -1,6 +1,7 @@
 """The files one job keeps under `DATA/jobs/<id>/`.
 
-    bundle/            the uploaded scene bundle (checked by service.jobs.bundle)
+    bundle/            the uploaded scene bundle (checked by service.jobs.bundle), its files hard
+                       links to `DATA/blobs/` (service/jobs/blobs.py: one copy per content)
     state/             the loop checkpoint (LoopState.save/load)
     lambda.npy         the job's current λ map (H, W) float32; newest request wins
     previews/frame_NNN.npz   latest preview layers of one frame plus their version
@@ -37,6 +38,11 @@ class JobFiles:
 
     def __init__(self, root: Path) -> None:
         self.root = Path(root)
+
+    @property
+    def data_dir(self) -> Path:
+        """DATA of `DATA/jobs/<id>/`: where the shared blobs live."""
+        return self.root.parent.parent
 
     @property
     def bundle_dir(self) -> Path:

@@ -2,7 +2,11 @@
 over `max_disk_bytes` the oldest finished jobs go first. Queued and running jobs are never
 touched (serve --keep-days, --max-disk-gb). Their bundles count all the same: a submit that
 finds the folder at its cap, after the finished jobs that may go are gone, is refused
-(`check_room`, a 507), so queued uploads cannot grow the disk without bound."""
+(`check_room`, a 507), so queued uploads cannot grow the disk without bound.
+
+Uploaded files are kept once (service/jobs/blobs.py): sizes count each inode once, as `du`
+does, removing a job frees only the files no other job shares, and a blob goes with the last
+job that links to it."""
 from __future__ import annotations
 
 import threading
@@ -10,6 +14,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from service.jobs.blobs import BlobStore, freed_bytes, unique_bytes
 from service.jobs.quotas import DiskFull
 from service.jobs.store import TERMINAL_STATES, JobStore
 
@@ -27,7 +32,16 @@ class Retention:
 
 
 def folder_bytes(folder: Path) -> int:
-    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) if folder.exists() else 0
+    """What the folder occupies, hard links counted once (twelve jobs of one bundle are one copy)."""
+    return unique_bytes(folder)
+
+
+def delete_jobs(store: JobStore, job_ids: list[str]) -> None:
+    """Records, folders, and the blobs only these jobs used."""
+    for job_id in job_ids:
+        store.delete(job_id)
+    if job_ids:
+        BlobStore(store.data_dir).release_unused()
 
 
 def sweep(store: JobStore, retention: Retention, now: float | None = None) -> list[str]:
@@ -38,16 +52,16 @@ def sweep(store: JobStore, retention: Retention, now: float | None = None) -> li
     removed = []
     if retention.keep_days is not None:
         cutoff = now - retention.keep_days * 86400.0
-        for record in [r for r in finished if (r.finished_at or r.created_at) < cutoff]:
-            store.delete(record.id)
-            removed.append(record.id)
+        expired = [r.id for r in finished if (r.finished_at or r.created_at) < cutoff]
+        delete_jobs(store, expired)
+        removed.extend(expired)
     if retention.max_disk_bytes is not None:
         remaining = [r for r in finished if r.id not in removed]
         used = folder_bytes(store.data_dir)
         while remaining and used > retention.max_disk_bytes:
             record = remaining.pop(0)
-            used -= folder_bytes(store.job_dir(record.id))
-            store.delete(record.id)
+            used -= freed_bytes(store.job_dir(record.id))
+            delete_jobs(store, [record.id])
             removed.append(record.id)
     return removed
 

@@ -1,0 +1,80 @@
+"""Uploaded files kept once (service/jobs/blobs.py) in a real job store's data dir: bundles made
+of hard links to content-addressed blobs, counted once in the disk limits, released with the
+last job that links to them."""
+from __future__ import annotations
+
+import os
+import shutil
+
+from service.jobs.blobs import BlobStore, file_digest, freed_bytes, unique_bytes
+from service.jobs.retention import Retention, folder_bytes, sweep
+from service.jobs.store import JobStore
+
+MIB = 2**20
+
+
+def bundle_job(store: JobStore, source) -> str:
+    """A job whose bundle is a copy of `source`, adopted as an upload is."""
+    record = store.create({"scene": "scene.xml", "bundle_scene": "scene.xml"}, 1.0)
+    bundle = store.job_dir(record.id) / "bundle"
+    shutil.copytree(source, bundle)
+    BlobStore(store.data_dir).adopt(bundle)
+    return record.id
+
+
+def make_bundle(folder, texture_bytes: int = 2 * MIB):
+    folder.mkdir()
+    (folder / "scene.xml").write_text("<scene version='3.0.0'/>")
+    (folder / "textures").mkdir()
+    (folder / "textures" / "wall.bin").write_bytes(os.urandom(texture_bytes))
+    return folder
+
+
+def test_twelve_jobs_of_one_bundle_keep_one_copy_and_the_last_delete_frees_it(tmp_path):
+    store = JobStore(tmp_path / "data")
+    source = make_bundle(tmp_path / "upload", texture_bytes=4 * MIB)
+    bundle_size = folder_bytes(source)
+    before = folder_bytes(store.data_dir)
+    jobs = [bundle_job(store, source) for _ in range(12)]
+    blobs = BlobStore(store.data_dir)
+    assert len(blobs.blobs()) == 2  # scene.xml and the texture, once each
+    texture = blobs.path_of(file_digest(source / "textures" / "wall.bin"))
+    assert texture.stat().st_nlink == 13  # its own name and one link per job
+    grown = folder_bytes(store.data_dir) - before
+    assert bundle_size <= grown < bundle_size + MIB  # one bundle, not twelve (the rest: SQLite's journal)
+    assert os.stat(store.job_dir(jobs[0]) / "bundle" / "textures" / "wall.bin").st_mode & 0o222 == 0  # read-only
+
+    for job_id in jobs[:-1]:
+        store.delete(job_id)
+        blobs.release_unused()
+    assert len(blobs.blobs()) == 2 and texture.stat().st_nlink == 2  # the last job still uses them
+    assert freed_bytes(store.job_dir(jobs[-1])) == bundle_size  # what deleting it would free
+    store.delete(jobs[-1])
+    assert [p.name for p in blobs.release_unused()] and blobs.blobs() == []
+    assert folder_bytes(store.data_dir) < before + MIB and unique_bytes(store.jobs_dir) == 0
+
+
+def test_a_different_file_gets_its_own_blob_and_the_same_content_under_another_name_shares(tmp_path):
+    store = JobStore(tmp_path / "data")
+    first = make_bundle(tmp_path / "a", texture_bytes=1000)
+    second = tmp_path / "b"
+    shutil.copytree(first, second)
+    (second / "textures" / "copy.bin").write_bytes((first / "textures" / "wall.bin").read_bytes())
+    (second / "scene.xml").write_text("<scene version='3.0.0'><!-- edited --></scene>")
+    bundle_job(store, first), bundle_job(store, second)
+    assert len(BlobStore(store.data_dir).blobs()) == 3  # two scene.xml versions, one texture
+
+
+def test_the_disk_cap_counts_shared_files_once_and_the_sweep_releases_their_blobs(tmp_path):
+    store = JobStore(tmp_path / "data")
+    source = make_bundle(tmp_path / "upload")
+    jobs = [bundle_job(store, source) for _ in range(4)]
+    for job_id in jobs:
+        assert store.claim(job_id)
+        store.finish(job_id, "completed")
+    used = folder_bytes(store.data_dir)
+    assert used < 2 * folder_bytes(source)  # four jobs, one copy: under a cap of two bundles
+    assert sweep(store, Retention(max_disk_bytes=used)) == []
+    removed = sweep(store, Retention(max_disk_bytes=folder_bytes(source) // 2))
+    assert len(removed) == 4 and BlobStore(store.data_dir).blobs() == []
+    assert unique_bytes(store.jobs_dir) == 0
