@@ -68,6 +68,15 @@ class FlattenError(ValueError):
     """The scene breaks a rule; the message names the file and the value at fault."""
 
 
+class MissingFile(FlattenError):
+    """A file the scene names does not exist (in the bundle): `path` is where it was looked for
+    first, so a local render can name it ("file not found: …") instead of speaking of a bundle."""
+
+    def __init__(self, where: str, reference: str, path: Path) -> None:
+        super().__init__(f"{where}: {reference!r} is not in the bundle")
+        self.where, self.path = where, path
+
+
 @dataclass(frozen=True)
 class FlatScene:
     """One document Mitsuba can parse with no parameters, and what went into it."""
@@ -343,7 +352,7 @@ class _Flattener:
             return real
         if escapes:
             raise FlattenError(f"{where}: {reference!r} points outside the bundle")
-        raise FlattenError(f"{where}: {reference!r} is not in the bundle")
+        raise MissingFile(where, reference, Path(os.path.normpath(folders[0] / reference)))
 
     # -- output ---------------------------------------------------------------------------------
 

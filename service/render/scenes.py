@@ -26,7 +26,7 @@ from pathlib import Path
 import drjit as dr
 
 from service.render.builtin import BUILTIN_BY_NAME, BUILTIN_SCENES
-from service.render.flatten import FlatScene, FlattenError, flatten_scene
+from service.render.flatten import FlatScene, FlattenError, MissingFile, flatten_scene
 from service.render.integrators import film_refusal, integrator_refusal, sensor_refusal
 from service.render.runtime import mitsuba
 from service.render.sandbox import run_walled
@@ -256,6 +256,9 @@ def _flatten(path: Path, root, params, frame: int, width, height) -> FlatScene:
             optional[name] = str(value)
     try:
         return flatten_scene(path, root=path.parent if root is None else Path(root), params=params, optional_params=optional)
+    except MissingFile as exc:
+        # A local scene file has no bundle: say which file is missing where the user will look for it.
+        raise SceneError(str(exc) if root is not None else f"{exc.where}: file not found: {exc.path}") from exc
     except FlattenError as exc:
         raise SceneError(str(exc)) from exc
 

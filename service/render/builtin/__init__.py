@@ -25,7 +25,8 @@ BUILTIN_SCENES: tuple[BuiltinScene, ...] = (
     BuiltinScene("cornell-box", "Mitsuba's Cornell box: diffuse walls, two blocks, one area light", cornell_box),
     BuiltinScene(
         "cornell-box-orbit",
-        "Cornell box with the camera swinging along a small arc each frame (needs motion vectors)",
+        "Cornell box with the camera swinging along a small arc each frame (a sequence: with frames > 1 it "
+        "gets motion vectors and temporal denoising)",
         cornell_box_orbit,
     ),
     BuiltinScene(
