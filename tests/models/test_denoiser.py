@@ -133,7 +133,8 @@ def test_temporal_model_with_identical_static_frames_does_not_shift_the_image():
         shifted = f.map(lambda name, t: torch.roll(t, 1, dims=-1))
         moved = den([shifted] * 3, 1)
     # away from the zero-padded conv borders (receptive field < 9 px): same result, moved by 1 px
-    torch.testing.assert_close(moved[..., 10:-9], still[..., 9:-10])
+    # (up to the exposure, models.exposure: its 16×16 bins see the shifted column in another bin)
+    torch.testing.assert_close(moved[..., 10:-9], still[..., 9:-10], rtol=1e-3, atol=1e-4)
     # temporal on identical frames filters as much as single-frame: same noise level
     assert (still - f.color).abs().mean() == pytest.approx((single - f.color).abs().mean().item(), rel=0.5)
 
