@@ -13,8 +13,8 @@ backend's order (checkpoint, previews, record). What the engine adds:
 - a worker process that dies otherwise (`kill -9`, a lost node): the job resumes on new actors
   from its last checkpoint, at most MAX_WORKER_RESTARTS times.
 
-λ edits of a running job go to its actors (they hold the cached features); after the run the
-thread backend's path re-denoises in this process from the checkpoint.
+λ edits of a running job go to its actors (they hold the cached features); after the run, to a
+λ actor that reopens the checkpoint (service.jobs.ray_lambda): this process never loads a scene.
 """
 from __future__ import annotations
 
@@ -30,6 +30,7 @@ from ray.exceptions import RayActorError, RayTaskError
 
 from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles
+from service.jobs.ray_lambda import LambdaActors
 from service.jobs.ray_runtime import LocalRay, chain_sigterm, join_cluster
 from service.jobs.ray_actor import ACTOR_THREADS, FAILURE_FILE, ActorPlan, IterationReport, JobActor
 from service.jobs.store import CANCELED, COMPLETED, FAILED, JobRecord, JobStore
@@ -105,6 +106,7 @@ class RayJobWorker(JobWorker):
         self._runtime: LocalRay | None = None  # the local runtime this worker started, if it did
         self._joined = False
         self._gpus = 0
+        self._lambda_actors = LambdaActors(lambda: self._networks_ref, _call)
         self._networks_ref = None
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -136,6 +138,7 @@ class RayJobWorker(JobWorker):
             time.sleep(0.05)
         for group in groups:
             self._kill(group)
+        self._lambda_actors.drop_all()
         if self._runtime is not None:
             self._runtime.stop()
         elif self._joined:
@@ -340,16 +343,29 @@ class RayJobWorker(JobWorker):
         with self._lock:
             group = list(self._groups.get(job_id, []))
         if not group:
-            return super()._relambda(job_id, record, lam)  # finished (or not started): this process
+            return self._relambda_finished(job_id, record, lam)
         try:
             answers = _call(*[actor.set_lambda.remote(lam) for actor in group])
         except WorkerDied:
-            return super()._relambda(job_id, self._require(job_id), lam)  # it just ended
+            return self._relambda_finished(job_id, self._require(job_id), lam)  # it just ended
         images: dict[int, np.ndarray] = {}
         for owned, _, _ in answers:
             images.update(owned)
         full, tail = sum(a[1] for a in answers), sum(a[2] for a in answers)
         return Relambda([images[f] for f in sorted(images)], full, tail)
+
+
+    def _relambda_finished(self, job_id: str, record: JobRecord, lam: np.ndarray) -> Relambda | None:
+        """A job without running actors: finished, in its λ actor (service.jobs.ray_lambda);
+        queued or starting, nothing to do (its loop reads the saved map when it opens)."""
+        files, size = self.files(job_id), self.image_size(job_id)
+        if record.state != COMPLETED or not files.has_checkpoint() or size is None:
+            return None
+        return self._lambda_actors.relambda(job_id, record, files, size, lam)
+
+    def delete(self, job_id: str, *args, **kwargs) -> None:
+        super().delete(job_id, *args, **kwargs)
+        self._lambda_actors.drop(job_id)
 
 
 def _call(*refs) -> list:

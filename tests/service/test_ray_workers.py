@@ -178,6 +178,27 @@ def test_lambda_edits_on_a_running_job_rerun_only_the_cached_tail_in_its_worker(
     wait_until(store, job_id, lambda r: r.finished)
 
 
+def test_lambda_edits_on_a_finished_job_run_in_a_ray_worker_never_loading_the_scene_here(worker, store,
+                                                                                          monkeypatch):
+    job_id = submit(store, worker, LoopSpec(scene="cornell-box", width=32, height=32, spp_first=16, max_iterations=2))
+    done = wait_until(store, job_id, lambda r: r.finished)
+    assert done.state == COMPLETED
+
+    def no_scene_here(*args, **kwargs):
+        raise AssertionError("the API process built a RenderLoop (loaded the scene) for a λ edit")
+
+    monkeypatch.setattr(RenderLoop, "__init__", no_scene_here)  # this process is the server's
+    first = worker.set_lambda(job_id, np.full((32, 32), 3.0, dtype=np.float32), 3.0)
+    assert first.full_passes == 1  # the checkpoint reopened in a worker: its features cache rebuilt once
+    second = worker.set_lambda(job_id, np.full((32, 32), 5.0, dtype=np.float32), 5.0)
+    assert (second.full_passes, second.tail_passes) == (0, 1)  # that worker stayed warm
+    assert second.version > first.version > done.preview_version
+    preview = worker.files(job_id).load_preview(0)
+    assert preview.version == second.version and np.all(preview.layers["lambda"] == 5.0)
+    result = read_exr(worker.files(job_id).result_path(0))  # the result follows λ, saved by the worker
+    np.testing.assert_array_equal(result.lam, np.full((32, 32), 5.0, dtype=np.float32))
+
+
 def test_a_sequence_fanned_out_over_two_workers_equals_the_single_process_result(worker, store, tiny_networks):
     spec = LoopSpec(scene="cornell-box-orbit", width=24, height=24, frames=3, spp_first=4, max_iterations=4)
     job_id = submit(store, worker, spec)

@@ -1,0 +1,83 @@
+"""λ edits of a finished job on the Ray backend, in a Ray worker: the API process never loads a
+scene (an uploaded scene is the user's, and its memory is only watched inside a worker).
+
+A finished job's actors are gone (they hold CPUs the next jobs need), so its first λ edit starts
+one actor for all its frames that opens the last checkpoint — loads the scene, recomputes the
+denoiser's cached features once (a full pass) — re-denoises and saves the result EXRs. The
+actor stays for the next edits (λ-only tail passes) while its job is among the
+IDLE_ACTORS_KEPT most recently edited; it asks Ray for no CPU, so it never holds up a job.
+"""
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from typing import Any, Callable
+
+import numpy as np
+import ray
+
+from service.jobs.artifacts import JobFiles
+from service.jobs.ray_actor import ActorPlan, JobActor
+from service.jobs.store import JobRecord
+from service.jobs.worker import Relambda, job_spec
+from service.loop.spec import estimated_memory
+
+IDLE_ACTORS_KEPT = 2  # as the thread backend keeps IDLE_LOOPS_KEPT finished loops
+
+
+class LambdaActors:
+    """The warm λ actors of finished jobs, newest last. `call` runs a Ray call and raises the
+    backend's WorkerDied when the actor's process is gone (service.jobs.ray_worker._call)."""
+
+    def __init__(self, networks_ref: Callable[[], Any], call: Callable[..., list]) -> None:
+        self._networks_ref = networks_ref
+        self._call = call
+        self._lock = threading.Lock()
+        self._actors: OrderedDict[str, Any] = OrderedDict()
+
+    def relambda(self, job_id: str, record: JobRecord, files: JobFiles, size: tuple[int, int],
+                 lam: np.ndarray) -> Relambda:
+        """Re-denoise the finished job with `lam` in its λ actor and save its results there."""
+        actor = self._actor(job_id, record, files, size)
+        try:
+            images, full, tail = self._call(actor.set_lambda.remote(lam))[0]
+            self._call(actor.save_results.remote())  # the result follows λ after the run too
+        except Exception:
+            self.drop(job_id)  # a dead or broken actor: the next edit starts a fresh one
+            raise
+        return Relambda([images[f] for f in sorted(images)], full, tail)
+
+    def _actor(self, job_id: str, record: JobRecord, files: JobFiles, size: tuple[int, int]) -> Any:
+        with self._lock:
+            actor = self._actors.get(job_id)
+            if actor is not None:
+                self._actors.move_to_end(job_id)
+                return actor
+        frames = job_spec(record).frames
+        plan = ActorPlan(str(files.root), record, (0, frames), estimated_memory(size[1], size[0], frames), cpus=1)
+        actor = ray.remote(JobActor).options(num_cpus=0, max_restarts=0).remote(self._networks_ref(), plan)
+        try:
+            self._call(actor.open.remote())  # the scene and the checkpoint, loaded in the worker
+        except Exception:
+            ray.kill(actor, no_restart=True)
+            raise
+        with self._lock:
+            self._actors[job_id] = actor
+            retired = []
+            while len(self._actors) > IDLE_ACTORS_KEPT:
+                retired.append(self._actors.popitem(last=False)[1])
+        for old in retired:
+            ray.kill(old, no_restart=True)
+        return actor
+
+    def drop(self, job_id: str) -> None:
+        with self._lock:
+            actor = self._actors.pop(job_id, None)
+        if actor is not None:
+            ray.kill(actor, no_restart=True)
+
+    def drop_all(self) -> None:
+        with self._lock:
+            actors, self._actors = list(self._actors.values()), OrderedDict()
+        for actor in actors:
+            ray.kill(actor, no_restart=True)
