@@ -1,0 +1,138 @@
+"""`renderloop bench --versus-mitsuba`: the loop against `mi.render` + OIDN where users render
+(each scene as written, its film scaled to ~2 MP) → docs/benchmarks-versus-mitsuba.md with `-o docs`.
+
+The measuring is in bench.versus_mitsuba_run (curves), bench.versus_mitsuba_scene (scenes,
+references) and bench.versus_mitsuba_costs (fixed costs per iteration); this module runs them per
+scene and writes the report: tables here, prose in bench/templates/versus_mitsuba.md.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from bench.common import BenchNetworks, OidnDenoise, command_line, load_average, load_bench_networks, oidn_denoiser, pinned_torch_threads
+from bench.dev_references import DEV_SCENES, VAL_SCENES, DevScene, dev_scenes
+from bench.loop_report import DEFAULT_CACHE_DIR, THREAD_PROBE_SIZE, choose_torch_threads
+from bench.versus_mitsuba_costs import measure_fixed_costs
+from bench.versus_mitsuba_report import LOOP, UNIFORM, Results, SceneRun, Settings, report_text
+from bench.versus_mitsuba_run import Curve, better_of, compare, loop_curve, mitsuba_curve, spp_levels, warm_up_loop
+from bench.versus_mitsuba_scene import reference, scaled_film, scene_filter
+
+REPORT_NAME = "benchmarks-versus-mitsuba.md"
+DEFAULT_MEGAPIXELS, DEFAULT_MAX_SPP, DEFAULT_REFERENCE_SPP = 2.0, 1024, 4096
+SUITE_ROOTS = (DEV_SCENES, VAL_SCENES)
+
+
+def suite_scenes(names: list[str] | None) -> list[DevScene]:
+    """The scenes of scenes/dev and scenes/val (in that order), or those named."""
+    found = [scene for root in SUITE_ROOTS for scene in dev_scenes(None, root)]
+    if not names:
+        return found
+    unknown = sorted(set(names) - {s.name for s in found})
+    if unknown:
+        raise ValueError(f"unknown scene(s) {', '.join(unknown)}; known: {', '.join(s.name for s in found)}")
+    return [s for s in found if s.name in names]
+
+
+def run_scene(scene: DevScene, settings: Settings, nets: BenchNetworks, oidn: OidnDenoise) -> SceneRun:
+    film = scaled_film(scene, settings.megapixels)
+    levels = spp_levels(settings.max_spp)
+    rfilter = scene_filter(scene)
+    say = lambda text: print(f"bench --versus-mitsuba: {scene.name} ({film}): {text}", flush=True)
+    say(f"reference at {settings.reference_spp} spp …")
+    ref = reference(scene, film, settings.reference_spp, settings.cache_dir)
+    curves: dict[str, Curve] = {}
+    for box in ((False,) if rfilter == "box" else (False, True)):
+        curve = mitsuba_curve(scene, film, box, levels, ref.mean, oidn)
+        curves[curve.key] = curve
+        say(f"{curve.label}: SMAPE {curve.points[-1].smape:.4f} at {levels[-1]} spp, {curve.points[-1].seconds:.1f} s")
+    warm_up_loop(scene, film, nets.networks)
+    loop = loop_curve(LOOP, "the loop (error allocator)", scene, film, nets.networks, "error", levels, ref.mean)
+    uniform = loop_curve(UNIFORM, "uniform + ours", scene, film, nets.networks, "uniform", levels, ref.mean)
+    curves[LOOP], curves[UNIFORM] = loop.curve, uniform.curve
+    say(f"loop: SMAPE {loop.curve.points[-1].smape:.4f} after {loop.curve.points[-1].seconds:.1f} s")
+    versus = better_of(loop.curve, [c for k, c in curves.items() if k.startswith("mitsuba")])
+    costs = measure_fixed_costs(scene.name, loop)
+    return SceneRun(scene, film, rfilter, ref.relative_error, curves, versus, compare(loop.curve, uniform.curve), costs)
+
+
+def measure_versus_mitsuba(*, megapixels: float = DEFAULT_MEGAPIXELS, max_spp: int = DEFAULT_MAX_SPP,
+                           reference_spp: int = DEFAULT_REFERENCE_SPP, scenes: list[str] | None = None,
+                           weights_dir: Path | None = None, cache_dir: Path = DEFAULT_CACHE_DIR,
+                           threads: int | None = None, command: str | None = None) -> Results:
+    """Measure every scene (or those named). `threads`: torch intra-op threads (None: probe 1 vs 2
+    and take the faster, as `renderloop bench --loop` does)."""
+    started = time.perf_counter()
+    spp_levels(max_spp)  # refuses a max below the first iteration before anything runs
+    chosen = suite_scenes(scenes)
+    nets = load_bench_networks(weights_dir)
+    if threads is None:
+        threads = choose_torch_threads(nets, THREAD_PROBE_SIZE)[1]
+    settings = Settings(megapixels, max_spp, reference_spp, threads, command or command_line(), Path(cache_dir),
+                        tuple(scenes or ()))
+    oidn, oidn_status = oidn_denoiser()
+    results = Results(settings, nets, oidn_status, load_average())
+    with pinned_torch_threads(threads):
+        for scene in chosen:
+            results.scenes.append(run_scene(scene, settings, nets, oidn))
+    results.seconds = time.perf_counter() - started
+    return results
+
+
+def write_report(results: Results, out_dir: Path) -> Path:
+    out = Path(out_dir) / REPORT_NAME
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(report_text(results))
+    return out
+
+
+def run_versus_mitsuba(out_dir: Path = Path("docs"), **options) -> Path:
+    """Measure (measure_versus_mitsuba's options) and write `out_dir`/benchmarks-versus-mitsuba.md."""
+    return write_report(measure_versus_mitsuba(**options), out_dir)
+
+
+# --- the command ------------------------------------------------------------------------------------
+
+
+def scene_list(text: str) -> list[str]:
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError("give scene names separated by commas, e.g. metals,hard_shadows")
+    return names
+
+
+def positive_megapixels(text: str) -> float:
+    value = float(text)
+    if not 0 < value <= 16:
+        raise argparse.ArgumentTypeError(f"--megapixels must be in (0, 16], got {text}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The `renderloop bench` flags this module owns (--weights, --cache, --reference-spp, -o are shared)."""
+    parser.add_argument("--versus-mitsuba", action="store_true",
+                        help="the loop vs mi.render + OIDN (scene's filter and box) on scenes/dev and scenes/val as "
+                             f"written, films scaled to --megapixels → {REPORT_NAME}")
+    parser.add_argument("--megapixels", type=positive_megapixels, default=DEFAULT_MEGAPIXELS,
+                        help=f"with --versus-mitsuba: each film scaled to about this many MP, aspect kept "
+                             f"(default {DEFAULT_MEGAPIXELS:g}, about 1080p)")
+    parser.add_argument("--max-spp", type=int, default=DEFAULT_MAX_SPP,
+                        help=f"with --versus-mitsuba: uniform spp 16, 32, … up to this (default {DEFAULT_MAX_SPP})")
+    parser.add_argument("--scenes", type=scene_list, default=None, metavar="A,B",
+                        help="with --versus-mitsuba: these scenes of scenes/dev or scenes/val only")
+
+
+def run_versus_mitsuba_command(args: argparse.Namespace) -> int:
+    try:  # an unknown scene, a --max-spp below 16: said before anything runs
+        suite_scenes(args.scenes)
+        spp_levels(args.max_spp)
+    except ValueError as exc:
+        print(f"renderloop bench: error: {exc}", file=sys.stderr)
+        return 2
+    path = run_versus_mitsuba(args.out, megapixels=args.megapixels, max_spp=args.max_spp,
+                              reference_spp=args.reference_spp or DEFAULT_REFERENCE_SPP, scenes=args.scenes,
+                              weights_dir=args.weights, cache_dir=args.cache)
+    print(f"wrote {path}")
+    return 0

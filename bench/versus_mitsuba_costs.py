@@ -1,0 +1,107 @@
+"""Each loop iteration's fixed costs at the benchmark's size, per megapixel: the network passes,
+the copies between the sample buffers and the networks' tensors (host/device transfers on a GPU;
+on the CPU, layout copies), the allocation, and what the job worker writes after every iteration
+(checkpoint, previews).
+
+Measured on a finished loop's final state, by calling the very functions the loop and the worker
+call (`DenoiseSession.denoise / predict_error / relambda`, `frame_tensors`, `LoopState.save`,
+`JobFiles.save_preview(preview_layers(…))`), each `repeats` times, the median kept. The worker
+(service/jobs/worker.py) writes the checkpoint and the previews on the loop's thread between two
+iterations, so their time is time the render waits.
+"""
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from bench.versus_mitsuba_run import LoopRun
+from service.jobs.artifacts import JobFiles, Preview
+from service.jobs.worker import preview_layers
+from service.loop.oidn import candidate_for
+from service.loop.tensors import frame_tensors, to_image
+
+# The stages of the table, in the order an iteration (and then the worker) runs them.
+# (key, label, whether it is a fixed cost: independent of the samples rendered)
+STAGES = (
+    ("render", "render (the iteration's samples; not fixed: grows with spp)", False),
+    ("allocate", "allocate (error map → per-pixel counts)", True),
+    ("to_tensors", "buffers → network tensors (host → device on a GPU)", True),
+    ("oidn_candidate", "OIDN candidate inside the denoiser (when the weights use one)", True),
+    ("denoiser", "denoiser full pass (prepare + apply at λ, without its OIDN call)", True),
+    ("error_network", "error network", True),
+    ("to_host", "denoised image → host array (device → host on a GPU)", True),
+    ("lambda_tail", "λ tail from cached features (a λ edit)", True),
+    ("checkpoint", "checkpoint write (LoopState.save, atomic)", True),
+    ("preview", "preview write (all layers, atomic)", True),
+)
+WORKER_WRITES = ("checkpoint", "preview")
+
+
+@dataclass
+class FixedCosts:
+    scene: str
+    megapixels: float
+    ms: dict[str, float]  # median milliseconds per stage call ("render": the last iteration's)
+    iteration_ms: list[float]  # wall time of each of the loop's iterations (its four stages)
+
+    def per_megapixel(self, stage: str) -> float:
+        return self.ms[stage] / self.megapixels
+
+    @property
+    def worker_ms(self) -> float:
+        """What the worker's writes add to each iteration on the loop's thread."""
+        return sum(self.ms[s] for s in WORKER_WRITES)
+
+    def share(self, stage: str, iteration: int) -> float:
+        """`stage`'s time as a share of iteration `iteration` with the worker's writes added."""
+        return self.ms[stage] / (self.iteration_ms[iteration] + self.worker_ms)
+
+    @property
+    def stall_share(self) -> float:
+        """The worker's writes as a share of the whole job's wall time (the render waits that long)."""
+        writes = self.worker_ms * len(self.iteration_ms)
+        return writes / (sum(self.iteration_ms) + writes)
+
+
+def _median_ms(call: Callable[[], object], repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - started)
+    return 1000 * statistics.median(times)
+
+
+def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCosts:
+    loop, record = run.loop, run.last
+    session = loop.session
+    buffer = loop.state.buffers[0]
+    lam = loop.state.lam_map
+    denoiser = session.networks.denoiser
+    frame = frame_tensors(buffer)
+    images = session.denoise(loop.state.buffers, lam)
+    ms = {
+        "render": 1000 * run.curve.points[-1].stages["render"],
+        "allocate": 1000 * statistics.median(p.stages["allocate"] for p in run.curve.points[1:] or run.curve.points),
+        "to_tensors": _median_ms(lambda: frame_tensors(buffer), repeats),
+        "oidn_candidate": _median_ms(lambda: candidate_for(denoiser, frame), repeats)
+        if denoiser.config.oidn_candidate else 0.0,
+        "denoiser": _median_ms(lambda: session.denoise(loop.state.buffers, lam), repeats),
+        "error_network": _median_ms(lambda: session.predict_error(images), repeats),
+        "to_host": _median_ms(lambda: to_image(images[0]), repeats),
+        "lambda_tail": _median_ms(lambda: session.relambda(lam), repeats),
+    }
+    ms["denoiser"] = max(0.0, ms["denoiser"] - ms["oidn_candidate"] - ms["to_tensors"])
+    with tempfile.TemporaryDirectory(prefix="versus-mitsuba-io-") as folder:
+        files = JobFiles(Path(folder))
+        layers = preview_layers(loop, record)
+        ms["checkpoint"] = _median_ms(lambda: loop.state.save(files.state_dir), repeats)
+        ms["preview"] = _median_ms(lambda: [files.save_preview(f, Preview(1, frame_layers))
+                                            for f, frame_layers in enumerate(layers)], repeats)
+    iteration_ms = [1000 * sum(p.stages.values()) for p in run.curve.points]
+    height, width = buffer.shape
+    return FixedCosts(label, width * height / 1e6, ms, iteration_ms)

@@ -1,0 +1,237 @@
+"""The report of `renderloop bench --versus-mitsuba`: what one run gathered, and its tables (the
+prose is bench/templates/versus_mitsuba.md)."""
+from __future__ import annotations
+
+import math
+import statistics
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from bench.common import BenchNetworks, fill, fmt, load_average, provenance
+from bench.dev_references import DevScene
+from bench.versus_mitsuba_costs import STAGES as COST_STAGES, WORKER_WRITES, FixedCosts
+from bench.versus_mitsuba_run import Comparison, Curve, Reading
+from bench.versus_mitsuba_scene import AOVS, MAX_LANES, Film
+from service.render.runtime import active_variant
+
+LOOP, UNIFORM = "loop", "uniform"
+# Issue 43's bars on the CPU at ~2 MP.
+GOAL_SHARE_AHEAD, GOAL_MEDIAN_SPEEDUP, GOAL_PEAK_RSS_GB = 0.75, 1.5, 8.0
+FULL_COMMAND = "renderloop bench --versus-mitsuba -o docs"  # the defaults: 2 MP, 16…1024 spp, 4096-spp references
+FULL_MEGAPIXELS = 2.0  # what "the full figures" means
+LOOP_STAGES = ("render", "denoise", "error", "allocate")
+
+
+@dataclass
+class SceneRun:
+    scene: DevScene
+    film: Film
+    rfilter: str
+    reference_error: float  # the reference's mean relative standard error
+    curves: dict[str, Curve]  # "mitsuba", "mitsuba-box" (unless the film is box already), LOOP, UNIFORM
+    versus_mitsuba: Comparison  # the loop against the better mi.render + OIDN
+    versus_uniform: Comparison
+    costs: FixedCosts
+
+
+@dataclass
+class Settings:
+    megapixels: float
+    max_spp: int
+    reference_spp: int
+    threads: int
+    command: str
+    cache_dir: Path
+    subset: tuple[str, ...] = ()  # the scenes named by --scenes; empty: the whole suite
+
+
+@dataclass
+class Results:
+    settings: Settings
+    nets: BenchNetworks
+    oidn_status: str
+    load_before: str
+    scenes: list[SceneRun] = field(default_factory=list)
+    seconds: float = math.nan
+
+
+# --- cells ------------------------------------------------------------------------------------------
+
+
+def reading_cell(reading: Reading, spec: str) -> str:
+    if not math.isfinite(reading.value):
+        return "never"
+    return ("~" if reading.how == "extrapolated" else "") + format(reading.value, spec)
+
+
+def ratio_cell(value: float, reading: Reading) -> str:
+    if not math.isfinite(value):
+        return "n/a"
+    return ("~" if reading.how == "extrapolated" else "") + f"{value:.2f}×"
+
+
+def scene_cell(run: SceneRun) -> str:
+    return f"{run.scene.name} ({run.film}, {run.rfilter})"
+
+
+# --- tables ------------------------------------------------------------------------------------------
+
+
+def headline_table(scenes: list[SceneRun]) -> str:
+    lines = ["| scene (film, filter) | loop SMAPE | loop s | better `mi.render` + OIDN | its s to that SMAPE | "
+             "equal-error speed-up | equal-time SMAPE ratio | vs uniform + ours | loop peak RSS MB |",
+             "|---|---:|---:|---|---:|---:|---:|---:|---:|"]
+    for run in scenes:
+        v, u = run.versus_mitsuba, run.versus_uniform
+        which = run.curves[v.other].label
+        lines.append(f"| {scene_cell(run)} | {v.target:.4f} | {v.loop_seconds:.2f} | {which} | "
+                     f"{reading_cell(v.other_seconds, '.2f')} | **{ratio_cell(v.speedup, v.other_seconds)}** | "
+                     f"{ratio_cell(v.error_ratio, v.other_error)} | {ratio_cell(u.speedup, u.other_seconds)} | "
+                     f"{fmt(run.curves[LOOP].peak_rss_mb, '.0f')} |")
+    return "\n".join(lines)
+
+
+def summary(scenes: list[SceneRun], megapixels: float) -> str:
+    if not scenes:
+        return "No scenes ran."
+    speedups = [run.versus_mitsuba.speedup for run in scenes]
+    ahead = sum(s > 1 for s in speedups)
+    measured = sum(run.versus_mitsuba.other_seconds.measured for run in scenes)
+    median = statistics.median(speedups)
+    peak_gb = max(c.peak_rss_mb for run in scenes for k, c in run.curves.items() if k == LOOP) / 1024
+    share = ahead / len(scenes)
+    at_size = ("" if megapixels >= FULL_MEGAPIXELS * 0.9 else
+               f" (the bars are for ~{FULL_MEGAPIXELS:g} MP; this run is at {megapixels:g} MP, so they are "
+               "stated for reference, not met or missed)")
+    return (f"The loop reaches the better `mi.render` + OIDN's error in less wall time on **{ahead} of {len(scenes)}** "
+            f"scenes ({share:.0%}; bar ≥ {GOAL_SHARE_AHEAD:.0%}); median equal-error speed-up **{median:.2f}×** "
+            f"(bar ≥ {GOAL_MEDIAN_SPEEDUP:g}×, goal 2×); {measured} of {len(scenes)} speed-ups are read inside the "
+            f"measured curves, the others extrapolated (`~`). The loop's peak RSS: **{peak_gb:.2f} GB** at most "
+            f"(bar ≤ {GOAL_PEAK_RSS_GB:g} GB for a 2 MP job){at_size}.")
+
+
+def curve_tables(scenes: list[SceneRun]) -> str:
+    blocks = []
+    for run in scenes:
+        curves = list(run.curves.values())
+        lines = [f"**{scene_cell(run)}**, reference's own relative error {run.reference_error:.4f}", "",
+                 "| spp | " + " | ".join(c.label for c in curves) + " |", "|---:|" + "---:|" * len(curves)]
+        for i in range(max(len(c.points) for c in curves)):
+            cells = [f"{c.points[i].smape:.4f} @ {c.points[i].seconds:.2f} s" if i < len(c.points) else ""
+                     for c in curves]
+            lines.append(f"| {curves[0].points[i].spp:g} | " + " | ".join(cells) + " |")
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
+
+
+def stage_tables(scenes: list[SceneRun]) -> str:
+    lines = ["| scene | iteration | spp | " + " | ".join(LOOP_STAGES) + " | total s |",
+             "|---|---:|---:|" + "---:|" * len(LOOP_STAGES) + "---:|"]
+    for run in scenes:
+        for i, point in enumerate(run.curves[LOOP].points):
+            lines.append(f"| {run.scene.name} | {i} | {point.spp:g} | "
+                         + " | ".join(f"{point.stages.get(s, 0.0):.3f}" for s in LOOP_STAGES)
+                         + f" | {sum(point.stages.values()):.2f} |")
+    return "\n".join(lines)
+
+
+def memory_table(scenes: list[SceneRun]) -> str:
+    order = ("mitsuba", "mitsuba-box", LOOP, UNIFORM)
+    keys = [k for k in order if any(k in run.curves for run in scenes)]
+    labels = {k: next(run.curves[k].label for run in scenes if k in run.curves) for k in keys}
+    lines = ["| scene | " + " | ".join(f"{labels[k]}: peak / growth MB" for k in keys) + " |",
+             "|---|" + "---:|" * len(keys)]
+    for run in scenes:
+        cells = [f"{run.curves[k].peak_rss_mb:.0f} / {run.curves[k].rss_growth_mb:.0f}" if k in run.curves else ""
+                 for k in keys]
+        lines.append(f"| {scene_cell(run)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def oidn_ms_per_mp(run: SceneRun) -> float:
+    calls = [p.stages["oidn"] for c in run.curves.values() if c.key.startswith("mitsuba") for p in c.points]
+    return 1000 * statistics.median(calls) / run.film.megapixels
+
+
+def network_table(scenes: list[SceneRun]) -> str:
+    rows = [("denoiser (full pass, without its OIDN call)", lambda r: r.costs.per_megapixel("denoiser")),
+            ("OIDN candidate inside the denoiser (0: these weights take none)",
+             lambda r: r.costs.per_megapixel("oidn_candidate")),
+            ("error network", lambda r: r.costs.per_megapixel("error_network")),
+            ("λ tail (from cached features)", lambda r: r.costs.per_megapixel("lambda_tail")),
+            ("OIDN alone (`mi.render` + OIDN, quality high)", oidn_ms_per_mp)]
+    lines = ["| network | median ms / MP | min | max |", "|---|---:|---:|---:|"]
+    for label, value in rows:
+        values = [value(run) for run in scenes]
+        lines.append(f"| {label} | {statistics.median(values):.0f} | {min(values):.0f} | {max(values):.0f} |")
+    mp = statistics.median(run.film.megapixels for run in scenes)
+    tails = [run.costs.ms["lambda_tail"] for run in scenes]
+    scaled = (f"; scaled linearly to 2 MP: {statistics.median(tails) * 2.0 / mp:.0f} ms" if mp >= 0.5 else
+              "; not scaled to 2 MP from so small a film, where per-call overhead dominates")
+    lines += ["", f"λ tail per edit at this size (median {mp:.2f} MP): {statistics.median(tails):.0f} ms "
+                  f"(bar at 2 MP: ≤ 300 ms on 2 CPU threads{scaled})."]
+    return "\n".join(lines)
+
+
+def fixed_costs_table(scenes: list[SceneRun]) -> str:
+    lines = ["| stage | fixed | median ms per call | median ms / MP | min–max ms / MP | share of iteration 0 (16 spp) "
+             "| share of the last iteration |", "|---|---|---:|---:|---:|---:|---:|"]
+    for key, label, fixed in COST_STAGES:
+        ms = [run.costs.ms[key] for run in scenes]
+        per_mp = [run.costs.per_megapixel(key) for run in scenes]
+        first = [run.costs.share(key, 0) for run in scenes]
+        last = [run.costs.share(key, -1) for run in scenes]
+        lines.append(f"| {label} | {'yes' if fixed else 'no'} | {statistics.median(ms):.1f} | "
+                     f"{statistics.median(per_mp):.0f} | {min(per_mp):.0f}–{max(per_mp):.0f} | "
+                     f"{statistics.median(first):.1%} | {statistics.median(last):.1%} |")
+    return "\n".join(lines)
+
+
+def stall_note(scenes: list[SceneRun]) -> str:
+    worker = [run.costs.worker_ms for run in scenes]
+    share = [run.costs.stall_share for run in scenes]
+    megapixels = statistics.median(r.costs.megapixels for r in scenes)
+    return (f"**Checkpoints and previews stall rendering** by a median **{statistics.median(worker):.0f} ms per "
+            f"iteration** ({statistics.median(worker) / megapixels:.0f} ms / MP), "
+            f"{statistics.median(share):.1%} of a whole job's wall time at these settings "
+            f"({min(share):.1%}–{max(share):.1%} over the scenes): service/jobs/worker.py writes both on the loop's "
+            "thread between two iterations (`_finish_iteration`: `loop.state.save`, then `_publish`), so the next "
+            "render starts that much later. Writing them off the render path saves at most that.")
+
+
+def fixed_costs_note(scenes: list[SceneRun]) -> str:
+    worker = " and ".join(WORKER_WRITES)
+    return ("Measured on each scene's finished loop (error allocator) at this size, by calling the functions the "
+            "loop and the job worker call, median of 3 calls each; ms / MP divides by the film's megapixels. "
+            "Shares: of that iteration's wall time (its four loop stages) plus the worker's "
+            f"{worker} writes; \"render\" is the last iteration's. On the CPU the tensors live in host memory, so the two copy rows are "
+            "layout copies; on a GPU they are the host/device transfers.")
+
+
+def full_command(settings: Settings) -> str:
+    if settings.megapixels >= FULL_MEGAPIXELS * 0.9 and settings.max_spp >= 1024:
+        return f"This run is the full one (`{settings.command}`)."
+    return (f"This run is **not** the full 2 MP one. The full figures (every scene of scenes/dev and scenes/val, "
+            f"~2 MP, 16…1024 spp, 4096-spp references) come from `{FULL_COMMAND}` (hours on a 2-core CPU; the "
+            "references alone are 8 G samples per scene).")
+
+
+def report_text(results: Results) -> str:
+    s, scenes = results.settings, results.scenes
+    levels = sorted({p.spp for run in scenes for p in run.curves[LOOP].points})
+    tiny = ("**A small run** (below ~1 MP): figures at this size do not carry over to 1080p. "
+            if s.megapixels < 1 else "")
+    return fill(
+        "versus_mitsuba.md",
+        provenance=provenance(s.command, active_variant()), load_before=results.load_before,
+        load_after=load_average(), minutes=f"{results.seconds / 60:.1f}", weights=results.nets.description,
+        oidn_status=results.oidn_status, tiny=tiny, size_label=f"~{s.megapixels:g} MP",
+        suites=("scenes/dev and scenes/val" if not s.subset else
+                f"scenes/dev and scenes/val named by `--scenes` ({', '.join(s.subset)})"),
+        megapixels=f"{s.megapixels:g}", levels=", ".join(f"{x:g}" for x in levels), threads=s.threads,
+        aovs=AOVS, max_lanes=f"{MAX_LANES:,}", iterations=len(levels), reference_spp=s.reference_spp,
+        max_spp=s.max_spp, headline_table=headline_table(scenes), summary=summary(scenes, s.megapixels),
+        curve_tables=curve_tables(scenes), stage_tables=stage_tables(scenes), memory_table=memory_table(scenes),
+        network_table=network_table(scenes), fixed_costs_note=fixed_costs_note(scenes),
+        fixed_costs_table=fixed_costs_table(scenes), stall_note=stall_note(scenes), full_command=full_command(s),
+    )

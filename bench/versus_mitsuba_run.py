@@ -1,0 +1,273 @@
+"""The measurements of `renderloop bench --versus-mitsuba`: error-vs-wall-time curves of
+`mi.render` + OIDN (the scene's filter, and a box film), of the render loop (error allocator) and of
+uniform sampling + our denoiser, each with its peak RSS; and the equal-error / equal-time reading
+of two curves that the report's headline rests on.
+
+Wall time of a `mi.render` point: one render of N spp (the scene loaded once, its kernels compiled
+by an untimed warm-up) plus the OIDN call. Wall time of a loop point: the loop's own per-stage
+timings summed over its iterations so far (render, denoise, error, allocate), the scene loaded
+and its kernels compiled by an untimed one-iteration warm-up, as `renderloop bench --loop` does.
+"""
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bench.common import OidnDenoise, sanitize
+from bench.dev_references import DevScene
+from bench.loop_run import LOOP_SEED, STAGES, NoErrorPrediction
+from bench.versus_mitsuba_scene import Film, aov_integrator, competitor_scene, render_with_aovs, warm_up
+from models.losses import smape
+from models.pretrained import Networks
+from service.loop.loop import RenderLoop
+from service.loop.spec import IterationRecord, LoopSpec
+from service.loop.tensors import nchw
+
+FIRST_SPP = 16
+MITSUBA_SEED = 1_000  # any stream but the reference's (bench.common.REFERENCE_SEED)
+RSS_INTERVAL_S = 0.02
+
+
+@dataclass
+class CurvePoint:
+    spp: float  # mean samples per pixel
+    seconds: float  # wall time to this image (see the module docstring)
+    smape: float
+    stages: dict[str, float]  # seconds per stage of this point (a loop: this iteration's)
+
+
+@dataclass
+class Curve:
+    key: str
+    label: str
+    points: list[CurvePoint] = field(default_factory=list)
+    peak_rss_mb: float = math.nan  # the process's peak resident memory while this curve ran
+    rss_growth_mb: float = math.nan  # that peak minus the resident memory when it started
+
+    @property
+    def seconds(self) -> list[float]:
+        return [p.seconds for p in self.points]
+
+    @property
+    def errors(self) -> list[float]:
+        return [p.smape for p in self.points]
+
+
+def spp_levels(max_spp: int) -> list[int]:
+    """16, 32, … up to max_spp (the loop doubles its total each iteration; `mi.render` matches)."""
+    levels, spp = [], FIRST_SPP
+    while spp <= max_spp:
+        levels.append(spp)
+        spp *= 2
+    if not levels:
+        raise ValueError(f"--max-spp must be at least {FIRST_SPP}, got {max_spp}")
+    return levels
+
+
+def image_smape(image: np.ndarray, reference: np.ndarray) -> float:
+    """SMAPE (ε = 0.01) on linear radiance, sanitised as every report's metrics are."""
+    return float(smape(sanitize(nchw(image)), sanitize(nchw(reference))))
+
+
+# --- peak memory ----------------------------------------------------------------------------------
+
+
+def resident_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+@contextmanager
+def peak_rss(curve: Curve) -> Iterator[None]:
+    """Sample this process's resident memory every RSS_INTERVAL_S on a thread while the block runs
+    (getrusage's ru_maxrss is the whole process's lifetime peak, so it cannot tell methods apart)."""
+    start = peak = resident_mb()
+    done = threading.Event()
+
+    def sample() -> None:
+        nonlocal peak
+        while not done.wait(RSS_INTERVAL_S):
+            peak = max(peak, resident_mb())
+
+    sampler = threading.Thread(target=sample, name="peak-rss", daemon=True)
+    sampler.start()
+    try:
+        yield
+    finally:
+        done.set()
+        sampler.join()
+        peak = max(peak, resident_mb())
+        curve.peak_rss_mb, curve.rss_growth_mb = peak, peak - start
+
+
+# --- mi.render + OIDN -------------------------------------------------------------------------------
+
+
+def mitsuba_curve(scene: DevScene, film: Film, box: bool, levels: list[int], reference: np.ndarray,
+                  oidn: OidnDenoise) -> Curve:
+    """`mi.render` with the `aov` integrator at each uniform spp, then OIDN: one point per spp."""
+    loaded = competitor_scene(scene, film, box)
+    integrator = aov_integrator(loaded)
+    warm_up(loaded, integrator, levels, MITSUBA_SEED - 1)  # compiles the kernels, untimed
+    curve = Curve("mitsuba-box" if box else "mitsuba",
+                  "`mi.render` + OIDN, box film" if box else "`mi.render` + OIDN, the scene's filter")
+    with peak_rss(curve):
+        for spp in levels:
+            started = time.perf_counter()
+            image = render_with_aovs(loaded, integrator, spp, MITSUBA_SEED)
+            rendered = time.perf_counter()
+            denoised = oidn(image.color, image.albedo, image.normal)
+            done = time.perf_counter()
+            stages = {"render": rendered - started, "oidn": done - rendered}
+            curve.points.append(CurvePoint(spp, done - started, image_smape(denoised, reference), stages))
+    return curve
+
+
+# --- the render loop --------------------------------------------------------------------------------
+
+
+@dataclass
+class LoopRun:
+    curve: Curve
+    loop: RenderLoop  # kept: the fixed-cost measurements read its final state
+    last: IterationRecord
+
+
+def make_loop(scene: DevScene, film: Film, networks: Networks, allocator: str, iterations: int) -> RenderLoop:
+    """The loop as a job runs it, on the scene as written at `film`'s size; uniform allocation
+    does not pay for the error network."""
+    spec = LoopSpec(scene=str(scene.path), width=film.width, height=film.height, spp_first=FIRST_SPP,
+                    max_iterations=iterations, allocator=allocator, denoise=True, seed=LOOP_SEED)
+    predictor = networks.error_predictor if allocator == "error" else NoErrorPrediction()
+    return RenderLoop(spec, Networks(networks.denoiser, predictor))
+
+
+def warm_up_loop(scene: DevScene, film: Film, networks: Networks) -> None:
+    """One untimed iteration: Dr.Jit compiles the scene's kernels, oneDNN builds its primitives."""
+    for _ in make_loop(scene, film, networks, "error", 1).run():
+        pass
+
+
+def loop_curve(key: str, label: str, scene: DevScene, film: Film, networks: Networks, allocator: str,
+               levels: list[int], reference: np.ndarray) -> LoopRun:
+    """One point per iteration (16, 32, … spp mean): cumulative stage time and SMAPE."""
+    curve = Curve(key, label)
+    loop = make_loop(scene, film, networks, allocator, len(levels))
+    elapsed, last = 0.0, None
+    with peak_rss(curve):
+        for record in loop.run():
+            stages = {name: float(record.timings.get(name, 0.0)) for name in STAGES}
+            elapsed += sum(stages.values())
+            curve.points.append(CurvePoint(record.spp_mean, elapsed, image_smape(record.denoised[0], reference), stages))
+            last = record
+    return LoopRun(curve, loop, last)
+
+
+# --- reading two curves against each other -----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Reading:
+    """A value read off a curve and how: "interpolated" (log-log, between two measured points),
+    "extrapolated" (outside the measured range: the curves do not meet there; read off a power law
+    fitted to the whole curve) or "not reached" (the curve does not fall: no value)."""
+
+    value: float
+    how: str
+
+    @property
+    def measured(self) -> bool:
+        return self.how == "interpolated"
+
+
+def _log_points(curve: Curve) -> list[tuple[float, float]]:
+    """(log seconds, log SMAPE) of the curve's points in spp order, the unusable ones left out."""
+    return [(math.log(p.seconds), math.log(p.smape)) for p in curve.points
+            if p.seconds > 0 and p.smape > 0 and math.isfinite(p.smape)]
+
+
+def _power_law(points: list[tuple[float, float]]) -> tuple[float, float] | None:
+    """(a, b) of log SMAPE = a + b · log seconds, least squares over every point (one noisy end
+    segment of a timed curve is no basis for a guess); None unless the error falls with time."""
+    if len(points) < 2 or len({x for x, _ in points}) < 2:
+        return None
+    b, a = np.polyfit([x for x, _ in points], [y for _, y in points], 1)
+    return (float(a), float(b)) if b < 0 else None
+
+
+def _between(y: float, y0: float, y1: float) -> bool:
+    return min(y0, y1) <= y <= max(y0, y1)
+
+
+def _line(x0: float, y0: float, x1: float, y1: float, y: float) -> float:
+    return x1 if y1 == y0 else x0 + (y - y0) * (x1 - x0) / (y1 - y0)
+
+
+def time_at_error(curve: Curve, target: float) -> Reading:
+    """Wall time at which `curve` reaches SMAPE `target`: log-log interpolation on the first segment
+    (in spp order) whose errors bracket it; outside the curve's errors, the power law's time."""
+    points = _log_points(curve)
+    if not points or not target > 0:
+        return Reading(math.inf, "not reached")
+    y = math.log(target)
+    for (x0, y0), (x1, y1) in zip(points, points[1:]):
+        if _between(y, y0, y1):
+            return Reading(math.exp(_line(x0, y0, x1, y1, y)), "interpolated")
+    if len(points) == 1 and points[0][1] == y:
+        return Reading(math.exp(points[0][0]), "interpolated")
+    fit = _power_law(points)
+    return Reading(math.exp((y - fit[0]) / fit[1]), "extrapolated") if fit else Reading(math.inf, "not reached")
+
+
+def error_at_time(curve: Curve, seconds: float) -> Reading:
+    """SMAPE of `curve` at wall time `seconds`: log-log interpolation on the first segment (in spp
+    order) whose times bracket it; outside the curve's times, the power law's SMAPE."""
+    points = _log_points(curve)
+    if not points or not seconds > 0:
+        return Reading(math.nan, "not reached")
+    x = math.log(seconds)
+    for (x0, y0), (x1, y1) in zip(points, points[1:]):
+        if _between(x, x0, x1):
+            return Reading(math.exp(_line(y0, x0, y1, x1, x)), "interpolated")
+    fit = _power_law(points)
+    return Reading(math.exp(fit[0] + fit[1] * x), "extrapolated") if fit else Reading(math.nan, "not reached")
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """The loop against one other method on one scene, at the loop's final error and time."""
+
+    other: str  # the other curve's key
+    target: float  # the loop's final SMAPE
+    loop_seconds: float  # the loop's wall time to it
+    other_seconds: Reading  # the other method's wall time to the same SMAPE
+    other_error: Reading  # the other method's SMAPE at the loop's wall time
+
+    @property
+    def speedup(self) -> float:
+        """Equal-error speed-up: the other's time to the loop's final SMAPE ÷ the loop's time."""
+        return self.other_seconds.value / self.loop_seconds
+
+    @property
+    def error_ratio(self) -> float:
+        """Equal-time error ratio: the loop's SMAPE ÷ the other's at the loop's wall time (< 1: the loop ahead)."""
+        return self.target / self.other_error.value
+
+
+def compare(loop: Curve, other: Curve) -> Comparison:
+    final = loop.points[-1]
+    return Comparison(other.key, final.smape, final.seconds, time_at_error(other, final.smape),
+                      error_at_time(other, final.seconds))
+
+
+def better_of(loop: Curve, competitors: list[Curve]) -> Comparison:
+    """The comparison against whichever competitor reaches the loop's final SMAPE sooner."""
+    comparisons = [compare(loop, c) for c in competitors]
+    return min(comparisons, key=lambda c: c.other_seconds.value if math.isfinite(c.other_seconds.value) else math.inf)

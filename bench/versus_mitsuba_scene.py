@@ -1,0 +1,158 @@
+"""The scenes of `renderloop bench --versus-mitsuba` as a user renders them: each film scaled to a
+target pixel count (aspect kept), loaded once for `mi.render` exactly as written (its integrator,
+sampler and reconstruction filter) or with the film switched to `box`, the `aov` integrator that
+gives OIDN its albedo and normals, uniform renders in bounded passes, and the cached references.
+"""
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import drjit as dr
+import numpy as np
+from defusedxml import ElementTree
+
+from bench.common import REFERENCE_SEED, Reference, cached_reference
+from bench.dev_references import DevScene
+from service.render.flatten import flatten_scene
+from service.render.runtime import active_variant, mitsuba
+from service.render.scenes import FRAME_PARAMETER, film_size, load_scene
+
+# OIDN's auxiliary features as a user asks Mitsuba for them (Mitsuba's `aov` plugin names).
+AOVS = "albedo:albedo,nn:sh_normal"
+AOV_CHANNELS = 6  # albedo RGB + normal XYZ, the last channels of the developed film
+# At most this many samples in flight per `mi.render` call: one call of 1024 spp at 2 MP would be
+# a 2-billion-lane wavefront (tens of GB on the LLVM backend). 2**25 lanes is 16 spp at 2 MP.
+MAX_LANES = 2 ** 25
+REFERENCE_CALLS = 4
+
+
+@dataclass(frozen=True)
+class Film:
+    width: int
+    height: int
+
+    @property
+    def megapixels(self) -> float:
+        return self.width * self.height / 1e6
+
+    def __str__(self) -> str:
+        return f"{self.width}×{self.height}"
+
+
+def scaled_film(scene: DevScene, megapixels: float) -> Film:
+    """The scene's film scaled to about `megapixels` MP, its aspect ratio kept."""
+    width, height = film_size(str(scene.path))
+    factor = math.sqrt(megapixels * 1e6 / (width * height))
+    return Film(max(8, round(width * factor)), max(8, round(height * factor)))
+
+
+def _set_film(document: str, film: Film, box: bool) -> str:
+    """The flattened scene with its film resized (crop dropped) and, if `box`, a box filter."""
+    root = ElementTree.fromstring(document)
+    element = root.find(".//film")
+    if element is None:  # Mitsuba's default film: state the size (and filter) explicitly
+        sensor = root.find(".//sensor")
+        element = ET.SubElement(sensor, "film", {"type": "hdrfilm"})
+    for child in list(element):
+        if child.get("name") in ("width", "height", "crop_offset_x", "crop_offset_y", "crop_width", "crop_height"):
+            element.remove(child)
+        elif box and child.tag == "rfilter":
+            element.remove(child)
+    ET.SubElement(element, "integer", {"name": "width", "value": str(film.width)})
+    ET.SubElement(element, "integer", {"name": "height", "value": str(film.height)})
+    if box:
+        ET.SubElement(element, "rfilter", {"type": "box"})
+    return ET.tostring(root, encoding="unicode")
+
+
+def scene_filter(scene: DevScene) -> str:
+    """The reconstruction filter the scene's film declares (Mitsuba's default: gaussian)."""
+    path = scene.path.resolve()
+    root = ElementTree.fromstring(flatten_scene(path, root=path.parent, optional_params={FRAME_PARAMETER: "0"}).document)
+    rfilter = root.find(".//film/rfilter")
+    return "gaussian" if rfilter is None else str(rfilter.get("type"))
+
+
+def competitor_scene(scene: DevScene, film: Film, box: bool = False):
+    """The `mi.Scene` a user renders with `mi.render`: the file as written (its sampler too), frame 0,
+    the film at `film`'s size; `box`: its reconstruction filter replaced by a box. The file is
+    flattened by the service's resolver (defaults, `$`, includes → absolute paths) first."""
+    path = scene.path.resolve()
+    flat = flatten_scene(path, root=path.parent, optional_params={FRAME_PARAMETER: "0"})
+    return mitsuba().load_string(_set_film(flat.document, film, box))
+
+
+def aov_integrator(scene):
+    """The `aov` integrator wrapping the scene's own: colour as written, plus albedo and normals."""
+    return mitsuba().load_dict({"type": "aov", "aovs": AOVS, "img": scene.integrator()})
+
+
+def pass_plan(spp: int, pixels: int, min_calls: int = 1) -> tuple[int, int]:
+    """(samples per call, calls) for `spp` in total: the largest power of 4 that divides `spp`,
+    keeps a call within MAX_LANES and leaves at least `min_calls` calls. A power of 4 is what
+    Mitsuba's stratified, low-discrepancy and multi-jitter samplers take unrounded (ldsampler
+    renders 32 spp as 64)."""
+    cap = max(1, min(MAX_LANES // max(1, pixels), spp // max(1, min_calls)))
+    per_call = 1
+    while per_call * 4 <= min(spp, cap) and spp % (per_call * 4) == 0:
+        per_call *= 4
+    return per_call, spp // per_call
+
+
+@dataclass
+class AovImage:
+    color: np.ndarray  # (H, W, 3)
+    albedo: np.ndarray
+    normal: np.ndarray
+
+
+def render_with_aovs(scene, integrator, spp: int, seed: int) -> AovImage:
+    """`mi.render` of `spp` samples per pixel (in pass_plan's calls, averaged), split into colour,
+    albedo and normal."""
+    mi = mitsuba()
+    film = scene.sensors()[0].film()
+    width, height = (int(v) for v in film.crop_size())
+    per_call, calls = pass_plan(spp, width * height)
+    total = None
+    for index in range(calls):
+        image = mi.render(scene, integrator=integrator, spp=per_call, seed=seed + index)
+        total = image if total is None else total + image
+        dr.eval(total)
+    array = np.asarray(total / calls, dtype=np.float32)
+    return AovImage(array[..., :3], array[..., -AOV_CHANNELS:-3], array[..., -3:])
+
+
+def warm_up(scene, integrator, levels: list[int], seed: int) -> None:
+    """One call of each distinct per-call spp the levels use, untimed: the sample count is part of
+    the kernels Dr.Jit compiles, so each one compiles on first use."""
+    film = scene.sensors()[0].film()
+    width, height = (int(v) for v in film.crop_size())
+    for per_call in sorted({pass_plan(spp, width * height)[0] for spp in levels}):
+        render_with_aovs(scene, integrator, per_call, seed)
+
+
+def reference(scene: DevScene, film: Film, spp: int, cache_dir: Path) -> Reference:
+    """`mi.render` of the scene as written at `film`'s size and `spp` (independent sampler, as the
+    suite's committed references), in passes, with the passes' spread as its variance; rendered
+    once into `cache_dir` (the bench cache), keyed by the scene's content, size, spp and variant."""
+    name = (f"{scene.name}_{scene.content_hash}_{film.width}x{film.height}_{spp}spp_{active_variant()}"
+            f"_seed{REFERENCE_SEED}.npz")
+
+    def render(seed: int) -> tuple[np.ndarray, np.ndarray]:
+        mi = mitsuba()
+        loaded = load_scene(str(scene.path), width=film.width, height=film.height)
+        # at least REFERENCE_CALLS calls: their spread is the reference's variance
+        per_call, calls = pass_plan(spp, film.width * film.height, REFERENCE_CALLS)
+        total = squares = 0.0  # running sums: at 2 MP a pass list would hold gigabytes
+        for i in range(calls):
+            image = np.asarray(mi.render(loaded, spp=per_call, seed=seed + i), dtype=np.float64)[..., :3]
+            total, squares = total + image, squares + image * image
+        mean = total / calls
+        spread = np.maximum(squares / calls - mean * mean, 0.0) * calls / max(1, calls - 1)
+        variance = spread / calls if calls > 1 else np.zeros_like(mean)
+        return mean.astype(np.float32), variance.astype(np.float32)
+
+    return cached_reference(Path(cache_dir) / "versus-mitsuba" / name, render)
