@@ -27,6 +27,7 @@ from service.jobs.db.connect import Database, open_database
 from service.jobs.db.schema import JOBS, DuplicateKey
 from service.jobs.leases import Leases, new_owner, owner_is_gone
 from service.jobs.quotas import QuotaExceeded, Quotas
+from service.loop.eta import Progress
 
 
 class JobState(StrEnum):
@@ -42,6 +43,7 @@ class JobState(StrEnum):
 QUEUED, RUNNING, COMPLETED, FAILED, CANCELED = JobState
 STATES = tuple(state.value for state in JobState)
 TERMINAL_STATES = frozenset({COMPLETED, FAILED, CANCELED})
+CANCELED_WHILE_QUEUED = "canceled before it started"
 
 
 @dataclass
@@ -69,6 +71,10 @@ class JobRecord:
     idempotency_key: str | None = None
     lease_owner: str | None = None  # the server that runs (or last ran) it
     lease_expires_at: float | None = None
+    eta_seconds: float | None = None  # seconds left as estimated after the last iteration (loop/eta.py)
+    eta_finish_at: float | None = None  # unix seconds: when that estimate ends the job
+    eta_basis: str | None = None  # what the estimate rests on, in words
+    stop_message: str | None = None  # stop_reason in words (loop/stop_message.py)
 
     @property
     def finished(self) -> bool:
@@ -264,11 +270,19 @@ class JobStore:
         predicted_error: float | None,
         timings: dict[str, float],
         stop_reason: str | None = None,
+        progress: Progress | None = None,
     ) -> None:
+        """One finished iteration; `progress` (the ETA, the stop message) when the worker has it."""
+        eta = progress.eta if progress is not None else None
+        seconds = eta.seconds if eta is not None else None
+        finish_at = time.time() + seconds if seconds is not None else None
         self._db.execute(
             "UPDATE jobs SET iteration = ?, spp = ?, predicted_error = ?, timings = ?, "
-            "stop_reason = COALESCE(?, stop_reason) WHERE id = ?",
-            (iteration, spp, predicted_error, json.dumps(timings), stop_reason, job_id),
+            "stop_reason = COALESCE(?, stop_reason), eta_seconds = ?, eta_finish_at = ?, "
+            "eta_basis = ?, stop_message = COALESCE(?, stop_message) WHERE id = ?",
+            (iteration, spp, predicted_error, json.dumps(timings), stop_reason, seconds, finish_at,
+             eta.basis if eta is not None else None, progress.stop_message if progress is not None else None,
+             job_id),
         )
 
     def bump_preview_version(self, job_id: str) -> int:
@@ -287,14 +301,15 @@ class JobStore:
     def set_lambda_value(self, job_id: str, value: float | None) -> None:
         self._db.execute("UPDATE jobs SET lambda_value = ? WHERE id = ?", (value, job_id))
 
-    def finish(self, job_id: str, state: str, stop_reason: str | None = None, error: str | None = None) -> None:
+    def finish(self, job_id: str, state: str, stop_reason: str | None = None, error: str | None = None,
+               stop_message: str | None = None) -> None:
         if state not in TERMINAL_STATES:
             raise ValueError(f"{state!r} is not a terminal state")
         # Not over a job another server took over (this one stalled past its lease): theirs to end.
         self._db.execute(
-            "UPDATE jobs SET state = ?, stop_reason = COALESCE(?, stop_reason), error = ?, finished_at = ? "
-            "WHERE id = ? AND (lease_owner = ? OR lease_owner IS NULL)",
-            (state, stop_reason, error, time.time(), job_id, self.owner),
+            "UPDATE jobs SET state = ?, stop_reason = COALESCE(?, stop_reason), error = ?, finished_at = ?, "
+            "stop_message = COALESCE(?, stop_message) WHERE id = ? AND (lease_owner = ? OR lease_owner IS NULL)",
+            (state, stop_reason, error, time.time(), stop_message, job_id, self.owner),
         )
 
     def delete(self, job_id: str) -> None:
@@ -304,8 +319,9 @@ class JobStore:
 
     def cancel_if_queued(self, job_id: str) -> bool:
         return self._db.execute(
-            "UPDATE jobs SET state = ?, stop_reason = 'canceled', finished_at = ? WHERE id = ? AND state = ?",
-            (CANCELED, time.time(), job_id, QUEUED),
+            "UPDATE jobs SET state = ?, stop_reason = 'canceled', stop_message = ?, finished_at = ? "
+            "WHERE id = ? AND state = ?",
+            (CANCELED, CANCELED_WHILE_QUEUED, time.time(), job_id, QUEUED),
         ) == 1
 
     def requeue(self, job_id: str) -> None:

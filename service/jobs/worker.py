@@ -30,9 +30,11 @@ from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
 from service.jobs.store import CANCELED, COMPLETED, FAILED, JobRecord, JobStore
+from service.loop.eta import EtaTracker
 from service.loop.loop import IterationInterrupted, RenderLoop
 from service.loop.spec import IterationRecord, LoopSpec
 from service.loop.state import LoopState
+from service.loop.stop_message import canceled_message
 
 
 log = logging.getLogger(__name__)
@@ -320,9 +322,10 @@ class JobWorker:
         timings = dict(record.timings)
         last: IterationRecord | None = None
         samples = total_samples(loop.state.buffers)  # a resumed job's earlier samples are not counted again
+        eta = EtaTracker(loop.spec, loop.state.spp_mean)
         try:
             for last in loop.run(should_stop=should_stop):
-                timings = self._finish_iteration(job_id, loop, files, last, timings)
+                timings = self._finish_iteration(job_id, loop, files, last, timings, eta)
                 self.observer.iteration_finished(last.timings, total_samples(last.buffers) - samples)
                 samples = total_samples(last.buffers)
         except LeaseLost:
@@ -374,7 +377,8 @@ class JobWorker:
         return loop
 
     def _finish_iteration(
-        self, job_id: str, loop: RenderLoop, files: JobFiles, record: IterationRecord, timings: dict[str, float]
+        self, job_id: str, loop: RenderLoop, files: JobFiles, record: IterationRecord, timings: dict[str, float],
+        eta: EtaTracker | None = None,
     ) -> dict[str, float]:
         if not self.store.renew_lease(job_id):  # the checkpoint is only ours to write while we hold the job
             with self._lock:
@@ -385,8 +389,11 @@ class JobWorker:
         self._publish(job_id, files, preview_layers(loop, record))
         io_seconds = {"io": time.perf_counter() - started}
         timings = add_timings(add_timings(timings, record.timings), io_seconds)
+        progress = None if eta is None else eta.after(
+            loop.state.iteration, record.spp_mean, {**record.timings, **io_seconds}, loop.state.elapsed,
+            record.stop_reason, record.predicted_error)
         self.store.record_iteration(
-            job_id, record.iteration + 1, record.spp_mean, record.predicted_error, timings, record.stop_reason
+            job_id, record.iteration + 1, record.spp_mean, record.predicted_error, timings, record.stop_reason, progress
         )
         return timings
 
@@ -409,7 +416,8 @@ class JobWorker:
         if loop is not None and loop.state.iteration > 0:
             files.save_results(loop.result_frames())
         if canceled or stop_reason == "canceled" or loop is None:
-            self.store.finish(job_id, CANCELED, stop_reason="canceled")
+            message = canceled_message(loop.state.iteration, loop.state.spp_mean) if loop else canceled_message()
+            self.store.finish(job_id, CANCELED, stop_reason="canceled", stop_message=message)
             return
         self._keep_idle(job_id, loop)
         self.store.finish(job_id, COMPLETED, stop_reason=stop_reason)

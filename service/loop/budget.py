@@ -14,10 +14,13 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Iterable
 
-from service.loop.spec import LoopSpec
+from service.loop.spec import SERVICE_LIMITS, JobLimits, LoopSpec
 
 STOPPING_RULES = ("max_iterations", "spp_budget", "time_limit", "target_error")
 SCENE_BUDGET = "scene"  # LoopSpec.budget_source when spp_budget is the scene's sample_count
+# LoopSpec.budget_source when max_iterations is the service's cap: the job gave a time limit
+# (or target error) and nothing that bounds its samples (rules_as_given).
+ITERATIONS_FROM_LIMITS = "limits"
 
 
 def names_a_stopping_rule(given: Iterable[str]) -> bool:
@@ -32,6 +35,30 @@ def scene_budget(spec: LoopSpec, sample_count: int | None) -> LoopSpec:
         return spec
     return replace(spec, max_iterations=None, spp_budget=float(sample_count),
                    spp_first=min(spec.spp_first, sample_count), budget_source=SCENE_BUDGET)
+
+
+def rules_as_given(spec: LoopSpec, given: set[str]) -> LoopSpec:
+    """A service job that names stopping rules but not max_iterations stops by those rules, not
+    also after the default DEFAULT_ITERATIONS (which is for a job that names none): a time limit
+    alone iterates until its time is spent. Without an spp budget nothing else bounds the
+    samples, so the iteration cap becomes the service's own (fit_iteration_cap)."""
+    if "max_iterations" in given or not given & {"spp_budget", "time_limit", "target_error"}:
+        return spec
+    if "spp_budget" in given:
+        return replace(spec, max_iterations=None)
+    return replace(spec, max_iterations=None, budget_source=ITERATIONS_FROM_LIMITS)
+
+
+def fit_iteration_cap(spec: LoopSpec, film_width: int, film_height: int, limits: JobLimits = SERVICE_LIMITS) -> LoopSpec:
+    """A rules_as_given spec with the most iterations the service's limits allow for this film:
+    at most max_iterations, and the doubling samples within max_total_samples."""
+    if spec.budget_source != ITERATIONS_FROM_LIMITS or spec.max_iterations is not None:
+        return spec
+    pixels = (spec.width or film_width) * (spec.height or film_height) * spec.frames
+    cap = 1
+    while cap < limits.max_iterations and pixels * spec.spp_first * 2.0 ** cap <= limits.max_total_samples:
+        cap += 1
+    return replace(spec, max_iterations=cap)
 
 
 def describe_budget(spec: LoopSpec) -> str:

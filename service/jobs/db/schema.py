@@ -62,9 +62,14 @@ JOBS = Table(
         Column("idempotency_key", Kind.TEXT),  # the submit's Idempotency-Key header, per client
         Column("lease_owner", Kind.TEXT),  # the server running the job (service/jobs/leases.py)
         Column("lease_expires_at", Kind.REAL),  # unix seconds; renewed while the job runs
+        Column("eta_seconds", Kind.REAL),  # seconds left, as estimated after the last iteration (loop/eta.py)
+        Column("eta_finish_at", Kind.REAL),  # unix seconds: when that estimate says the job ends
+        Column("eta_basis", Kind.TEXT),  # what the estimate rests on, in words
+        Column("stop_message", Kind.TEXT),  # stop_reason in words (loop/stop_message.py)
     ),
     indexes=("state",),
-    added=("effects", "priority", "client", "idempotency_key", "lease_owner", "lease_expires_at"),
+    added=("effects", "priority", "client", "idempotency_key", "lease_owner", "lease_expires_at",
+           "eta_seconds", "eta_finish_at", "eta_basis", "stop_message"),
     unique=(("client", "idempotency_key"),),
 )
 
