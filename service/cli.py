@@ -1,4 +1,4 @@
-"""`renderloop render|denoise|serve|submit|jobs|bench|dataset|train` (DESIGN.md, CLI contract).
+"""`renderloop render|denoise|serve|submit|jobs|status|cancel|download|delete|bench|dataset|train` (DESIGN.md, CLI contract).
 
 Every user error ends as one `renderloop: error: …` line and exit status 2; tracebacks are
 for bugs only.
@@ -25,9 +25,9 @@ from service.jobs.quotas import (DEFAULT_MAX_QUEUED, DEFAULT_MAX_QUEUED_PER_CLIE
                                  MAX_QUEUED_PER_CLIENT_ENV, Quotas)
 from service.jobs.retention import Retention
 from service.render.scene_probe import MEMORY_ENV, SECONDS_ENV, ProbeLimits
-from service.loop.budget import describe_budget, names_a_stopping_rule, scene_budget
-from service.loop.spec import (ALLOCATORS, DEFAULT_ITERATIONS, LAMBDA_RANGE, SERVICE_LIMITS, LoopSpec, LoopSpecError,
-                               default_allocator)
+from service.job_options import JobOptionError, add_job_options, gives_stopping_rule, spec_from_args
+from service.loop.budget import describe_budget, scene_budget
+from service.loop.spec import SERVICE_LIMITS, LoopSpec, LoopSpecError
 from service.dataset import command as dataset_command
 
 EXIT_USAGE = 2
@@ -49,77 +49,25 @@ def load_cli_networks(weights: Path | None):
 # -- render -----------------------------------------------------------------------------------
 
 def add_render_parser(sub) -> None:
-    d = LoopSpec(scene="")  # the job spec's defaults (service/loop/spec.py) are the CLI's
     p = sub.add_parser("render", help="render a scene with the adaptive loop (or one uniform pass)")
     p.add_argument("scene", nargs="?", help="Mitsuba 3 XML file or built-in scene name (see --list)")
     p.add_argument("--list", action="store_true", help="print the built-in scenes and exit")
     p.add_argument("--explain", action="store_true",
                    help="print the effects report (which integrator runs and why, what is simulated) and exit")
-    p.add_argument("--width", type=int, help="image width in pixels (with --height; default: the scene's film)")
-    p.add_argument("--height", type=int, help="image height in pixels (with --width; default: the scene's film)")
-    p.add_argument("--frames", type=int, default=d.frames,
-                   help=f"frames of the scene's animation; the scene must use $frame (default {d.frames})")
-    p.add_argument("--spp", type=int, help="one uniform pass of N samples per pixel, no adaptive iterations")
-    p.add_argument("--spp-first", type=int, default=d.spp_first,
-                   help=f"samples per pixel of iteration 0 (default {d.spp_first})")
-    stop = p.add_argument_group("stopping rules (whichever comes first; default: the scene's <sampler> sample_count "
-                                f"as --spp-budget, else --iterations {DEFAULT_ITERATIONS})")
-    stop.add_argument("--iterations", type=int, help="maximum iterations")
-    stop.add_argument("--spp-budget", type=float, help="mean samples per pixel, all iterations together")
-    stop.add_argument("--time-limit", type=float, help="seconds")
-    stop.add_argument("--target-error", type=float, help="stop when the mean predicted SMAPE is at most this")
-    p.add_argument("--allocator", help=" | ".join(ALLOCATORS) + f": where new samples go (default {default_allocator(True)}; {default_allocator(False)} with --no-denoise)")
-    p.add_argument("--no-denoise", action="store_true", help="write the plain Monte Carlo estimate")
-    p.add_argument("--lambda", dest="lam", type=float, default=d.lam,
-                   help=f"λ in [{LAMBDA_RANGE[0]:g}, {LAMBDA_RANGE[1]:g}] (default {d.lam:g})")
-    p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                   help="set the scene's $NAME parameter, like Mitsuba's -D (repeatable)")
-    p.add_argument("--png", action="store_true", help="also write a tonemapped PNG beside each EXR")
+    add_job_options(p, service=False)  # the same options as `renderloop submit` (service/job_options.py)
     p.add_argument("-o", "--output", type=Path, help="output EXR path")
     p.add_argument("--weights", type=Path, help="folder holding denoiser.pt and error_predictor.pt "
                    "(default: $RENDERLOOP_WEIGHTS_DIR, else the shipped weights)")
     p.set_defaults(handler=run_render)
 
 
-def scene_params(pairs: list[str]) -> dict[str, str]:
-    params = {}
-    for pair in pairs:
-        name, sep, value = pair.partition("=")
-        if not sep or not name:
-            raise CliError(f"--param takes NAME=VALUE, got {pair!r}")
-        params[name] = value
-    return params
-
-
 def render_spec(args) -> LoopSpec:
-    if args.spp is not None:
-        if args.spp < 1:
-            raise CliError(f"--spp must be >= 1 (got {args.spp})")
-        first, iterations = args.spp, 1
-    else:
-        if args.spp_first < 1:
-            raise CliError(f"--spp-first must be >= 1 (got {args.spp_first})")
-        first = args.spp_first
-        no_rule = all(v is None for v in (args.iterations, args.spp_budget, args.time_limit, args.target_error))
-        iterations = DEFAULT_ITERATIONS if no_rule else args.iterations
-    for name in ("width", "height"):
-        value = getattr(args, name)
-        if value is not None and value < 1:
-            raise CliError(f"--{name} must be >= 1 (got {value})")
-    return LoopSpec(
-        scene=args.scene, width=args.width, height=args.height, frames=args.frames, spp_first=first,
-        max_iterations=iterations, spp_budget=args.spp_budget, time_limit=args.time_limit,
-        target_error=args.target_error, allocator=args.allocator, denoise=not args.no_denoise,
-        lam=args.lam, seed=args.seed, params=scene_params(args.param),
-    )
+    return spec_from_args(args, args.scene)
 
 
 def default_budget(args, spec: LoopSpec) -> LoopSpec:
     """With no stopping rule given, the scene's own sample_count is the budget (service/loop/budget.py)."""
-    given = {"max_iterations": args.iterations, "spp_budget": args.spp_budget, "time_limit": args.time_limit,
-             "target_error": args.target_error}
-    if args.spp is not None or names_a_stopping_rule(name for name, value in given.items() if value is not None):
+    if gives_stopping_rule(args):
         return spec
     from service.render.scenes import scene_sample_count
 
@@ -383,17 +331,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Exception types of modules a command may load, that describe bad input rather than a bug.
+# Only those of modules already imported are looked up: an error of a module the command never
+# loaded cannot have been raised, and importing Mitsuba just to print `renderloop: error:` cost
+# seconds per error line.
+LAZY_USER_ERRORS = (("models.checkpoint", "CheckpointError"), ("service.client", "RenderloopError"),
+                    ("service.dataset.build", "DatasetError"), ("service.exr", "ExrError"),
+                    ("service.render.runtime", "RuntimeSetupError"), ("service.render.scenes", "SceneError"),
+                    ("service.scene_upload", "SceneUploadError"))
+
+
 def user_errors() -> tuple[type[BaseException], ...]:
     """Exception types that describe bad input rather than a bug."""
-    from models.checkpoint import CheckpointError
-    from service.client import RenderloopError
-    from service.dataset.build import DatasetError
-    from service.exr import ExrError
-    from service.render.runtime import RuntimeSetupError
-    from service.render.scenes import SceneError
-
-    return (CliError, ExrError, RuntimeSetupError, FileNotFoundError, SceneError, LoopSpecError,
-            CheckpointError, DatasetError, RenderloopError, TimeoutError)
+    loaded = tuple(getattr(sys.modules[module], name) for module, name in LAZY_USER_ERRORS if module in sys.modules)
+    return (CliError, JobOptionError, FileNotFoundError, LoopSpecError, TimeoutError, *loaded)
 
 
 def main(argv: list[str] | None = None) -> int:

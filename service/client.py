@@ -8,7 +8,8 @@
         image = client.preview(job)                              # (H, W, 3) float32
         client.download(job, "out.exr")
 
-A scene is a built-in name (GET /scenes) or a local folder / XML file, zipped and uploaded.
+A scene is a built-in name (GET /scenes) or a local folder / XML file: the files the scene
+references (service/scene_upload.py) are zipped and uploaded, nothing else of its folder.
 Every refusal raises a RenderloopError carrying the server's status and message; 401, 404, 409
 and 422 have their own subclasses.
 """
@@ -18,12 +19,11 @@ import itertools
 import json
 import os
 import sys
-import tempfile
 import threading
 import time
-import zipfile
+from datetime import datetime
 from pathlib import Path
-from typing import IO, Any, Iterator
+from typing import Any, Iterator
 
 import httpx
 import numpy as np
@@ -33,6 +33,7 @@ from service.api.imaging import EXR_FIELDS
 from service.api.security import TOKEN_ENV
 from service.atomic import atomic_write
 from service.exr import ExrFrame, exr_from_bytes, exr_to_bytes
+from service.scene_upload import SceneUpload, plan_upload, zip_upload
 
 SERVER_ENV = "RENDERLOOP_SERVER"
 DEFAULT_SERVER = "http://127.0.0.1:8000"
@@ -41,7 +42,6 @@ POLL_SECONDS = 0.5
 # The server sends a keep-alive every 15 s on a quiet event stream; four missed ones mean the
 # stream is stuck (a buffering proxy): fall back to polling.
 EVENT_READ_SECONDS = 60.0
-ZIP_IN_MEMORY_BYTES = 64 * 2**20  # larger scene zips spill to a temporary file
 
 
 # -- errors -------------------------------------------------------------------------------------
@@ -108,22 +108,6 @@ def is_local_scene(scene: str | os.PathLike) -> bool:
     return isinstance(scene, os.PathLike) or Path(text).exists() or "/" in text or text.lower().endswith(".xml")
 
 
-def zip_scene(path: Path) -> tuple[IO[bytes], str | None]:
-    """A zip of the scene's folder (its asset root) and the XML to render inside it — None for a
-    folder: the server takes its one top-level XML. Hidden files and folders are left out."""
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such scene file or folder")
-    folder, entry = (path, None) if path.is_dir() else (path.parent, path.name)
-    archive = tempfile.SpooledTemporaryFile(max_size=ZIP_IN_MEMORY_BYTES)
-    with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as zf:
-        for file in sorted(folder.rglob("*")):
-            relative = file.relative_to(folder)
-            if file.is_file() and not any(part.startswith(".") for part in relative.parts):
-                zf.write(file, relative.as_posix())
-    archive.seek(0)
-    return archive, entry
-
-
 # -- the client ---------------------------------------------------------------------------------
 
 class RenderloopClient:
@@ -160,17 +144,25 @@ class RenderloopClient:
 
     # -- jobs ---------------------------------------------------------------------------------
 
-    def submit(self, scene: str | os.PathLike, *, lam: float | None = None, **spec: Any) -> str:
+    def submit(self, scene: str | os.PathLike, *, lam: float | None = None, entry: str | None = None,
+               **spec: Any) -> str:
         """Start a job; returns its id. `spec` takes the API's fields (width, height, frames,
         max_iterations, spp_budget, time_limit, target_error, allocator, denoise, seed, params,
-        spp_first); `lam` is λ. A local folder or XML file is zipped and uploaded."""
+        spp_first, priority, name); `lam` is λ. A local XML file, or the scene of a folder (`entry`
+        picks one when it holds several), is uploaded with only the files it references."""
         if lam is not None:
             spec["lambda"] = lam
         if not is_local_scene(scene):
             return self._request("POST", "/jobs", json={"scene": os.fspath(scene), **spec}).json()["id"]
-        archive, entry = zip_scene(Path(scene))
-        with archive:
-            fields = {"spec": json.dumps({**spec, **({"scene": entry} if entry else {})})}
+        upload = plan_upload(scene, scene=entry, params=spec.get("params"), frames=spec.get("frames", 1),
+                             width=spec.get("width"), height=spec.get("height"))
+        return self.submit_upload(upload, **spec)
+
+    def submit_upload(self, upload: SceneUpload, **spec: Any) -> str:
+        """Upload a planned scene (service.scene_upload.plan_upload) as a job; `spec` as in submit
+        (with `lambda` under its API name). The job's name defaults to the upload's."""
+        with zip_upload(upload) as archive:
+            fields = {"spec": json.dumps({"name": upload.name, **spec, "scene": upload.entry})}
             files = {"bundle": ("scene.zip", archive, "application/zip")}
             return self._request("POST", "/jobs", data=fields, files=files).json()["id"]
 
@@ -334,8 +326,23 @@ def parse_events(lines: Iterator[str]) -> Iterator[tuple[str, str]]:
             kind, data = "message", []
 
 
+# tqdm's own "remaining" extrapolates the mean time per iteration, but each iteration doubles the
+# samples ("7 s left", 18 s in fact): the bar shows the server's ETA (service/loop/eta.py) instead.
+PROGRESS_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]"
+
+
+def seconds_left(status: dict) -> float | None:
+    """The server's ETA counted down to now: from its predicted end when it sent one."""
+    finish_at = status.get("eta_finish_at")
+    if finish_at:
+        return max(0.0, datetime.fromisoformat(finish_at).timestamp() - time.time())
+    return status.get("eta_seconds")
+
+
 def show_progress(bar: tqdm, status: dict) -> None:
-    error = status.get("predicted_error")
+    bar.bar_format = PROGRESS_FORMAT
+    error, left = status.get("predicted_error"), seconds_left(status)
     bar.set_postfix(state=status["state"], spp=f"{status['spp']:.1f}",
-                    error="-" if error is None else f"{error:.4f}", refresh=False)
+                    error="-" if error is None else f"{error:.4f}",
+                    left="?" if left is None else f"{left:.0f}s", refresh=False)
     bar.update(max(0, status["iteration"] - bar.n))

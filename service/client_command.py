@@ -1,54 +1,103 @@
-"""`renderloop submit SCENE …` and `renderloop jobs`: arguments → service.client.RenderloopClient
-against a running server (`renderloop serve`). The client (httpx, OpenEXR) is imported when a
+"""`renderloop submit|jobs|status|cancel|download|delete`: arguments → service.client.RenderloopClient
+against a running server (`renderloop serve`). `submit` takes the job options `render` takes
+(service/job_options.py, one function for both). The client (httpx, OpenEXR) is imported when a
 command runs, so `renderloop --help` stays light; the client itself resolves the server and
 token defaults from the environment."""
 from __future__ import annotations
 
+import json
+import os
+import sys
 from pathlib import Path
 
-from service.loop.spec import LAMBDA_RANGE
+from service.api.security import TOKEN_FILE_ENV, TokenFileError, read_token_file
+from service.job_options import JobOptionError, add_job_options, api_fields, spec_from_args
 
-JOB_COLUMNS = ("ID", "STATE", "ITER", "SPP", "ERROR", "SCENE", "CREATED")
+JOB_COLUMNS = ("ID", "STATE", "ITER", "SPP", "ERROR", "NAME", "CREATED")
+STATES = ("queued", "running", "completed", "failed", "canceled")
 
 
 def add_server_arguments(p) -> None:
     p.add_argument("--server", help="the service's URL (default: $RENDERLOOP_SERVER, else http://127.0.0.1:8000)")
-    p.add_argument("--token", help="bearer token when the server needs one (default: $RENDERLOOP_TOKEN)")
+    token = p.add_mutually_exclusive_group()
+    token.add_argument("--token", help="bearer token when the server needs one (default: $RENDERLOOP_TOKEN_FILE's "
+                                       "file, else $RENDERLOOP_TOKEN); ps shows it, so prefer --token-file")
+    token.add_argument("--token-file", type=Path, metavar="PATH", help="read the bearer token from this file")
 
 
 def add_parsers(sub) -> None:
-    p = sub.add_parser("submit", help="submit a job to a running server (and wait for its EXR)")
-    p.add_argument("scene", help="a built-in scene name (GET /scenes), or a scene folder / XML file: "
-                                 "its folder is zipped and uploaded")
+    add_submit_parser(sub)
+    p = sub.add_parser("jobs", help="list the jobs of a running server")
     add_server_arguments(p)
-    p.add_argument("--width", type=int, help="film width in pixels (default: the scene's own; give --height too)")
-    p.add_argument("--height", type=int, help="film height in pixels (default: the scene's own)")
-    p.add_argument("--iterations", type=int, help="maximum iterations (default: the server's, 4)")
-    p.add_argument("--lambda", dest="lam", type=float,
-                   help=f"λ in [{LAMBDA_RANGE[0]:g}, {LAMBDA_RANGE[1]:g}] (default 1)")
+    p.add_argument("--state", choices=STATES)
+    p.add_argument("--limit", type=int, default=50, help="newest first, at most this many (default 50)")
+    p.set_defaults(handler=run_jobs)
+    for verb, help_text, handler in (("status", "print a job's record (JSON)", run_status),
+                                     ("cancel", "cancel a queued or running job", run_cancel),
+                                     ("delete", "delete a finished job: its record and files", run_delete)):
+        p = sub.add_parser(verb, help=help_text)
+        p.add_argument("job_id", metavar="ID")
+        add_server_arguments(p)
+        p.set_defaults(handler=handler)
+    p = sub.add_parser("download", help="download a finished job's EXR (one per frame)")
+    p.add_argument("job_id", metavar="ID")
+    add_server_arguments(p)
+    p.add_argument("-o", "--output", type=Path, required=True,
+                   help="output EXR path (a sequence gives OUT_0000.exr, …)")
+    p.add_argument("--png", action="store_true", help="also write a tonemapped PNG beside each EXR")
+    p.set_defaults(handler=run_download)
+
+
+def add_submit_parser(sub) -> None:
+    p = sub.add_parser("submit", help="submit a job to a running server (and wait for its EXR)")
+    p.add_argument("scene", help="a built-in scene name (GET /scenes), or a scene XML file or folder: the files the "
+                                 "scene references are uploaded, nothing else")
+    p.add_argument("--scene", dest="entry", metavar="NAME",
+                   help="which scene XML of a folder holding several (NAME or NAME.xml)")
+    add_server_arguments(p)
+    add_job_options(p, service=True)  # the same options as `renderloop render` (service/job_options.py)
     p.add_argument("--wait", action="store_true", help="follow the job with a progress bar until it ends")
     p.add_argument("-o", "--output", type=Path, help="download the result EXR here when it ends (implies --wait; "
                                                      "a sequence gives OUT_0000.exr, …)")
     p.set_defaults(handler=run_submit)
 
-    p = sub.add_parser("jobs", help="list the jobs of a running server")
-    add_server_arguments(p)
-    p.add_argument("--state", choices=("queued", "running", "completed", "failed", "canceled"))
-    p.add_argument("--limit", type=int, default=50, help="newest first, at most this many (default 50)")
-    p.set_defaults(handler=run_jobs)
+
+def client_token(args) -> str | None:
+    """--token, --token-file, $RENDERLOOP_TOKEN_FILE; None leaves $RENDERLOOP_TOKEN to the client."""
+    if args.token:
+        return args.token
+    path = args.token_file or (Path(os.environ[TOKEN_FILE_ENV]) if os.environ.get(TOKEN_FILE_ENV) else None)
+    try:
+        return read_token_file(path) if path is not None else None
+    except TokenFileError as exc:
+        raise JobOptionError(str(exc)) from exc
 
 
-def submit_spec(args) -> dict:
-    spec = {"width": args.width, "height": args.height, "max_iterations": args.iterations, "lambda": args.lam}
-    return {name: value for name, value in spec.items() if value is not None}
+def connect(args):
+    from service.client import RenderloopClient
+
+    return RenderloopClient(args.server, client_token(args))
 
 
 def run_submit(args) -> int:
-    from service.client import JobDidNotComplete, RenderloopClient
-    from service.exr import frame_path
+    from service.client import JobDidNotComplete, is_local_scene
+    from service.exr import require_exr_path
+    from service.scene_upload import plan_upload
 
-    with RenderloopClient(args.server, args.token) as client:
-        job_id = client.submit(args.scene, **submit_spec(args))
+    if args.output is not None:
+        require_exr_path(args.output)  # as `render` does, before anything is sent
+    fields = api_fields(spec_from_args(args, args.scene, default_iterations=None))
+    with connect(args) as client:
+        if is_local_scene(args.scene):
+            upload = plan_upload(args.scene, scene=args.entry, params=fields.get("params"), frames=args.frames,
+                                 width=args.width, height=args.height)
+            print(f"uploading {len(upload.files)} file(s), {upload.size / 2**20:.2f} MiB: {upload.name}",
+                  file=sys.stderr)
+            job_id = client.submit_upload(upload, **fields)
+        else:
+            if args.entry is not None:
+                raise JobOptionError("--scene picks a scene XML inside an uploaded folder, not a built-in scene")
+            job_id = client.submit(args.scene, **fields)
         print(job_id, flush=True)  # stdout carries the id alone, for scripts: ID=$(renderloop submit …)
         if not (args.wait or args.output):
             return 0
@@ -59,9 +108,49 @@ def run_submit(args) -> int:
         print(f"{job_id} completed: {final['iteration']} iterations, {final['spp']:.1f} spp mean, "
               f"stop: {final['stop_reason']}")
         if args.output:
-            frames = final["spec"].get("frames", 1)
-            for f in range(frames):
-                print(f"wrote {client.download(job_id, frame_path(args.output, f, frames), frame=f)}")
+            download_frames(client, job_id, final, args.output, args.png)
+    return 0
+
+
+def download_frames(client, job_id: str, record: dict, output: Path, png: bool) -> None:
+    """Every frame's EXR (and a tonemapped PNG beside each with `png`)."""
+    from service.exr import frame_path, read_exr
+    from service.images import tonemap, write_png
+
+    frames = record["spec"].get("frames", 1)
+    for f in range(frames):
+        path = client.download(job_id, frame_path(output, f, frames), frame=f)
+        print(f"wrote {path}")
+        if png:
+            print(f"wrote {write_png(path.with_suffix('.png'), tonemap(read_exr(path).color))}")
+
+
+def run_status(args) -> int:
+    with connect(args) as client:
+        print(json.dumps(client.status(args.job_id), indent=2))
+    return 0
+
+
+def run_cancel(args) -> int:
+    with connect(args) as client:
+        record = client.cancel(args.job_id)
+    print(f"{args.job_id} {record.get('state', 'canceled')}")
+    return 0
+
+
+def run_delete(args) -> int:
+    with connect(args) as client:
+        client.delete(args.job_id)
+    print(f"{args.job_id} deleted")
+    return 0
+
+
+def run_download(args) -> int:
+    from service.exr import require_exr_path
+
+    require_exr_path(args.output)
+    with connect(args) as client:
+        download_frames(client, args.job_id, client.status(args.job_id), args.output, args.png)
     return 0
 
 
@@ -69,7 +158,7 @@ def job_row(job: dict) -> tuple[str, ...]:
     spec = job.get("spec", {})
     error = job.get("predicted_error")
     return (job["id"], job["state"], str(job["iteration"]), f"{job['spp']:.1f}",
-            "-" if error is None else f"{error:.4f}", str(spec.get("scene", "?")),
+            "-" if error is None else f"{error:.4f}", job.get("name") or str(spec.get("scene", "?")),
             (job.get("created_at") or "")[:19].replace("T", " "))
 
 
@@ -79,9 +168,7 @@ def format_table(rows: list[tuple[str, ...]]) -> str:
 
 
 def run_jobs(args) -> int:
-    from service.client import RenderloopClient
-
-    with RenderloopClient(args.server, args.token) as client:
+    with connect(args) as client:
         jobs = client.jobs(state=args.state, limit=args.limit)
     if not jobs:
         print("no jobs")

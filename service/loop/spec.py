@@ -28,6 +28,8 @@ PARAM_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
 MAX_PARAMS, MAX_PARAM_VALUE = 64, 1024
 # A service job's place in the queue: higher runs first; the loop itself ignores it.
 PRIORITY_RANGE = (-100, 100)
+# A job's name, shown in listings (`renderloop jobs`, GET /jobs, the page): one printable line.
+MAX_NAME_CHARS = 128
 
 
 class LoopSpecError(ValueError):
@@ -91,6 +93,7 @@ class LoopSpec:
     # stopping rule (service/loop/budget.py); None: the budget is the request's (or the default).
     budget_source: str | None = None
     priority: int = 0  # queue order on a service (PRIORITY_RANGE); no effect on the image
+    name: str | None = None  # what listings call the job; None: the service names it (see job_name)
 
     def __post_init__(self) -> None:
         if self.allocator is None:
@@ -173,6 +176,7 @@ def validate_spec(spec: LoopSpec) -> None:
     low, high = PRIORITY_RANGE
     if not _is_int(spec.priority) or not low <= spec.priority <= high:
         raise LoopSpecError(f"priority must be an integer in [{low}, {high}], got {spec.priority!r}")
+    _validate_name(spec.name)
     if not spec.denoise and spec.allocator == "error" and spec.max_iterations != 1:
         raise LoopSpecError("the error allocator needs the denoiser; use allocator 'variance' or 'uniform' without it")
     if spec.max_iterations is None and spec.spp_budget is None and spec.time_limit is None and spec.target_error is None:
@@ -189,6 +193,19 @@ def _validate_params(params: dict[str, str]) -> None:
             raise LoopSpecError(f"scene parameter name {name!r} is not an identifier")
         if not isinstance(value, str) or len(value) > MAX_PARAM_VALUE or "\x00" in value:
             raise LoopSpecError(f"scene parameter {name!r} must be a string of at most {MAX_PARAM_VALUE} characters")
+
+
+def _validate_name(name: str | None) -> None:
+    if name is None:
+        return
+    if not isinstance(name, str) or not name.strip() or len(name) > MAX_NAME_CHARS or not name.isprintable():
+        raise LoopSpecError(f"name must be one printable line of 1 to {MAX_NAME_CHARS} characters, got {name!r}")
+
+
+def job_name(spec: LoopSpec, bundle_scene: str | None = None) -> str:
+    """The name a job is listed under: its own, else the uploaded bundle's entry XML (the
+    client sends the bundle's folder or file name), else the built-in scene's name."""
+    return spec.name or bundle_scene or spec.scene
 
 
 def check_limits(spec: LoopSpec, film_width: int, film_height: int, limits: JobLimits = SERVICE_LIMITS) -> None:

@@ -28,7 +28,7 @@ def test_submit_wait_writes_a_readable_exr_and_jobs_lists_it(server, tmp_path):
     listed = renderloop("jobs", env={"RENDERLOOP_SERVER": server.url})  # the server from the environment
     assert listed.returncode == 0, listed.stderr
     header, *rows = listed.stdout.splitlines()
-    assert header.split() == ["ID", "STATE", "ITER", "SPP", "ERROR", "SCENE", "CREATED"]
+    assert header.split() == ["ID", "STATE", "ITER", "SPP", "ERROR", "NAME", "CREATED"]
     row = next(r.split() for r in rows if r.startswith(job_id))
     assert row[1:4] == ["completed", "2", "32.0"] and row[5] == "cornell-box"
 
