@@ -19,6 +19,7 @@ from service.api.admission import admit, check_disk, create_job, discard, idempo
 from service.api.metrics import MEDIA_TYPE as METRICS_MEDIA_TYPE, ServiceMetrics
 from service.api.lambda_map import constant, decode_map, paint_rects
 from service.api.links import JobLinks, job_links, request_signer
+from service.api.server_info import ServerInfo, server_info
 from service.api.schemas import (ErrorBody, Health, ImageFormat, JobCreate, JobCreated, JobList, JobStatus,
                                  LambdaResult, LambdaUpdate, Layer, MAX_SEQUENCE, SEQUENCE_DESCRIPTION, SceneInfo,
                                  SceneList)
@@ -329,6 +330,12 @@ def builtin_scene_list() -> SceneList:
 def list_scenes() -> SceneList:
     """The built-in scenes a JSON job may name, with what each calls for."""
     return builtin_scene_list()
+
+
+@router.get("/info", response_model=ServerInfo)
+def get_info(worker: Worker) -> ServerInfo:
+    """What renders this server's jobs: CPU or GPU, the Mitsuba variant, the backend."""
+    return server_info(worker)
 
 
 @router.get("/metrics", response_class=Response, responses={

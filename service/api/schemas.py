@@ -139,6 +139,11 @@ class JobStatus(BaseModel):
     resumed_from: int | None = Field(None, description="iteration a restart resumed this job at")
     effects: dict | None = Field(None, description="the effects report: which integrator runs and why, what is simulated")
     priority: int = Field(0, description="queue order: higher-priority queued jobs start first")
+    eta_seconds: float | None = Field(None, description="seconds left as estimated after the last iteration (each "
+                                      "doubles the samples); 0 once completed, null when unknown or not running")
+    eta_finish_at: str | None = Field(None, description="when that estimate says the job ends")
+    eta_basis: str | None = Field(None, description="what the estimate rests on, in words")
+    stop_message: str | None = Field(None, description="stop_reason in words: which rule ended the job, what was left unused")
     spec: dict
 
     @classmethod
@@ -161,7 +166,18 @@ class JobStatus(BaseModel):
             effects=record.effects,
             priority=record.priority,
             spec=record.spec,
+            **eta_fields(record),
+            stop_message=record.stop_message,
         )
+
+
+def eta_fields(record: JobRecord) -> dict[str, Any]:
+    """The ETA while the job runs (0 once it completed); none for a queued, failed or canceled job."""
+    if record.state == "completed":
+        return {"eta_seconds": 0.0, "eta_basis": "finished"}
+    if record.state != "running":
+        return {}
+    return {"eta_seconds": record.eta_seconds, "eta_finish_at": _iso(record.eta_finish_at), "eta_basis": record.eta_basis}
 
 
 class JobList(BaseModel):

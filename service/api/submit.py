@@ -17,7 +17,7 @@ from starlette.datastructures import UploadFile
 from service.api.schemas import BundleJobCreate, JobCreate
 from service.jobs import bundle
 from service.jobs.artifacts import JobFiles
-from service.loop.budget import names_a_stopping_rule, scene_budget
+from service.loop.budget import fit_iteration_cap, names_a_stopping_rule, rules_as_given, scene_budget
 from service.loop.spec import SERVICE_LIMITS, JobLimits, LoopSpec, LoopSpecError, check_limits
 from service.render.scene_probe import ProbeLimitExceeded, SceneProber
 from service.render.scenes import SceneError, builtin_scene_names, check_scene, film_size, scene_sample_count
@@ -60,18 +60,20 @@ def require_builtin(scene: str) -> None:
         raise invalid("scene", f"unknown built-in scene {scene!r}; known: {', '.join(names)} (or upload a bundle)")
 
 
-def check_effective_job(spec: LoopSpec, root: Path | None = None, limits: JobLimits = SERVICE_LIMITS) -> None:
+def check_effective_job(spec: LoopSpec, root: Path | None = None, limits: JobLimits = SERVICE_LIMITS) -> LoopSpec:
     """Service limits on the job as it will run: the scene's own film size when the request
     names none (a job without width/height must not escape the sample cap). Parsing the scene
     here also turns a broken scene into a 422 at submit instead of a failed job later."""
     try:
         width, height = film_size(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root,
                                   frames=spec.frames)
+        spec = fit_iteration_cap(spec, width, height, limits)  # a time limit alone: the service's cap
         check_limits(spec, width, height, limits)
         if root is not None:  # an uploaded scene: what instantiating it would refuse, refused now
             check_scene(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root)
     except (SceneError, LoopSpecError) as exc:
         raise invalid("spec", str(exc)) from exc
+    return spec
 
 
 def with_scene_budget(spec: LoopSpec, root: Path) -> LoopSpec:
@@ -87,8 +89,8 @@ def builtin_job(body: object, limits: JobLimits = SERVICE_LIMITS) -> LoopSpec:
     """The LoopSpec of a JSON request naming a built-in scene, limits checked."""
     request: JobCreate = validated(JobCreate, body)
     require_builtin(request.scene)
-    spec = request.loop_spec(request.scene)
-    check_effective_job(spec, None, limits)
+    spec = rules_as_given(request.loop_spec(request.scene), request.model_fields_set)
+    spec = check_effective_job(spec, None, limits)
     return spec
 
 
@@ -152,7 +154,7 @@ def stored_bundle_spec(root: Path, request: BundleJobCreate, job_limits: JobLimi
     spec = request.loop_spec(str(entry))
     if not names_a_stopping_rule(request.model_fields_set):
         spec = with_scene_budget(spec, root)
-    check_effective_job(spec, root, job_limits)
+    spec = check_effective_job(rules_as_given(spec, request.model_fields_set), root, job_limits)
     stored = spec.to_stored()
     stored["scene"] = relative
     return {**stored, "bundle_scene": relative}

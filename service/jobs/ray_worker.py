@@ -36,8 +36,10 @@ from service.jobs.ray_actor import ACTOR_THREADS, FAILURE_FILE, ActorPlan, Itera
 from service.jobs.store import CANCELED, COMPLETED, FAILED, JobRecord, JobStore
 from service.jobs.worker import (JobWorker, NoObserver, Relambda, WorkerObserver, add_timings, bundle_scene,
                                  job_spec)
+from service.loop.eta import EtaTracker
 from service.loop.loop import IterationInterrupted
 from service.loop.spec import estimated_memory
+from service.loop.stop_message import canceled_message
 from service.render.scenes import film_size
 
 log = logging.getLogger(__name__)
@@ -294,13 +296,19 @@ class RayJobWorker(JobWorker):
     def _iterate(self, job_id: str, record: JobRecord, files: JobFiles, group: list, cancel: threading.Event,
                  samples: int) -> IterationReport | None:
         timings, last = dict(record.timings), None
+        eta = EtaTracker(job_spec(record), record.spp)
         while not cancel.is_set() and not self._stopping.is_set():
             report = run_iteration(group)
             published = time.perf_counter()
             self._publish(job_id, files, report.layers)
-            timings = add_timings(add_timings(timings, report.timings), {"io": time.perf_counter() - published})
+            io_seconds = {"io": time.perf_counter() - published}
+            timings = add_timings(add_timings(timings, report.timings), io_seconds)
+            # the loop's own time (what its time limit counts) is the stages' sum less the driver's I/O
+            progress = eta.after(report.iteration + 1, report.spp_mean, {**report.timings, **io_seconds},
+                                 sum(timings.values()) - timings.get("io", 0.0), report.stop_reason,
+                                 report.predicted_error)
             self.store.record_iteration(job_id, report.iteration + 1, report.spp_mean, report.predicted_error,
-                                        timings, report.stop_reason)
+                                        timings, report.stop_reason, progress)
             self.observer.iteration_finished(report.timings, report.samples - samples)
             samples, last = report.samples, report
             if report.stop_reason is not None:
@@ -315,7 +323,9 @@ class RayJobWorker(JobWorker):
         _call(group[0].save_results.remote())  # the leader holds every frame
         canceled = (cancel.is_set() and not finished) or (last is not None and last.stop_reason == "canceled")
         if canceled:
-            self.store.finish(job_id, CANCELED, stop_reason="canceled")
+            record = self._require(job_id)
+            self.store.finish(job_id, CANCELED, stop_reason="canceled",
+                              stop_message=canceled_message(record.iteration, record.spp))
         else:
             self.store.finish(job_id, COMPLETED, stop_reason=last.stop_reason if last else None)
 

@@ -1,0 +1,66 @@
+"""A job's ETA and its stop reason in words, on a real server: GET /jobs/{id} and the event
+stream carry `eta_seconds`/`eta_basis` while the job runs and `stop_message` once it ends; a time
+limit given alone iterates until the time is spent (up to the service's cap), not for the
+default four iterations."""
+from __future__ import annotations
+
+import json
+
+import httpx
+import pytest
+
+from service_harness import wait_for
+
+
+@pytest.fixture(scope="module")
+def server(module_server):
+    return module_server
+
+
+def status_events(client: httpx.Client, job_id: str) -> list[dict]:
+    """Every `status` event of the job's stream, until its `end`."""
+    events, kind = [], None
+    with client.stream("GET", f"/jobs/{job_id}/events", timeout=300) as stream:
+        for line in stream.iter_lines():
+            if line.startswith("event: "):
+                kind = line.removeprefix("event: ")
+            elif line.startswith("data: ") and kind == "status":
+                events.append(json.loads(line.removeprefix("data: ")))
+            elif line.startswith("data: ") and kind == "end":
+                break
+    return events
+
+
+def test_a_running_job_streams_its_eta_and_the_finished_job_says_why_it_stopped(client):
+    job = client.post("/jobs", json={"scene": "cornell-box", "width": 48, "height": 48, "max_iterations": 4,
+                                     "time_limit": 600}).json()
+    events = status_events(client, job["id"])
+    running = [e for e in events if e["state"] == "running" and e["iteration"] >= 1]
+    assert running, events
+    assert all(e["eta_seconds"] is not None and e["eta_finish_at"] for e in running if e["iteration"] < 4)
+    assert any(e["eta_seconds"] > 0 and "until max_iterations (4)" in e["eta_basis"] for e in running)
+    final = client.get(f"/jobs/{job['id']}").json()
+    assert final["state"] == "completed" and final["eta_seconds"] == 0
+    assert final["stop_reason"] == "max_iterations"
+    assert final["stop_message"].startswith("stopped after 4 iterations (max_iterations 4) — ")
+    assert final["stop_message"].endswith("of the 600 s time limit unused")
+
+
+def test_a_time_limit_alone_runs_past_the_default_four_iterations_and_says_what_stopped_it(client):
+    job = client.post("/jobs", json={"scene": "cornell-box", "width": 16, "height": 16, "time_limit": 4}).json()
+    final = wait_for(client, job["id"], lambda j: j["state"] in ("completed", "failed"), timeout=120)
+    assert final["state"] == "completed", final
+    assert final["spec"]["budget_source"] == "limits" and final["spec"]["max_iterations"] == 12
+    assert final["iteration"] > 4, final
+    assert final["stop_reason"] in ("time_limit", "max_iterations")
+    expected = "of the 4 s time limit" if final["stop_reason"] == "time_limit" else "this server's cap"
+    assert expected in final["stop_message"], final["stop_message"]
+
+
+def test_a_job_canceled_while_queued_or_running_says_so_in_words(client):
+    job = client.post("/jobs", json={"scene": "cornell-box", "width": 64, "height": 64, "max_iterations": 8,
+                                     "spp_first": 64}).json()
+    client.post(f"/jobs/{job['id']}/cancel")
+    final = wait_for(client, job["id"], lambda j: j["state"] == "canceled", timeout=120)
+    assert final["stop_message"].startswith("canceled "), final
+    assert final["eta_seconds"] is None
