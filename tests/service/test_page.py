@@ -217,3 +217,90 @@ def test_the_automatic_allocator_lets_a_job_without_the_denoiser_run(page, api):
     job_id = page.submit(width=32, height=32, max_iterations=2)
     job = wait_for(api, job_id, lambda job: job["state"] in ("completed", "failed"))
     assert job["state"] == "completed" and job["spec"]["allocator"] == "variance", job
+
+
+PARAM_SCENE = """<scene version="3.0.0">
+    <default name="albedo" value="0.5"/>
+    <default name="light" value="2"/>
+    <sensor type="perspective">
+        <transform name="to_world"><lookat origin="0,0,4" target="0,0,0" up="0,1,0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+    </sensor>
+    <shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="$albedo"/></bsdf></shape>
+    <emitter type="constant"><rgb name="radiance" value="$light"/></emitter>
+</scene>
+"""
+
+
+def renders_as_missing_glyph(page: Page, text: str) -> list[str]:
+    """The characters of `text` the browser draws as its missing-glyph box: drawn on a canvas
+    in the table's font, pixel for pixel the same as a private-use code point no font has."""
+    return page.js("""
+        const font = getComputedStyle(document.querySelector('#jobs-table td') || document.body).font;
+        const canvas = document.createElement('canvas'); canvas.width = 40; canvas.height = 40;
+        const ctx = canvas.getContext('2d', {willReadFrequently: true});
+        const draw = (c) => { ctx.clearRect(0, 0, 40, 40); ctx.font = font; ctx.fillStyle = '#fff';
+                              ctx.fillText(c, 4, 28); return ctx.getImageData(0, 0, 40, 40).data.join(); };
+        const tofu = draw('\\u{10FFFD}');
+        return [...new Set([...arguments[0]])].filter((c) => c.trim() && draw(c) === tofu);""", text)
+
+
+def test_scene_parameters_and_the_seed_set_on_the_page_reach_the_submitted_job(page, api, tmp_path):
+    archive = tmp_path / "spheres.zip"
+    with zipfile.ZipFile(archive, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("spheres/scene.xml", PARAM_SCENE)
+    page.wait_for_scenes()
+    assert "declare no" in page.find("#params-note").text  # a built-in scene: none
+    page.find("#bundle-input").send_keys(str(archive))
+    field = '#params-list input[data-param="albedo"]'
+    wait_until(lambda: page.finds(field), "the zip's parameters")
+    assert page.find(field).get_attribute("value") == "0.5"
+    assert page.find('#params-list input[data-param="light"]').get_attribute("value") == "2"
+    page.find(field).clear()
+    page.find(field).send_keys("0.25")
+    job_id = page.submit(seed=7, max_iterations=1)
+    job = wait_for(api, job_id, lambda job: job["state"] in ("completed", "failed"))
+    assert job["state"] == "completed", job
+    assert (job["spec"]["params"], job["spec"]["seed"]) == ({"albedo": "0.25"}, 7)  # light kept its default
+    row = page.row_text(job_id)
+    assert "upload" in row and "scene.xml" in row
+    assert renders_as_missing_glyph(page, row) == [], row
+    assert renders_as_missing_glyph(page, "📦") == ["📦"]  # the check can fail: the old marker was a box here
+
+
+def test_the_page_says_what_device_the_server_renders_on(page, api):
+    info = api.get("/info").json()
+    assert info["device"] in ("CPU", "GPU") and info["variant"].endswith("_rgb")
+    shown = wait_until(lambda: page.find("#server-info").text, "the device line")
+    assert info["device"] in shown and info["variant"] in shown
+
+
+def test_at_1400px_every_field_of_the_new_job_form_lies_inside_its_box(page):
+    page.wait_for_scenes()
+    assert page.js("return window.innerWidth") >= 1380  # the harness's window: 1400 px wide
+    outside = page.js("""
+        const out = [];
+        for (const input of document.querySelectorAll('#submit-form input:not([type=file]), #submit-form select')) {
+          if (!input.offsetParent) continue;  // hidden
+          const box = input.getBoundingClientRect(), frame = input.closest('fieldset').getBoundingClientRect();
+          if (box.left < frame.left || box.right > frame.right) out.push(input.name || input.id);
+        }
+        return out;""")
+    assert outside == []
+    assert page.js("""const box = document.querySelector('#submit-form [name=lambda]').getBoundingClientRect();
+                      const panel = document.querySelector('#submit-panel').getBoundingClientRect();
+                      return box.right <= panel.right && box.width > 20""")
+
+
+def test_the_eta_shows_while_a_job_runs_and_the_stop_message_when_it_ends(page, api):
+    job_id = page.submit(width=48, height=48, max_iterations=5, spp_first=32, time_limit=600)
+    shown = wait_until(lambda: "left" in page.row_text(job_id) or page.state(job_id) == "completed",
+                       "an ETA in the job's row", timeout=180)
+    assert page.state(job_id) != "completed", "the job ended before any ETA was shown"
+    assert "left" in page.find("#job-summary").text or "finishing" in page.find("#job-summary").text
+    wait_until(lambda: page.state(job_id) == "completed", "the job to complete", timeout=180)
+    stop_message = api.get(f"/jobs/{job_id}").json()["stop_message"]
+    assert stop_message.startswith("stopped after 5 iterations")
+    wait_until(lambda: stop_message in page.find("#job-summary").text, "the stop message")
+    assert "seed 0" in page.find("#job-summary").text
+    assert page.script_errors() == []

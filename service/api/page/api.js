@@ -110,6 +110,7 @@ export async function browserURL(id, kind, params = {}) {
 
 export const api = {
   scenes: () => getJSON("/scenes"),
+  info: () => getJSON("/info"),
   openapi: () => getJSON("/openapi.json"),
   jobs: () => getJSON("/jobs?limit=200"),
   job: (id) => getJSON(`/jobs/${encodeURIComponent(id)}`),

@@ -18,11 +18,41 @@ export function progress(job) {
   return Math.min(1, Math.max(...fractions));
 }
 
+/** The job's name (the server's, else its scene), its size and frames. */
 export function sceneName(job) {
   const spec = job.spec || {};
   const size = spec.width && spec.height ? ` ${spec.width}×${spec.height}` : "";
   const frames = spec.frames > 1 ? ` ×${spec.frames}f` : "";
-  return `${spec.bundle_scene ? "📦 " : ""}${spec.scene || "?"}${size}${frames}`;
+  return `${job.name || spec.scene || "?"}${size}${frames}`;
+}
+
+/** Seconds left by the server's ETA, counted down to now; null when it has none. */
+export function secondsLeft(job) {
+  if (job.state !== "running" || job.eta_seconds === null || job.eta_seconds === undefined) return null;
+  if (!job.eta_finish_at) return job.eta_seconds;
+  return Math.max(0, (Date.parse(job.eta_finish_at) - Date.now()) / 1000);
+}
+
+export function etaText(job) {
+  const left = secondsLeft(job);
+  if (left === null) return job.state === "running" && job.eta_basis ? "ETA unknown" : "";
+  if (left < 1) return "finishing";
+  const minutes = Math.floor(left / 60);
+  return minutes ? `~${minutes} min ${Math.round(left % 60)} s left` : `~${Math.ceil(left)} s left`;
+}
+
+function nameCell(job) {
+  const td = document.createElement("td");
+  if ((job.spec || {}).bundle_scene) {
+    // a text badge, not an emoji: headless and minimal systems have no emoji font (a "tofu" box)
+    const badge = document.createElement("span");
+    badge.className = "badge";
+    badge.textContent = "upload";
+    badge.title = `uploaded bundle: ${job.spec.bundle_scene}`;
+    td.append(badge);
+  }
+  td.append(sceneName(job));
+  return td;
 }
 
 function cell(text, className) {
@@ -49,7 +79,11 @@ function progressCell(job) {
   bar.max = 1;
   if (fraction !== null) bar.value = fraction;  // no value: the indeterminate bar
   bar.title = fraction === null ? "until the target error" : `${Math.round(fraction * 100)} %`;
-  td.append(bar);
+  const eta = document.createElement("span");
+  eta.className = "eta";
+  eta.textContent = etaText(job);
+  eta.title = job.eta_basis || "";
+  td.append(bar, eta);
   return td;
 }
 
@@ -60,9 +94,9 @@ function row(job, selected) {
   tr.classList.toggle("selected", job.id === selected);
   const state = cell(job.state, `state ${job.state}`);
   if (job.error) state.title = job.error;
-  if (job.stop_reason) state.title = `stopped by ${job.stop_reason}`;
+  if (job.stop_reason) state.title = job.stop_message || `stopped by ${job.stop_reason}`;
   const error = job.predicted_error === null ? "—" : job.predicted_error.toFixed(4);
-  tr.append(cell(job.id.slice(0, 8), "mono"), cell(sceneName(job)), state, cell(String(job.iteration), "num"),
+  tr.append(cell(job.id.slice(0, 8), "mono"), nameCell(job), state, cell(String(job.iteration), "num"),
             cell(job.spp.toFixed(1), "num"), cell(error, "num"), progressCell(job));
   const actions = document.createElement("td");
   actions.className = "actions";
@@ -126,5 +160,14 @@ export class JobTable {
   render() {
     this.body.replaceChildren(...[...this.jobs.values()].map((job) => row(job, this.selected)));
     this.empty.hidden = this.jobs.size > 0;
+  }
+
+  /** Count the running jobs' ETAs down between their status events. */
+  tick() {
+    for (const tr of this.body.querySelectorAll("tr[data-state=running]")) {
+      const job = this.jobs.get(tr.dataset.jobId);
+      const eta = tr.querySelector(".eta");
+      if (job && eta) eta.textContent = etaText(job);
+    }
   }
 }

@@ -3,13 +3,14 @@
 
 import { api, onUnauthorized, setToken, token } from "./api.js";
 import { JobFeed } from "./feed.js";
-import { JobTable } from "./jobs.js";
+import { JobTable, etaText } from "./jobs.js";
 import { LambdaControls } from "./lambda.js";
 import { clearErrors, showError, showNote } from "./messages.js";
 import { SubmitForm } from "./submit.js";
 import { Viewer } from "./viewer.js";
 
 let selected = null;
+const ETA_TICK_MS = 1000;
 
 const tokenForm = document.getElementById("token-form");
 const tokenInput = document.getElementById("token-input");
@@ -62,6 +63,7 @@ const feed = new JobFeed({
     if (status.id === selected) {
       viewer.update(status);
       lambda.setJob(status);
+      summarize(status);
     }
   },
   onEnd: () => refreshJobs(),
@@ -83,7 +85,40 @@ function select(id) {
   const job = table.get(id) || null;
   viewer.show(job);
   lambda.setJob(job);
+  summarize(job);
   feed.follow(table.live());
+}
+
+/** The selected job in words: its name, seed and parameters, its ETA or why it stopped. */
+function summarize(job) {
+  const line = document.getElementById("job-summary");
+  if (!job) {
+    line.textContent = "";
+    return;
+  }
+  const spec = job.spec || {};
+  const params = Object.entries(spec.params || {}).map(([name, value]) => `${name}=${value}`).join(" ");
+  const parts = [job.name || spec.scene, `seed ${spec.seed ?? 0}`];
+  if (params) parts.push(params);
+  const eta = etaText(job);
+  if (eta) parts.push(eta);
+  if (job.stop_message) parts.push(job.stop_message);
+  else if (job.error) parts.push(job.error);
+  line.textContent = parts.join(" · ");
+  line.title = job.eta_basis || "";
+}
+
+function tick() {
+  table.tick();
+  const job = selected ? table.get(selected) : null;
+  if (job && job.state === "running") summarize(job);
+}
+
+async function showServer() {
+  const info = await api.info();
+  const element = document.getElementById("server-info");
+  element.textContent = `${info.device} · ${info.variant}`;
+  element.title = info.summary;
 }
 
 async function refreshJobs() {
@@ -97,6 +132,7 @@ async function refreshJobs() {
     if (!job || !viewer.job || viewer.job.id !== job.id) viewer.show(job);
     else viewer.update(job);
     lambda.setJob(job);
+    summarize(job);
     feed.follow(table.live());
   } catch (error) {
     fail(error, "job list");
@@ -142,6 +178,7 @@ async function loadAll() {
     form.configure(schemas.JobCreate);
     lambda.configure(schemas.LambdaUpdate);
     form.setScenes((await api.scenes()).scenes);
+    await showServer();
     tokenForm.hidden = true;
     await refreshJobs();
   } catch (error) {
@@ -171,6 +208,7 @@ function bindTools() {
 
 onUnauthorized(askForToken);
 bindTools();
+setInterval(tick, ETA_TICK_MS);
 viewer.show(null);
 lambda.setJob(null);
 loadAll();

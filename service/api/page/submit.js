@@ -4,11 +4,13 @@
 // the form does not validate either: the server's 422 message says what is wrong.
 
 import { api } from "./api.js";
+import { ParamFields, zipDefaults } from "./params.js";
 
 const NUMBER_FIELDS = ["width", "height", "frames", "spp_first", "max_iterations", "spp_budget", "time_limit",
-                       "target_error", "lambda"];
-// Blank means "not this rule" — but max_iterations defaults to 4 server-side, so blank sends null.
-const NULL_WHEN_BLANK = ["max_iterations"];
+                       "target_error", "lambda", "seed"];
+// Blank means "not this rule": the server stops by the rules given, and by its default iteration
+// count only when none is (service/loop/spec.py rules_as_given), so blank is not sent at all.
+const RULE_DEFAULTS_AS_PLACEHOLDER = ["max_iterations"];
 const DEFAULT_SIZE = 256;  // a first look renders quickly; blank the fields for the scene's own size
 
 function numberSchema(property) {
@@ -26,6 +28,8 @@ export class SubmitForm {
     this.description = form.querySelector("#scene-description");
     this.dropZone = form.querySelector("#drop-zone");
     this.fileInput = form.querySelector("#bundle-input");
+    this.params = new ParamFields(form.querySelector("#params-list"), form.querySelector("#params-note"));
+    form.querySelector("#bundle-xml").addEventListener("change", () => this.readBundleParams());
     form.addEventListener("submit", (event) => {
       event.preventDefault();
       this.submit();
@@ -55,7 +59,9 @@ export class SubmitForm {
       const bounds = numberSchema(property);
       if (bounds.minimum !== undefined) input.min = bounds.minimum;
       if (bounds.maximum !== undefined) input.max = bounds.maximum;
-      if (property.default !== undefined && property.default !== null) input.value = property.default;
+      const fallback = property.default !== undefined && property.default !== null;
+      if (fallback && RULE_DEFAULTS_AS_PLACEHOLDER.includes(name)) input.placeholder = `${property.default} if no rule`;
+      else if (fallback) input.value = property.default;
       if (property.description) input.title = property.description;
     }
     // allocator is "one of the kinds, or null" (null: error with the denoiser, variance without).
@@ -80,6 +86,22 @@ export class SubmitForm {
     const scene = this.scenes.find((s) => s.name === this.scene.value);
     const integrator = scene && scene.effects && scene.effects.integrator;
     this.description.textContent = scene ? `${scene.description}${integrator ? ` — ${integrator}` : ""}` : "";
+    if (!this.bundle) this.params.show({}, "built-in scenes declare no <default> parameters");
+  }
+
+  /** The dropped zip's scene parameters, read from its XML in the browser. */
+  async readBundleParams() {
+    const file = this.bundle;
+    if (!file) return;
+    try {
+      const {xml, defaults} = await zipDefaults(file, this.form.elements.bundle_xml.value.trim());
+      if (file !== this.bundle) return;  // another file was chosen meanwhile
+      const count = Object.keys(defaults).length;
+      this.params.show(defaults, !xml ? "several XMLs: name the one to render to see its parameters"
+        : count ? `the <default>s of ${xml}` : `${xml} declares no <default> parameters`);
+    } catch (error) {
+      this.params.show({}, `parameters not read: ${error.message}`);
+    }
   }
 
   useBundle(file) {
@@ -91,6 +113,8 @@ export class SubmitForm {
     this.scene.disabled = Boolean(file);
     this.form.querySelector("#bundle-clear").hidden = !file;
     this.form.querySelector("#bundle-xml-label").hidden = !file;
+    if (file) this.readBundleParams();
+    else this.describeScene();
   }
 
   /** The job spec as JSON: numbers as numbers, blanks left to the server's defaults. */
@@ -99,16 +123,14 @@ export class SubmitForm {
     const spec = {};
     for (const name of NUMBER_FIELDS) {
       const text = elements[name].value.trim();
-      if (text === "") {
-        if (NULL_WHEN_BLANK.includes(name)) spec[name] = null;
-        continue;
-      }
-      spec[name] = Number(text);
+      if (text !== "") spec[name] = Number(text);
     }
     const bad = NUMBER_FIELDS.find((name) => elements[name].validity.badInput);
     if (bad) throw new Error(`${bad}: not a number`);
     if (elements.allocator.value) spec.allocator = elements.allocator.value;  // blank: the server's default
     spec.denoise = elements.denoise.checked;
+    const params = this.params.changed();
+    if (Object.keys(params).length) spec.params = params;
     return spec;
   }
 
