@@ -15,6 +15,7 @@ from torch import Tensor
 
 from models.denoiser import LAMBDA_MAX, Denoiser, DenoiserCache
 from models.pyramid import down, pad_to
+from models.exposure import Exposure
 from models.error_predictor import ErrorPredictor
 from models.features import demodulate
 from models.frames import FrameTensors
@@ -107,7 +108,9 @@ def error_predictor_loss(model: ErrorPredictor, denoiser: Denoiser, frame: Frame
                          reference: Tensor, candidate: Tensor | None = None) -> Tensor:
     with torch.no_grad():
         denoised, disagreement = denoise_for_error_network(model, denoiser, frame, candidate)
-        target = smape_map(denoised, reference)
+        # the error the network reads its inputs at: SMAPE's ε is absolute (models.exposure)
+        exposure = Exposure.of(frame.color)
+        target = smape_map(exposure.forward(denoised), exposure.forward(reference))
     return l1(model(frame, denoised, disagreement), target)
 
 
