@@ -103,13 +103,13 @@ def signal_handlers_kept() -> Iterator[None]:
                 signal.signal(number, handler)
 
 
-def chain_sigterm(first: Callable[[], None]) -> None:
+def chain_sigterm(first: Callable[[], None]) -> Callable[[], None]:
     """Run `first` on SIGTERM, then whatever handler was there (uvicorn's graceful shutdown):
     the backend learns of the stop at once, not after uvicorn's grace for open responses — a
     SIGTERM to the whole process group ends Ray's workers in the same instant, and a job must
     not take that for a crash and start new ones."""
     if threading.current_thread() is not threading.main_thread():
-        return
+        return lambda: None
     previous = signal.getsignal(signal.SIGTERM)
 
     def handler(signum: int, frame: FrameType | None) -> None:
@@ -120,6 +120,13 @@ def chain_sigterm(first: Callable[[], None]) -> None:
             raise SystemExit(128 + signum)
 
     signal.signal(signal.SIGTERM, handler)
+
+    def unchain() -> None:
+        """Put the previous handler back, if ours is still the one installed."""
+        if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) is handler:
+            signal.signal(signal.SIGTERM, previous)
+
+    return unchain
 
 
 def private_token_file() -> Path:
@@ -178,6 +185,8 @@ class LocalRay:
             ray.shutdown()
         if self.token_path is not None:
             shutil.rmtree(self.token_path.parent, ignore_errors=True)
+            if os.environ.get(AUTH_TOKEN_PATH_ENV) == str(self.token_path):
+                os.environ.pop(AUTH_TOKEN_PATH_ENV)
             self.token_path = None
 
     def failure(self) -> str | None:

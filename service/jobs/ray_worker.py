@@ -23,6 +23,7 @@ import os
 import threading
 import time
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import ray
@@ -108,6 +109,7 @@ class RayJobWorker(JobWorker):
         self._runtime: LocalRay | None = None  # the local runtime this worker started, if it did
         self._joined = False
         self._gpus = 0
+        self._unchain_sigterm: Callable[[], None] = lambda: None
         self._lambda_actors = LambdaActors(lambda: self._networks_ref, _call)
         self._networks_ref = None
 
@@ -120,7 +122,7 @@ class RayJobWorker(JobWorker):
                 self._joined = True
             else:
                 self._runtime = start_local_ray(self.settings.workers * CPUS_PER_ACTOR)
-        chain_sigterm(self._stopping.set)
+        self._unchain_sigterm = chain_sigterm(self._stopping.set)
         if self._runtime is not None:
             threading.Thread(target=self._watch_runtime, name="ray-watch", daemon=True).start()
         self._gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0  # asked once: the GCS may be gone later
@@ -141,6 +143,7 @@ class RayJobWorker(JobWorker):
         for group in groups:
             self._kill(group)
         self._lambda_actors.drop_all()
+        self._unchain_sigterm()
         if self._runtime is not None:
             self._runtime.stop()
         elif self._joined:
