@@ -16,7 +16,7 @@ from bench.common import BenchNetworks, OidnDenoise, command_line, load_average,
 from bench.dev_references import DEV_SCENES, VAL_SCENES, DevScene, dev_scenes
 from bench.loop_report import DEFAULT_CACHE_DIR, THREAD_PROBE_SIZE, choose_torch_threads
 from bench.versus_mitsuba_costs import measure_fixed_costs
-from bench.versus_mitsuba_report import LOOP, UNIFORM, Results, SceneRun, Settings, report_text
+from bench.versus_mitsuba_report import LOOP, UNIFORM, CostProbe, Results, SceneRun, Settings, report_text
 from bench.versus_mitsuba_run import Curve, better_of, compare, loop_curve, mitsuba_curve, spp_levels, warm_up_loop
 from bench.versus_mitsuba_scene import reference, scaled_film, scene_filter
 
@@ -58,12 +58,24 @@ def run_scene(scene: DevScene, settings: Settings, nets: BenchNetworks, oidn: Oi
     return SceneRun(scene, film, rfilter, ref.relative_error, curves, versus, compare(loop.curve, uniform.curve), costs)
 
 
+def probe_costs(scene: DevScene, megapixels: float, nets: BenchNetworks) -> CostProbe:
+    """Fixed costs and memory of one 16-spp loop iteration at `megapixels` (no reference needed)."""
+    film = scaled_film(scene, megapixels)
+    print(f"bench --versus-mitsuba: {scene.name} ({film}): fixed costs of one iteration …", flush=True)
+    warm_up_loop(scene, film, nets.networks)
+    run = loop_curve(LOOP, "the loop (error allocator)", scene, film, nets.networks, "error", [16], None)
+    return CostProbe(scene.name, film, measure_fixed_costs(scene.name, run), run.curve.peak_rss_mb,
+                     run.curve.rss_growth_mb)
+
+
 def measure_versus_mitsuba(*, megapixels: float = DEFAULT_MEGAPIXELS, max_spp: int = DEFAULT_MAX_SPP,
                            reference_spp: int = DEFAULT_REFERENCE_SPP, scenes: list[str] | None = None,
                            weights_dir: Path | None = None, cache_dir: Path = DEFAULT_CACHE_DIR,
-                           threads: int | None = None, command: str | None = None) -> Results:
+                           threads: int | None = None, command: str | None = None,
+                           costs_megapixels: float | None = None) -> Results:
     """Measure every scene (or those named). `threads`: torch intra-op threads (None: probe 1 vs 2
-    and take the faster, as `renderloop bench --loop` does)."""
+    and take the faster, as `renderloop bench --loop` does). `costs_megapixels`: also the fixed
+    costs of one iteration on the first scene at that size (item 3 at ~2 MP from a small run)."""
     started = time.perf_counter()
     spp_levels(max_spp)  # refuses a max below the first iteration before anything runs
     chosen = suite_scenes(scenes)
@@ -77,6 +89,8 @@ def measure_versus_mitsuba(*, megapixels: float = DEFAULT_MEGAPIXELS, max_spp: i
     with pinned_torch_threads(threads):
         for scene in chosen:
             results.scenes.append(run_scene(scene, settings, nets, oidn))
+        if costs_megapixels is not None:
+            results.probe = probe_costs(chosen[0], costs_megapixels, nets)
     results.seconds = time.perf_counter() - started
     return results
 
@@ -120,6 +134,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"(default {DEFAULT_MEGAPIXELS:g}, about 1080p)")
     parser.add_argument("--max-spp", type=int, default=DEFAULT_MAX_SPP,
                         help=f"with --versus-mitsuba: uniform spp 16, 32, … up to this (default {DEFAULT_MAX_SPP})")
+    parser.add_argument("--costs-megapixels", type=positive_megapixels, default=None, metavar="MP",
+                        help="with --versus-mitsuba: also measure one loop iteration's fixed costs and memory at "
+                             "this size on the first scene (no reference needed; e.g. 2 from a small run)")
     parser.add_argument("--scenes", type=scene_list, default=None, metavar="A,B",
                         help="with --versus-mitsuba: these scenes of scenes/dev or scenes/val only")
 
@@ -133,6 +150,6 @@ def run_versus_mitsuba_command(args: argparse.Namespace) -> int:
         return 2
     path = run_versus_mitsuba(args.out, megapixels=args.megapixels, max_spp=args.max_spp,
                               reference_spp=args.reference_spp or DEFAULT_REFERENCE_SPP, scenes=args.scenes,
-                              weights_dir=args.weights, cache_dir=args.cache)
+                              weights_dir=args.weights, cache_dir=args.cache, costs_megapixels=args.costs_megapixels)
     print(f"wrote {path}")
     return 0

@@ -47,6 +47,7 @@ class FixedCosts:
     megapixels: float
     ms: dict[str, float]  # median milliseconds per stage call ("render": the last iteration's)
     iteration_ms: list[float]  # wall time of each of the loop's iterations (its four stages)
+    render_ms: list[float]  # the render stage of each
 
     def per_megapixel(self, stage: str) -> float:
         return self.ms[stage] / self.megapixels
@@ -57,8 +58,10 @@ class FixedCosts:
         return sum(self.ms[s] for s in WORKER_WRITES)
 
     def share(self, stage: str, iteration: int) -> float:
-        """`stage`'s time as a share of iteration `iteration` with the worker's writes added."""
-        return self.ms[stage] / (self.iteration_ms[iteration] + self.worker_ms)
+        """`stage`'s time as a share of iteration `iteration` with the worker's writes added (the
+        render: that iteration's own)."""
+        ms = self.render_ms[iteration] if stage == "render" else self.ms[stage]
+        return ms / (self.iteration_ms[iteration] + self.worker_ms)
 
     @property
     def stall_share(self) -> float:
@@ -103,5 +106,6 @@ def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCost
         ms["preview"] = _median_ms(lambda: [files.save_preview(f, Preview(1, frame_layers))
                                             for f, frame_layers in enumerate(layers)], repeats)
     iteration_ms = [1000 * sum(p.stages.values()) for p in run.curve.points]
+    render_ms = [1000 * p.stages["render"] for p in run.curve.points]
     height, width = buffer.shape
-    return FixedCosts(label, width * height / 1e6, ms, iteration_ms)
+    return FixedCosts(label, width * height / 1e6, ms, iteration_ms, render_ms)

@@ -46,6 +46,18 @@ class Settings:
 
 
 @dataclass
+class CostProbe:
+    """One 16-spp iteration of the loop (error allocator) at --costs-megapixels, no reference: the
+    fixed costs and the memory at a size the curves were not run at."""
+
+    scene: str
+    film: Film
+    costs: FixedCosts
+    peak_rss_mb: float
+    rss_growth_mb: float
+
+
+@dataclass
 class Results:
     settings: Settings
     nets: BenchNetworks
@@ -53,6 +65,7 @@ class Results:
     load_before: str
     scenes: list[SceneRun] = field(default_factory=list)
     seconds: float = math.nan
+    probe: CostProbe | None = None
 
 
 # --- cells ------------------------------------------------------------------------------------------
@@ -173,17 +186,34 @@ def network_table(scenes: list[SceneRun]) -> str:
     return "\n".join(lines)
 
 
-def fixed_costs_table(scenes: list[SceneRun]) -> str:
+def fixed_costs_rows(costs: list[FixedCosts]) -> list[str]:
     lines = ["| stage | fixed | median ms per call | median ms / MP | min–max ms / MP | share of iteration 0 (16 spp) "
              "| share of the last iteration |", "|---|---|---:|---:|---:|---:|---:|"]
     for key, label, fixed in COST_STAGES:
-        ms = [run.costs.ms[key] for run in scenes]
-        per_mp = [run.costs.per_megapixel(key) for run in scenes]
-        first = [run.costs.share(key, 0) for run in scenes]
-        last = [run.costs.share(key, -1) for run in scenes]
+        ms = [c.ms[key] for c in costs]
+        per_mp = [c.per_megapixel(key) for c in costs]
+        first = [c.share(key, 0) for c in costs]
+        last = [c.share(key, -1) for c in costs]
         lines.append(f"| {label} | {'yes' if fixed else 'no'} | {statistics.median(ms):.1f} | "
                      f"{statistics.median(per_mp):.0f} | {min(per_mp):.0f}–{max(per_mp):.0f} | "
                      f"{statistics.median(first):.1%} | {statistics.median(last):.1%} |")
+    return lines
+
+
+def probe_section(probe: CostProbe) -> list[str]:
+    c = probe.costs
+    return ["", f"**At {probe.film} ({c.megapixels:.2f} MP), {probe.scene}:** one 16-spp iteration of the loop (error "
+                "allocator), no reference (`--costs-megapixels`); the same measurements. Peak RSS of the process "
+                f"during that iteration: **{probe.peak_rss_mb / 1024:.2f} GB** (growth {probe.rss_growth_mb:.0f} MB); "
+                f"checkpoint + preview writes: {c.worker_ms:.0f} ms per iteration "
+                f"({c.worker_ms / c.megapixels:.0f} ms / MP).", "", *fixed_costs_rows([c])]
+
+
+def fixed_costs_table(scenes: list[SceneRun], probe: CostProbe | None = None) -> str:
+    lines = [f"**At the benchmark's size** (medians over {len(scenes)} scene(s)):", "",
+             *fixed_costs_rows([run.costs for run in scenes])]
+    if probe is not None:
+        lines += probe_section(probe)
     return "\n".join(lines)
 
 
@@ -204,8 +234,9 @@ def fixed_costs_note(scenes: list[SceneRun]) -> str:
     return ("Measured on each scene's finished loop (error allocator) at this size, by calling the functions the "
             "loop and the job worker call, median of 3 calls each; ms / MP divides by the film's megapixels. "
             "Shares: of that iteration's wall time (its four loop stages) plus the worker's "
-            f"{worker} writes; \"render\" is the last iteration's. On the CPU the tensors live in host memory, so the two copy rows are "
-            "layout copies; on a GPU they are the host/device transfers.")
+            f"{worker} writes; the render row's ms are the last iteration's, its shares each iteration's own. "
+            "On the CPU the tensors live in host memory, so the two copy rows are layout copies; on a GPU "
+            "they are the host/device transfers.")
 
 
 def full_command(settings: Settings) -> str:
@@ -233,5 +264,5 @@ def report_text(results: Results) -> str:
         max_spp=s.max_spp, headline_table=headline_table(scenes), summary=summary(scenes, s.megapixels),
         curve_tables=curve_tables(scenes), stage_tables=stage_tables(scenes), memory_table=memory_table(scenes),
         network_table=network_table(scenes), fixed_costs_note=fixed_costs_note(scenes),
-        fixed_costs_table=fixed_costs_table(scenes), stall_note=stall_note(scenes), full_command=full_command(s),
+        fixed_costs_table=fixed_costs_table(scenes, results.probe), stall_note=stall_note(scenes), full_command=full_command(s),
     )

@@ -156,8 +156,9 @@ def warm_up_loop(scene: DevScene, film: Film, networks: Networks) -> None:
 
 
 def loop_curve(key: str, label: str, scene: DevScene, film: Film, networks: Networks, allocator: str,
-               levels: list[int], reference: np.ndarray) -> LoopRun:
-    """One point per iteration (16, 32, … spp mean): cumulative stage time and SMAPE."""
+               levels: list[int], reference: np.ndarray | None) -> LoopRun:
+    """One point per iteration (16, 32, … spp mean): cumulative stage time and SMAPE (nan without
+    a reference: a run for its costs and memory only)."""
     curve = Curve(key, label)
     loop = make_loop(scene, film, networks, allocator, len(levels))
     elapsed, last = 0.0, None
@@ -165,7 +166,8 @@ def loop_curve(key: str, label: str, scene: DevScene, film: Film, networks: Netw
         for record in loop.run():
             stages = {name: float(record.timings.get(name, 0.0)) for name in STAGES}
             elapsed += sum(stages.values())
-            curve.points.append(CurvePoint(record.spp_mean, elapsed, image_smape(record.denoised[0], reference), stages))
+            error = math.nan if reference is None else image_smape(record.denoised[0], reference)
+            curve.points.append(CurvePoint(record.spp_mean, elapsed, error, stages))
             last = record
     return LoopRun(curve, loop, last)
 

@@ -1,0 +1,154 @@
+"""`renderloop bench --versus-mitsuba` end to end on a tiny setting (real Mitsuba, real OIDN, the
+real loop with tiny untrained networks), and the equal-error / equal-time reading its headline
+rests on."""
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import pytest
+
+from bench.versus_mitsuba import add_arguments, measure_versus_mitsuba, run_versus_mitsuba_command, write_report
+from bench.versus_mitsuba_report import LOOP, UNIFORM, headline_table
+from bench.versus_mitsuba_run import Curve, CurvePoint, better_of, compare, error_at_time, time_at_error
+from bench.versus_mitsuba_scene import pass_plan
+
+TINY_SCENE = "sun_room"  # a Gaussian film: both mi.render films run
+
+
+def curve(key: str, points: list[tuple[float, float, float]]) -> Curve:
+    """A curve from (spp, seconds, SMAPE) triples."""
+    return Curve(key, key, [CurvePoint(spp, seconds, error, {}) for spp, seconds, error in points])
+
+
+def loglog(x0: float, y0: float, x1: float, y1: float, y: float) -> float:
+    """x at y on the straight line through two points in log-log (written out independently)."""
+    u = (math.log(y) - math.log(y0)) / (math.log(y1) - math.log(y0))
+    return math.exp(math.log(x0) + u * (math.log(x1) - math.log(x0)))
+
+
+@pytest.fixture(scope="module")
+def tiny_results(tmp_path_factory, tiny_weights_dir: Path):
+    cache = tmp_path_factory.mktemp("cache")
+    return measure_versus_mitsuba(megapixels=0.004, max_spp=64, reference_spp=256, scenes=[TINY_SCENE],
+                                  weights_dir=tiny_weights_dir, cache_dir=cache, threads=1,
+                                  command="renderloop bench --versus-mitsuba --tiny", costs_megapixels=0.008)
+
+
+def test_tiny_run_writes_a_filled_report_with_every_section(tiny_results, tmp_path: Path) -> None:
+    text = write_report(tiny_results, tmp_path).read_text()
+    assert "$" not in text  # every template field was filled
+    for needed in ("Command: `renderloop bench --versus-mitsuba --tiny`", "Machine:", "Mitsuba variant:",
+                   "## Headline", "equal-error speed-up", "## Peak memory", "## Networks and OIDN, ms per megapixel",
+                   "## Fixed costs per iteration", "checkpoint write", "preview write", "stall rendering",
+                   "**A small run**", "renderloop bench --versus-mitsuba -o docs", "256 spp", "quality high"):
+        assert needed in text, needed
+    assert "nan" not in text.lower().replace("nanos", "")
+    assert f"{TINY_SCENE}:** one 16-spp iteration" in text  # the --costs-megapixels probe's table
+
+
+def test_fixed_costs_are_measured_for_every_stage_and_the_probe_at_its_own_size(tiny_results) -> None:
+    costs = tiny_results.scenes[0].costs
+    for stage in ("to_tensors", "denoiser", "error_network", "lambda_tail", "checkpoint", "preview"):
+        assert costs.ms[stage] > 0, stage
+    assert len(costs.iteration_ms) == 3 and 0 < costs.stall_share < 1
+    probe = tiny_results.probe
+    assert probe.film.width * probe.film.height == pytest.approx(8000, rel=0.1)
+    assert probe.costs.megapixels == pytest.approx(0.008, rel=0.1) and len(probe.costs.iteration_ms) == 1
+    assert probe.peak_rss_mb > 100 and probe.costs.ms["checkpoint"] > 0
+
+
+def test_uniform_curves_fall_with_spp_at_the_levels_asked(tiny_results) -> None:
+    run = tiny_results.scenes[0]
+    assert set(run.curves) == {"mitsuba", "mitsuba-box", LOOP, UNIFORM}  # a Gaussian film: both films ran
+    for key in ("mitsuba", "mitsuba-box"):
+        points = run.curves[key].points
+        assert [p.spp for p in points] == [16, 32, 64]
+        errors = [p.smape for p in points]
+        assert errors == sorted(errors, reverse=True) and errors[0] > errors[-1], (key, errors)
+        assert all(p.seconds > 0 and p.stages["oidn"] > 0 for p in points)
+    assert [p.spp for p in run.curves[LOOP].points] == [16, 32, 64]
+    loop_seconds = [p.seconds for p in run.curves[LOOP].points]
+    assert loop_seconds == sorted(loop_seconds)  # cumulative
+    assert run.curves[LOOP].peak_rss_mb > 100
+    assert run.film.width * run.film.height == pytest.approx(4000, rel=0.1)
+
+
+def test_speedup_is_read_off_the_better_competitor_as_documented(tiny_results) -> None:
+    run = tiny_results.scenes[0]
+    loop = run.curves[LOOP]
+    comparisons = [compare(loop, run.curves[k]) for k in ("mitsuba", "mitsuba-box")]
+    chosen = run.versus_mitsuba
+    assert chosen.other_seconds.value == min(c.other_seconds.value for c in comparisons)
+    assert chosen.target == loop.points[-1].smape and chosen.loop_seconds == loop.points[-1].seconds
+    assert chosen.speedup == pytest.approx(chosen.other_seconds.value / loop.points[-1].seconds)
+    other = run.curves[chosen.other].points
+    bracket = [(a, b) for a, b in zip(other, other[1:]) if min(a.smape, b.smape) <= chosen.target <= max(a.smape, b.smape)]
+    if bracket:  # the curves meet: a log-log interpolation between the two bracketing points
+        (a, b) = bracket[0]
+        assert chosen.other_seconds.how == "interpolated"
+        assert chosen.other_seconds.value == pytest.approx(loglog(a.seconds, a.smape, b.seconds, b.smape, chosen.target))
+    else:
+        assert chosen.other_seconds.how == "extrapolated"
+    assert ("~" in headline_table([run]).splitlines()[2]) == (chosen.other_seconds.how == "extrapolated"
+                                                             or chosen.other_error.how == "extrapolated"
+                                                             or run.versus_uniform.other_seconds.how == "extrapolated")
+
+
+def test_equal_error_time_interpolates_where_the_curves_meet() -> None:
+    loop = curve(LOOP, [(16, 1.0, 0.08), (32, 2.0, 0.05)])
+    other = curve("mitsuba", [(16, 1.0, 0.10), (32, 2.0, 0.07), (64, 4.0, 0.04)])
+    c = compare(loop, other)
+    assert c.other_seconds.how == "interpolated"
+    assert c.other_seconds.value == pytest.approx(loglog(2.0, 0.07, 4.0, 0.04, 0.05))
+    assert c.speedup == pytest.approx(c.other_seconds.value / 2.0) and c.speedup > 1
+    assert c.other_error.how == "interpolated" and c.other_error.value == pytest.approx(0.07)
+    assert c.error_ratio == pytest.approx(0.05 / 0.07)
+
+
+def test_extrapolation_is_flagged_when_the_curves_do_not_meet() -> None:
+    loop = curve(LOOP, [(16, 1.0, 0.03), (32, 2.0, 0.02)])
+    never_that_low = curve("mitsuba", [(16, 1.0, 0.10), (32, 2.0, 0.08), (64, 4.0, 0.06)])
+    already_lower = curve("mitsuba-box", [(16, 4.0, 0.015), (32, 8.0, 0.01)])
+    for other in (never_that_low, already_lower):
+        reading = time_at_error(other, 0.02)
+        assert reading.how == "extrapolated" and math.isfinite(reading.value)
+    assert time_at_error(never_that_low, 0.02).value > 4.0  # beyond its last point
+    assert time_at_error(already_lower, 0.02).value < 4.0  # before its first
+    assert error_at_time(already_lower, 2.0).how == "extrapolated"
+    flat = curve("mitsuba", [(16, 1.0, 0.05), (32, 2.0, 0.05), (64, 4.0, 0.06)])
+    assert time_at_error(flat, 0.02).how == "not reached" and math.isinf(time_at_error(flat, 0.02).value)
+    best = better_of(loop, [never_that_low, already_lower])
+    # the competitor that reaches the loop's SMAPE sooner is the one compared
+    assert best.other == "mitsuba-box"
+    assert best.speedup == pytest.approx(time_at_error(already_lower, 0.02).value / 2.0)
+
+
+def test_pass_plan_keeps_powers_of_four_within_the_lane_cap() -> None:
+    assert pass_plan(32, 2_000_000) == (16, 2)
+    assert pass_plan(1024, 2_000_000) == (16, 64)
+    assert pass_plan(64, 10_000) == (64, 1)
+    assert pass_plan(256, 10_000, min_calls=4) == (64, 4)
+
+
+def versus_mitsuba_parser() -> argparse.ArgumentParser:
+    """The mode's own flags plus the `renderloop bench` flags it shares (bench/cli.py)."""
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    parser.add_argument("-o", "--out", type=Path, default=Path("bench-reports"))
+    parser.add_argument("--weights", type=Path, default=None)
+    parser.add_argument("--cache", type=Path, default=Path("bench-cache"))
+    parser.add_argument("--reference-spp", type=int, default=None)
+    return parser
+
+
+def test_command_refuses_an_unknown_scene_and_a_max_below_16(capsys) -> None:
+    parse = versus_mitsuba_parser().parse_args
+    assert run_versus_mitsuba_command(parse(["--versus-mitsuba", "--scenes", "no_such_scene"])) == 2
+    assert "unknown scene(s) no_such_scene" in capsys.readouterr().err
+    assert run_versus_mitsuba_command(parse(["--versus-mitsuba", "--max-spp", "8"])) == 2
+    assert "--max-spp must be at least 16" in capsys.readouterr().err
+    args = parse(["--versus-mitsuba", "--scenes", "metals,sun_room", "--megapixels", "0.5"])
+    assert args.scenes == ["metals", "sun_room"] and args.megapixels == 0.5 and args.max_spp == 1024
+    assert args.costs_megapixels is None
