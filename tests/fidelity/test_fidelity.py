@@ -2,8 +2,10 @@
 
 Each scene (tests/fidelity/scenes/) pins one thing the scene asks for: an integrator with its
 parameters, a reconstruction filter, hide_emitters under an environment map, a crop window, a
-non-square film, a sensor type, a scene parameter, a spectral variant. Mean radiance within 1 %;
-per-pixel SMAPE within 1.2× of the noise between two correct renders (harness.py).
+non-square film, a sensor type, a scene parameter, a spectral variant. The check (harness.py):
+mean radiance within 1 % and within 4 standard errors of mi.render's, and per pixel, the squared
+differences within 1.3× of their noise, for the per-pixel estimates and for the splatted raw
+image; test_planted_bugs.py shows it rejects a bounce fewer, a light 3 % dimmer, a filter ignored.
 """
 from __future__ import annotations
 
@@ -17,8 +19,12 @@ import pytest
 
 from tests.fidelity.harness import compare_file
 
-# 32² × 64 spp: a few tenths of a second per render, mean radiance stable to ~0.3 %.
-SPP = 64
+# 32² × 512 spp, 2 seeds of ours and 4 of mi.render's: the mean's standard error ~0.05 %, so a
+# 0.35 % bias (a bounce fewer) reads 7 standard errors; per-pixel R of the real renderer 0.56–1.02
+# on every scene here, of the planted bugs 1.74–2.06 (test_planted_bugs.py).
+SPP = 512
+# The single-image SMAPE checks (AOVs, spectral) keep their original 64 spp.
+SMAPE_SPP = 64
 MEAN_TOLERANCE = 0.01
 SMAPE_FACTOR = 1.2
 AOV_SMAPE_FACTOR = 1.35
@@ -34,15 +40,14 @@ FILTERED_SCENES = ["path_tent.xml", "path_gaussian.xml", "path_mitchell.xml", "d
 @pytest.mark.parametrize("name", BOX_SCENES)
 def test_box_filtered_scene_matches_mi_render_within_mitsubas_own_noise(name):
     c = compare_file(name, SPP)
-    assert abs(c.mean_ratio - 1) < MEAN_TOLERANCE, c.mean_ratio
+    assert not c.failures(), c.failures()
     assert c.smape_ratio() <= SMAPE_FACTOR, c.smape_ratio()
 
 
 @pytest.mark.parametrize("name", FILTERED_SCENES)
 def test_filtered_scene_matches_mi_render_within_the_noise_floor(name):
     c = compare_file(name, SPP)
-    assert abs(c.mean_ratio - 1) < MEAN_TOLERANCE, c.mean_ratio
-    assert c.noise_floor_ratio() <= SMAPE_FACTOR, c.noise_floor_ratio()
+    assert not c.failures(), c.failures()
 
 
 def test_a_camera_inside_fog_starts_its_rays_in_the_fog():
@@ -55,13 +60,13 @@ def test_a_camera_inside_fog_starts_its_rays_in_the_fog():
 
 
 def test_hide_emitters_keeps_the_environment_out_of_the_background():
-    c = compare_file("hide_emitters_env.xml", SPP)
+    c = compare_file("hide_emitters_env.xml", SMAPE_SPP)
     top_rows = c.ours[:4, :, :3]  # above the horizon: only the hidden sky
     assert top_rows.max() == 0.0 and c.mi_a[:4, :, :3].max() == 0.0
 
 
 def test_aov_integrator_channels_match_mitsubas_layer_by_layer():
-    c = compare_file("aov_tent.xml", SPP)
+    c = compare_file("aov_tent.xml", SMAPE_SPP)
     assert abs(c.mean_ratio - 1) < MEAN_TOLERANCE
     # R,G,B then aov_names(): the inner path's R,G,B,A, dd.T, nn.XYZ, a.RGB.
     assert c.ours.shape[-1] == c.mi_a.shape[-1] == 14
@@ -77,8 +82,7 @@ def test_aov_integrator_channels_match_mitsubas_layer_by_layer():
 @pytest.mark.parametrize("depth", ["1", "4"])
 def test_scene_parameter_reaches_the_integrator(depth):
     c = compare_file("param_depth.xml", SPP, max_depth=depth)
-    assert abs(c.mean_ratio - 1) < MEAN_TOLERANCE
-    assert c.smape_ratio() <= SMAPE_FACTOR
+    assert not c.failures(), c.failures()
 
 
 SPECTRAL_SCRIPT = """
@@ -93,7 +97,7 @@ print(json.dumps({"mean": c.mean_ratio, "smape": c.smape_ratio()}))
 def test_spectral_variant_matches_mi_render_in_linear_srgb(name):
     # Variants are chosen once per process (runtime.mitsuba), so this one runs in its own.
     env = {**os.environ, "RENDERLOOP_VARIANT": "llvm_ad_spectral", "PYTHONPATH": str(REPO)}
-    out = subprocess.run([sys.executable, "-c", SPECTRAL_SCRIPT, name, str(SPP)], env=env,
+    out = subprocess.run([sys.executable, "-c", SPECTRAL_SCRIPT, name, str(SMAPE_SPP)], env=env,
                          capture_output=True, text=True, timeout=300, cwd=REPO)
     assert out.returncode == 0, out.stderr[-2000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
