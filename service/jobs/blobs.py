@@ -1,7 +1,8 @@
 """Uploaded files kept once: content-addressed under `DATA/blobs/ab/cdef…` (the SHA-256 of
 their bytes), each job's `bundle/` made of hard links to them.
 
-Twelve jobs of the same scene hold one copy of its textures and meshes. A blob's link count is
+Twelve jobs of the same scene hold one copy of its textures and meshes (files of at least
+MIN_SHARED_BYTES; smaller ones stay each job's own). A blob's link count is
 its reference count: the blob's own name plus one per job file linked to it, so a blob whose
 count is back to 1 belongs to no job any more and `release_unused` removes it. Blobs are made
 read-only (the mode belongs to the shared inode), so no job can change another job's scene.
@@ -15,12 +16,16 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
+import shutil
 import threading
-import uuid
 from pathlib import Path
 
 BLOBS_FOLDER = "blobs"
 READ_ONLY = 0o444
+# Smaller files stay each job's own: one fills a single file-system block either way, so
+# sharing saves at most 4 KiB per file, while linking thousands of them (a 4096-file bundle)
+# doubled the file-system work of the upload request. Textures and meshes are what repeat.
+MIN_SHARED_BYTES = 4096
 # Errors after which a job simply keeps its own copy of a file.
 _CANNOT_LINK = (errno.EXDEV, errno.EPERM, errno.EMLINK, errno.ENOTSUP, errno.EOPNOTSUPP)
 _HASH_CHUNK = 1024 * 1024
@@ -50,20 +55,32 @@ class BlobStore:
         return sorted(p for p in self.root.glob("??/*") if p.is_file()) if self.root.is_dir() else []
 
     def adopt(self, folder: Path) -> int:
-        """Replace every file under `folder` by a hard link to its blob (made from the file
-        when it is the first of its content). Returns how many files now share a blob."""
+        """Replace every file of at least MIN_SHARED_BYTES under `folder` by a hard link to its
+        blob (made from the file when it is the first of its content). Returns how many files now share a blob.
+        Plain `os` calls on strings: a 4096-file bundle is adopted inside its upload request."""
         shared = 0
+        made: set[str] = set()  # fan-out folders known to exist
+        # New links are made beside the bundle, never inside it, so no uploaded name can clash.
+        staging = os.path.join(os.path.dirname(os.path.abspath(folder)), ".blob-links")
         with self._lock:
             self._release_unused()  # uploads refused after their adoption leave blobs behind
-            for path in sorted(p for p in folder.rglob("*") if p.is_file() and not p.is_symlink()):
-                shared += self._share(path, self.path_of(file_digest(path)))
+            os.makedirs(staging, exist_ok=True)
+            try:
+                for path in sorted(_files_under(str(folder), MIN_SHARED_BYTES)):
+                    digest = file_digest(Path(path))
+                    fan = os.path.join(self.root, digest[:2])
+                    if fan not in made:
+                        os.makedirs(fan, exist_ok=True)
+                        made.add(fan)
+                    shared += self._share(path, os.path.join(fan, digest[2:]), os.path.join(staging, "link"))
+            finally:
+                shutil.rmtree(staging, ignore_errors=True)
         return shared
 
-    def _share(self, path: Path, blob: Path) -> bool:
+    def _share(self, path: str, blob: str, temporary: str) -> bool:
         try:
-            blob.parent.mkdir(parents=True, exist_ok=True)
             for _ in range(3):  # another server may create or release the blob meanwhile
-                if self._link_existing(blob, path) or self._become_blob(path, blob):
+                if self._link_existing(blob, path, temporary) or self._become_blob(path, blob):
                     return True
         except OSError as exc:
             if exc.errno not in _CANNOT_LINK:
@@ -71,9 +88,8 @@ class BlobStore:
         return False
 
     @staticmethod
-    def _link_existing(blob: Path, path: Path) -> bool:
+    def _link_existing(blob: str, path: str, temporary: str) -> bool:
         """The job's copy swapped (atomically) for a link to the existing blob."""
-        temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.link")
         try:
             os.link(blob, temporary)
         except FileNotFoundError:
@@ -82,7 +98,7 @@ class BlobStore:
         return True
 
     @staticmethod
-    def _become_blob(path: Path, blob: Path) -> bool:
+    def _become_blob(path: str, blob: str) -> bool:
         """The job's copy, read-only, becomes the blob of its content."""
         os.chmod(path, READ_ONLY)
         try:
@@ -111,6 +127,18 @@ class BlobStore:
             except OSError:
                 pass  # not empty: other blobs share the prefix
         return released
+
+
+def _files_under(folder: str, min_bytes: int = 0) -> list[str]:
+    """Regular files of at least `min_bytes` below `folder` (symlinks neither followed nor listed)."""
+    found = []
+    with os.scandir(folder) as entries:
+        for entry in entries:
+            if entry.is_dir(follow_symlinks=False):
+                found.extend(_files_under(entry.path, min_bytes))
+            elif entry.is_file(follow_symlinks=False) and entry.stat(follow_symlinks=False).st_size >= min_bytes:
+                found.append(entry.path)
+    return found
 
 
 def unique_bytes(folder: Path) -> int:

@@ -6,9 +6,12 @@ from __future__ import annotations
 import os
 import shutil
 
-from service.jobs.blobs import BlobStore, file_digest, freed_bytes, unique_bytes
+import pytest
+
+from service.jobs.blobs import MIN_SHARED_BYTES, BlobStore, file_digest, freed_bytes, unique_bytes
 from service.jobs.retention import Retention, folder_bytes, sweep
 from service.jobs.store import JobStore
+from service.render.sandbox import run_walled, wall_support
 
 MIB = 2**20
 
@@ -37,7 +40,7 @@ def test_twelve_jobs_of_one_bundle_keep_one_copy_and_the_last_delete_frees_it(tm
     before = folder_bytes(store.data_dir)
     jobs = [bundle_job(store, source) for _ in range(12)]
     blobs = BlobStore(store.data_dir)
-    assert len(blobs.blobs()) == 2  # scene.xml and the texture, once each
+    assert len(blobs.blobs()) == 1  # the texture, once (scene.xml is under MIN_SHARED_BYTES: each job's own)
     texture = blobs.path_of(file_digest(source / "textures" / "wall.bin"))
     assert texture.stat().st_nlink == 13  # its own name and one link per job
     grown = folder_bytes(store.data_dir) - before
@@ -47,7 +50,7 @@ def test_twelve_jobs_of_one_bundle_keep_one_copy_and_the_last_delete_frees_it(tm
     for job_id in jobs[:-1]:
         store.delete(job_id)
         blobs.release_unused()
-    assert len(blobs.blobs()) == 2 and texture.stat().st_nlink == 2  # the last job still uses them
+    assert len(blobs.blobs()) == 1 and texture.stat().st_nlink == 2  # the last job still uses it
     assert freed_bytes(store.job_dir(jobs[-1])) == bundle_size  # what deleting it would free
     store.delete(jobs[-1])
     assert [p.name for p in blobs.release_unused()] and blobs.blobs() == []
@@ -56,13 +59,16 @@ def test_twelve_jobs_of_one_bundle_keep_one_copy_and_the_last_delete_frees_it(tm
 
 def test_a_different_file_gets_its_own_blob_and_the_same_content_under_another_name_shares(tmp_path):
     store = JobStore(tmp_path / "data")
-    first = make_bundle(tmp_path / "a", texture_bytes=1000)
+    first = make_bundle(tmp_path / "a", texture_bytes=MIN_SHARED_BYTES)
     second = tmp_path / "b"
     shutil.copytree(first, second)
     (second / "textures" / "copy.bin").write_bytes((first / "textures" / "wall.bin").read_bytes())
-    (second / "scene.xml").write_text("<scene version='3.0.0'><!-- edited --></scene>")
-    bundle_job(store, first), bundle_job(store, second)
-    assert len(BlobStore(store.data_dir).blobs()) == 3  # two scene.xml versions, one texture
+    (second / "textures" / "other.bin").write_bytes(os.urandom(MIN_SHARED_BYTES))
+    (second / "textures" / "small.bin").write_bytes(os.urandom(MIN_SHARED_BYTES - 1))
+    jobs = [bundle_job(store, first), bundle_job(store, second)]
+    assert len(BlobStore(store.data_dir).blobs()) == 2  # wall.bin (= copy.bin) and other.bin
+    small = store.job_dir(jobs[1]) / "bundle" / "textures" / "small.bin"
+    assert small.stat().st_nlink == 1  # under MIN_SHARED_BYTES: the job's own copy
 
 
 def test_the_disk_cap_counts_shared_files_once_and_the_sweep_releases_their_blobs(tmp_path):
@@ -78,3 +84,23 @@ def test_the_disk_cap_counts_shared_files_once_and_the_sweep_releases_their_blob
     removed = sweep(store, Retention(max_disk_bytes=folder_bytes(source) // 2))
     assert len(removed) == 4 and BlobStore(store.data_dir).blobs() == []
     assert unique_bytes(store.jobs_dir) == 0
+
+
+def test_the_scene_sandbox_reads_a_job_s_links_but_not_the_blobs_they_share(tmp_path):
+    support = wall_support()
+    if not support.available:
+        pytest.skip(f"no Landlock here: {support.reason}")
+    store = JobStore(tmp_path / "data")
+    job_id = bundle_job(store, make_bundle(tmp_path / "upload"))
+    bundle = store.job_dir(job_id) / "bundle"
+    blob = BlobStore(store.data_dir).blobs()[0]
+
+    def read_both() -> tuple[int, str]:
+        size = len((bundle / "textures" / "wall.bin").read_bytes())  # the job's own name: inside its wall
+        try:
+            blob.read_bytes()
+            return size, "blob read"
+        except PermissionError:
+            return size, "blob refused"
+
+    assert run_walled(read_both, [bundle]) == (2 * MIB, "blob refused")
