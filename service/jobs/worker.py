@@ -152,6 +152,7 @@ class JobWorker:
         self._concurrency = concurrency
         self._draining = 0  # pool tasks taking queued jobs (at most `concurrency`)
         self._lost: set[str] = set()  # live jobs whose lease another server took over
+        self._eta: dict[str, EtaTracker] = {}  # live jobs' measured iteration costs (service/loop/eta.py)
         self._leases = threading.Thread(target=self._keep_leases, name="leases", daemon=True)
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -310,6 +311,7 @@ class JobWorker:
                 self._live.pop(job_id, None)
                 self._cancel.pop(job_id, None)
                 self._lost.discard(job_id)
+                self._eta.pop(job_id, None)
 
     def _run(self, job_id: str) -> None:
         if self._stopping.is_set() or not self.store.claim(job_id):
@@ -322,10 +324,11 @@ class JobWorker:
         timings = dict(record.timings)
         last: IterationRecord | None = None
         samples = total_samples(loop.state.buffers)  # a resumed job's earlier samples are not counted again
-        eta = EtaTracker(loop.spec, loop.state.spp_mean)
+        with self._lock:
+            self._eta[job_id] = EtaTracker(loop.spec, loop.state.spp_mean)
         try:
             for last in loop.run(should_stop=should_stop):
-                timings = self._finish_iteration(job_id, loop, files, last, timings, eta)
+                timings = self._finish_iteration(job_id, loop, files, last, timings)
                 self.observer.iteration_finished(last.timings, total_samples(last.buffers) - samples)
                 samples = total_samples(last.buffers)
         except LeaseLost:
@@ -377,8 +380,7 @@ class JobWorker:
         return loop
 
     def _finish_iteration(
-        self, job_id: str, loop: RenderLoop, files: JobFiles, record: IterationRecord, timings: dict[str, float],
-        eta: EtaTracker | None = None,
+        self, job_id: str, loop: RenderLoop, files: JobFiles, record: IterationRecord, timings: dict[str, float]
     ) -> dict[str, float]:
         if not self.store.renew_lease(job_id):  # the checkpoint is only ours to write while we hold the job
             with self._lock:
@@ -389,6 +391,8 @@ class JobWorker:
         self._publish(job_id, files, preview_layers(loop, record))
         io_seconds = {"io": time.perf_counter() - started}
         timings = add_timings(add_timings(timings, record.timings), io_seconds)
+        with self._lock:
+            eta = self._eta.get(job_id)
         progress = None if eta is None else eta.after(
             loop.state.iteration, record.spp_mean, {**record.timings, **io_seconds}, loop.state.elapsed,
             record.stop_reason, record.predicted_error)
