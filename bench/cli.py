@@ -13,8 +13,10 @@ from bench.loop_report import add_arguments as add_loop_arguments, run_loop_comm
 from bench.models_report import main as models_main
 from bench.quality_report import run_quality_report
 from bench.scale_report import run_scale_report
+from bench.raw_image_report import cost_rows, quality_rows, report_fields
 from bench.sampler_report import bench_memory, bench_sampler, write_memory_report, write_sampler_report
 from bench.suite_quality_report import run_suite_quality_report
+from bench.versus_mitsuba import add_arguments as add_versus_mitsuba_arguments, run_versus_mitsuba_command
 from models.pretrained import DENOISER_FILE, weights_dir
 
 HELP = "measure and write reports (to ./bench-reports; -o docs regenerates the committed ones)"
@@ -59,6 +61,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="Ray workers: 8 jobs on 1 vs 2 workers, Ray vs in-process overhead per iteration, a 5-frame "
                         "sequence on 1 vs 2 workers → scale.md")
     add_loop_arguments(p)  # --loop [--quick] --weights --cache
+    add_versus_mitsuba_arguments(p)  # --versus-mitsuba --megapixels --max-spp --scenes
 
 
 def add_parser(sub) -> None:
@@ -105,6 +108,8 @@ def run_bench(args: argparse.Namespace) -> int:
         return 0
     if args.loop:
         return run_loop_command(args)
+    if args.versus_mitsuba:
+        return run_versus_mitsuba_command(args)
     if args.scale:
         print(f"wrote {run_scale_report(args.out, weights_dir=args.weights)}")
         return 0
@@ -124,7 +129,12 @@ def run_bench(args: argparse.Namespace) -> int:
         for r in results:
             print(f"sampler: {r.case.label}: ours {r.ours_msps:.2f} M samples/s, mi.render {r.mi_render_msps:.2f}"
                   f" → ratio {r.ratio:.2f}x")
-        print(f"wrote {write_sampler_report(results, args.out)}")
+        quality, cost = quality_rows(), cost_rows(repeats=args.repeats)
+        for q in quality:
+            print(f"raw image: {q.filter} {q.spp} spp: relMSE ours / mi.render {q.ratio:.3f}x (per-pixel {q.fis_ratio:.2f}x)")
+        for c in cost:
+            print(f"splat cost: {c.filter} {c.spp} spp: {100 * c.overhead:+.0f} %")
+        print(f"wrote {write_sampler_report(results, args.out, report_fields(quality, cost))}")
     if args.models:
         # The defaults (256² and 512², 2 threads); `python -m bench.models_report --help` has the options.
         # The shipped denoiser's architecture (models/weights/denoiser.pt, or --weights DIR's).

@@ -131,13 +131,14 @@ def sampler_table(results: list[SamplerResult]) -> str:
     return "\n".join(lines)
 
 
-def write_sampler_report(results: list[SamplerResult], out: Path) -> Path:
+def write_sampler_report(results: list[SamplerResult], out: Path, raw: dict[str, object]) -> Path:
+    """`raw`: the raw-image sections' fields (bench.raw_image_report.report_fields)."""
     first = results[0]
     path = out / "sampler.md"
     out.mkdir(parents=True, exist_ok=True)
     path.write_text(fill("sampler.md", provenance=provenance(variant=active_variant()), size=first.size,
                          spp=first.spp, samples=f"{first.samples:,}", repeats=len(first.ratios),
-                         table=sampler_table(results), target=f"{TARGET_RATIO:g}"))
+                         table=sampler_table(results), target=f"{TARGET_RATIO:g}", **raw))
     return path
 
 

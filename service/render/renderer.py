@@ -226,6 +226,7 @@ def render_samples(
     prev_shapes: ShapeMotion | None = None,
     max_wavefront: int = DEFAULT_MAX_WAVEFRONT,
     progress: Callable[[int], None] | None = None,
+    splat: bool = True,
 ) -> RenderPass:
     """Trace exactly `counts[y, x]` new samples per pixel and add them to `buffer`.
 
@@ -233,7 +234,8 @@ def render_samples(
     the previous frame's sensor when the scene moves — then motion vectors are accumulated
     too; `prev_shapes`: how its moving shapes were placed then (object_motion.shape_motion),
     without which motion vectors follow the camera alone. `progress(n)` is called with the
-    samples finished after each chunk.
+    samples finished after each chunk. `splat=False` leaves out the raw image's splat sums
+    (service/render/splat.py; `buffer.raw` is then the per-pixel mean), for measuring their cost.
     """
     mi = mitsuba()
     start = perf_counter()
@@ -269,7 +271,7 @@ def render_samples(
         diff_scale=1.0 / np.sqrt(max(buffer.spp.mean() + counts.mean(), 1.0)),
         direct=direct_settings(mi, integrator),
         shape_motion=prev_shapes if prev_sensor is not None else None,
-        splat=None if pixel_filter.uniform or not total else FilmSplat(mi, pixel_filter, counts),
+        splat=None if pixel_filter.uniform or not total or not splat else FilmSplat(mi, pixel_filter, counts),
     )
     chunks = max(1, -(-total // max_wavefront))
     for chunk in range(chunks if total else 0):
