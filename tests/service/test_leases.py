@@ -9,6 +9,7 @@ import time
 
 import httpx
 import psycopg
+import pytest
 
 from service_harness import Server, finished, wait_for
 
@@ -60,6 +61,7 @@ def lease(url: str, job_id: str) -> tuple[str, float]:
         return conn.execute("SELECT lease_owner, lease_expires_at FROM jobs WHERE id = %s", (job_id,)).fetchone()
 
 
+@pytest.mark.slow  # ~40 s: two servers and a job long enough to outlive a stall; the kill -9 test covers the default run
 def test_a_server_that_stalls_past_its_lease_stops_its_copy_and_leaves_the_job_to_the_one_that_took_it(
         tmp_path, postgres_url):
     """SIGSTOP (a frozen VM, a long GC pause) past the lease: the other server resumes the job;
