@@ -20,6 +20,7 @@ from service.api.metrics import MEDIA_TYPE as METRICS_MEDIA_TYPE, ServiceMetrics
 from service.api.lambda_map import constant, decode_map, paint_rects
 from service.api.links import JobLinks, job_links, request_signer
 from service.api.server_info import ServerInfo, server_info
+from service.jobs.blobs import BlobStore
 from service.api.schemas import (ErrorBody, Health, ImageFormat, JobCreate, JobCreated, JobList, JobStatus,
                                  LambdaResult, LambdaUpdate, Layer, MAX_SEQUENCE, SEQUENCE_DESCRIPTION, SceneInfo,
                                  SceneList)
@@ -263,9 +264,11 @@ async def put_lambda(job_id: str, request: Request, store: Store, worker: Worker
 
 
 @router.delete("/jobs/{job_id}", status_code=204, responses=JOB_ERRORS)
-def delete_job(job_id: str, worker: Worker) -> Response:
-    """Cancel the job if it is still queued or running, then remove its record and files."""
+def delete_job(job_id: str, store: Store, worker: Worker) -> Response:
+    """Cancel the job if it is still queued or running, then remove its record and files (and
+    the uploaded files no other job shares: service/jobs/blobs.py)."""
     worker.delete(job_id)
+    BlobStore(store.data_dir).release_unused()
     return Response(status_code=204)
 
 

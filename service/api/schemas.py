@@ -9,8 +9,8 @@ from typing import Annotated, Any, Literal, get_type_hints
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, create_model, model_validator
 
 from service.jobs.store import JobRecord
-from service.loop.spec import (ALLOCATORS, LAMBDA_RANGE, MAX_SEED, PRIORITY_RANGE, SERVICE_LIMITS, LoopSpec, LoopSpecError,
-                               lambda_problem, validate_spec)
+from service.loop.spec import (ALLOCATORS, LAMBDA_RANGE, MAX_NAME_CHARS, MAX_SEED, PRIORITY_RANGE, SERVICE_LIMITS,
+                               LoopSpec, LoopSpecError, job_name, lambda_problem, validate_spec)
 
 MAX_RECTS = 1024
 MAX_SEQUENCE = 2**63 - 1
@@ -43,6 +43,8 @@ _BOUNDS: dict[str, dict[str, Any]] = {
     "allocator": {"description": "null: 'error' with the denoiser, 'variance' without"},
     "priority": {"ge": PRIORITY_RANGE[0], "le": PRIORITY_RANGE[1],
                  "description": "queue order: higher-priority queued jobs start first"},
+    "name": {"max_length": MAX_NAME_CHARS,
+             "description": "what listings call the job; null: the bundle's entry XML, or the built-in scene's name"},
 }
 # Strict: "32" is not a width and "yes" not a boolean; NaN and ±Infinity are no numbers here.
 _STRICT = ConfigDict(extra="forbid", populate_by_name=True, strict=True, allow_inf_nan=False)
@@ -139,6 +141,7 @@ class JobStatus(BaseModel):
     resumed_from: int | None = Field(None, description="iteration a restart resumed this job at")
     effects: dict | None = Field(None, description="the effects report: which integrator runs and why, what is simulated")
     priority: int = Field(0, description="queue order: higher-priority queued jobs start first")
+    name: str = Field("", description="the job's name: given at submit, else the bundle's or the scene's name")
     eta_seconds: float | None = Field(None, description="seconds left as estimated after the last iteration (each "
                                       "doubles the samples); 0 once completed, null when unknown or not running")
     eta_finish_at: str | None = Field(None, description="when that estimate says the job ends")
@@ -165,6 +168,7 @@ class JobStatus(BaseModel):
             resumed_from=record.resumed_from,
             effects=record.effects,
             priority=record.priority,
+            name=record_name(record),
             spec=record.spec,
             **eta_fields(record),
             stop_message=record.stop_message,
@@ -178,6 +182,12 @@ def eta_fields(record: JobRecord) -> dict[str, Any]:
     if record.state != "running":
         return {}
     return {"eta_seconds": record.eta_seconds, "eta_finish_at": _iso(record.eta_finish_at), "eta_basis": record.eta_basis}
+
+
+def record_name(record: JobRecord) -> str:
+    """The stored name; records from before names were stored get the one they would have had."""
+    spec = record.spec
+    return spec.get("name") or job_name(LoopSpec(scene=str(spec.get("scene", ""))), spec.get("bundle_scene"))
 
 
 class JobList(BaseModel):

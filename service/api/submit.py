@@ -17,8 +17,9 @@ from starlette.datastructures import UploadFile
 from service.api.schemas import BundleJobCreate, JobCreate
 from service.jobs import bundle
 from service.jobs.artifacts import JobFiles
+from service.jobs.blobs import BlobStore
 from service.loop.budget import fit_iteration_cap, names_a_stopping_rule, rules_as_given, scene_budget
-from service.loop.spec import SERVICE_LIMITS, JobLimits, LoopSpec, LoopSpecError, check_limits
+from service.loop.spec import SERVICE_LIMITS, JobLimits, LoopSpec, LoopSpecError, check_limits, job_name
 from service.render.scene_probe import ProbeLimitExceeded, SceneProber
 from service.render.scenes import SceneError, builtin_scene_names, check_scene, film_size, scene_sample_count
 
@@ -91,6 +92,7 @@ def builtin_job(body: object, limits: JobLimits = SERVICE_LIMITS) -> LoopSpec:
     require_builtin(request.scene)
     spec = rules_as_given(request.loop_spec(request.scene), request.model_fields_set)
     spec = check_effective_job(spec, None, limits)
+    spec.name = job_name(spec)
     return spec
 
 
@@ -106,7 +108,8 @@ def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, reque
                   limits: bundle.BundleLimits, job_limits: JobLimits, prober: SceneProber) -> dict:
     """Store the upload under the job's folder and return the stored spec (scene relative to
     the bundle); on any problem the folder is removed and the error propagates. The scene is
-    checked in a child process (`prober`), never in the API process."""
+    checked in a child process (`prober`), never in the API process; once it passes, the
+    bundle's files become links to the shared blobs (one copy of each content on the server)."""
     root = files.bundle_dir.resolve()  # the bundle's checks compare resolved paths
     root.mkdir(parents=True, exist_ok=True)
     try:
@@ -114,7 +117,9 @@ def unpack_bundle(files: JobFiles, items: list[UploadFile], archive: bool, reque
             bundle.extract_zip(items[0].file, root, limits)
         else:
             bundle.save_files(((u.filename or "", u.file) for u in items), root, limits)
-        return checked_in_child(prober, root, request, job_limits)
+        stored = checked_in_child(prober, root, request, job_limits)
+        BlobStore(files.data_dir).adopt(root)
+        return stored
     except BaseException:
         shutil.rmtree(files.root, ignore_errors=True)
         raise
@@ -157,4 +162,5 @@ def stored_bundle_spec(root: Path, request: BundleJobCreate, job_limits: JobLimi
     spec = check_effective_job(rules_as_given(spec, request.model_fields_set), root, job_limits)
     stored = spec.to_stored()
     stored["scene"] = relative
+    stored["name"] = job_name(spec, relative)
     return {**stored, "bundle_scene": relative}
