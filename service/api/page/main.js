@@ -114,11 +114,18 @@ function tick() {
   if (job && job.state === "running") summarize(job);
 }
 
+/** GET /info's device and variant in the header; a server without it still loads the page. */
 async function showServer() {
-  const info = await api.info();
   const element = document.getElementById("server-info");
-  element.textContent = `${info.device} · ${info.variant}`;
-  element.title = info.summary;
+  try {
+    const info = await api.info();
+    element.textContent = `${info.device} · ${info.variant}`;
+    element.title = info.summary;
+  } catch (error) {
+    if (error && error.status === 401) throw error;  // the token field asks; loadAll reruns
+    element.textContent = "";
+    console.warn("no server info", error);
+  }
 }
 
 async function refreshJobs() {
