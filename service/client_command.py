@@ -134,7 +134,9 @@ def run_status(args) -> int:
 def run_cancel(args) -> int:
     with connect(args) as client:
         record = client.cancel(args.job_id)
-    print(f"{args.job_id} {record.get('state', 'canceled')}")
+    # A queued job is canceled at once; a running one stops after its current wavefront chunk.
+    state = record.get("state")
+    print(f"{args.job_id} canceled" if state == "canceled" else f"{args.job_id} stopping (was {state})")
     return 0
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import IO
 
-from service.render.flatten import FlattenError, flatten_scene
+from service.render.flatten import FlattenError, MissingFile, flatten_scene
 
 FRAME_PARAMETER = "frame"
 RESOLUTION_PARAMETERS = ("width", "height")
@@ -74,6 +74,8 @@ def referenced_files(root: Path, entry: Path, params: dict[str, str], frames: in
         optional.update({k: str(v) for k, v in zip(RESOLUTION_PARAMETERS, (width, height)) if v is not None})
         try:
             flat = flatten_scene(entry, root=root, params=params, optional_params=optional)
+        except MissingFile as exc:  # nothing is uploaded yet: name the local file the user must add
+            raise SceneUploadError(f"{exc.where}: file not found: {exc.path}") from exc
         except FlattenError as exc:
             raise SceneUploadError(f"{entry}: {exc}") from exc
         files.update(dict.fromkeys(flat.files))

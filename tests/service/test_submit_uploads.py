@@ -11,7 +11,7 @@ import pytest
 
 from service.client import RenderloopClient
 from service.jobs.blobs import BlobStore, file_digest, unique_bytes
-from service.scene_upload import plan_upload
+from service.scene_upload import SceneUploadError, plan_upload
 from service_harness import REPO, free_port, renderloop_cli as renderloop
 
 TEXTURE = REPO / "scenes" / "dev" / "fine_texture" / "newspaper.png"
@@ -70,6 +70,19 @@ def test_only_the_files_cbox_references_are_planned(tutorials):
     assert upload.size < 100_000
     other = plan_upload(tutorials / "cbox.xml", params={"wall": "textures/unused.png"})  # --param applied
     assert "textures/unused.png" in other.files and "textures/wall.png" not in other.files
+
+
+def test_each_frame_s_files_are_planned_for_a_sequence(tmp_path):
+    (tmp_path / "frames").mkdir()
+    for frame in range(3):
+        shutil.copy(TEXTURE, tmp_path / "frames" / f"wall_{frame}.png")
+    (tmp_path / "anim.xml").write_text(CBOX.replace('value="textures/wall.png"', 'value="frames/wall_$frame.png"'))
+    with pytest.raises(SceneUploadError, match=f"anim.xml:4: file not found: {tmp_path / 'parts' / 'light.xml'}$"):
+        plan_upload(tmp_path / "anim.xml", frames=2)  # a missing file: its local path, before any upload
+    (tmp_path / "parts").mkdir()
+    (tmp_path / "parts" / "light.xml").write_text(LIGHT)
+    upload = plan_upload(tmp_path / "anim.xml", frames=2)
+    assert sorted(upload.files) == ["anim.xml", "frames/wall_0.png", "frames/wall_1.png", "parts/light.xml"]
 
 
 def test_submitting_cbox_sends_only_its_files_and_the_job_renders_from_them(server, tutorials, tmp_path):
