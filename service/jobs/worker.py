@@ -2,10 +2,8 @@
 current.
 
 One thread pool (`concurrency` threads, default 1) runs jobs: each thread takes the store's next
-queued job (highest priority, then oldest) until none is left, so priority decides between
-jobs waiting here and jobs any other server on the database queued. A lease thread renews the
-leases of the jobs this server runs and requeues (then runs) jobs whose lease lapsed because
-their server died (service/jobs/leases.py). After every
+queued job (highest priority, then oldest), and a lease thread keeps this server's leases and
+resumes jobs whose server died (service/jobs/queue_runner.py). After every
 iteration the worker checkpoints the loop state, writes the preview layers and bumps the
 preview version, then updates the record, in that order, so the record never claims an
 iteration a restart could not resume from. λ changes go through a per-job latest-wins
@@ -29,6 +27,7 @@ from service.exr import ExrFrame
 from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
+from service.jobs.queue_runner import LeaseLost, QueueRunner
 from service.jobs.store import CANCELED, COMPLETED, FAILED, JobRecord, JobStore
 from service.loop.eta import EtaTracker
 from service.loop.loop import IterationInterrupted, RenderLoop
@@ -77,10 +76,6 @@ class Relambda:
     full_passes: int = 0
     tail_passes: int = 0
     results: Callable[[], list[ExrFrame]] | None = None
-
-
-class LeaseLost(RuntimeError):
-    """Another server took this job over (this one stalled past its lease): stop, write nothing."""
 
 
 def _failure_message(exc: BaseException) -> str:
@@ -133,7 +128,7 @@ def preview_layers(loop: RenderLoop, record: IterationRecord) -> list[dict[str, 
     ]
 
 
-class JobWorker:
+class JobWorker(QueueRunner):
     def __init__(self, store: JobStore, networks: Networks, concurrency: int = 1,
                  observer: WorkerObserver = NoObserver()) -> None:
         if concurrency < 1:
@@ -197,81 +192,6 @@ class JobWorker:
         """A job was queued: a free thread takes the queue's next job (the queue's order, by
         priority, decides which; it may be this one or a more urgent one)."""
         self._kick()
-
-    def _kick(self) -> None:
-        """Bring the threads taking queued jobs up to `concurrency`; busy ones take the next job
-        themselves when theirs ends."""
-        with self._lock:
-            if self._stopping.is_set():
-                return
-            missing = self._concurrency - self._draining
-            self._draining += missing
-        for _ in range(missing):
-            try:
-                self._pool.submit(self._drain)
-            except RuntimeError:  # the pool shut down meanwhile: the server is stopping
-                with self._lock:
-                    self._draining -= 1
-
-    def _drain(self) -> None:
-        """Run the store's next queued job until none is left. A job another server claimed
-        first is skipped (the claim in _run fails) and the next one tried."""
-        try:
-            while not self._stopping.is_set():
-                job_id = self.store.next_queued()
-                if job_id is None:
-                    break
-                self._run_guarded(job_id)
-        except Exception:
-            log.exception("taking the next queued job failed; the lease thread retries")
-        finally:
-            with self._lock:
-                self._draining -= 1
-        # A job queued between the empty look-up and the count above found every thread busy.
-        if not self._stopping.is_set() and self._safe(self.store.next_queued) is not None:
-            self._kick()
-
-    # -- leases -------------------------------------------------------------------------------
-
-    def _keep_leases(self) -> None:
-        """Renew this server's leases; requeue and run jobs whose lease lapsed."""
-        leases = self.store.leases
-        next_sweep = time.monotonic() + leases.sweep_seconds
-        while not self._stopping.wait(min(leases.renew_seconds, leases.sweep_seconds)):
-            held = self._safe(self.store.renew_leases)
-            if held is not None:
-                self._mark_lost(set(held))
-            if time.monotonic() < next_sweep:
-                continue
-            next_sweep = time.monotonic() + leases.sweep_seconds
-            for job_id in self._safe(self.store.requeue_lapsed) or []:
-                log.warning("job %s: its server's lease lapsed (the server is gone); requeued to resume "
-                            "from its checkpoint", job_id)
-            if self._safe(self.store.next_queued) is not None:
-                self._kick()  # lapsed jobs, or ones a failed look-up left waiting
-
-    def _mark_lost(self, held: set[str]) -> None:
-        """A job rendering here whose lease is no longer ours (this server stalled past its
-        lease and another resumed the job) stops at the next chunk and writes nothing more."""
-        with self._lock:
-            lost = [job_id for job_id in self._live if job_id not in held and job_id not in self._lost]
-            self._lost.update(lost)
-        for job_id in lost:
-            log.error("job %s: this server lost its lease (stalled longer than a lease?); another server runs "
-                      "it now, stopping here", job_id)
-
-    def _lease_lost(self, job_id: str) -> bool:
-        with self._lock:
-            return job_id in self._lost
-
-    @staticmethod
-    def _safe(call: Callable):
-        """A store call from a background thread: a database hiccup is logged, never fatal."""
-        try:
-            return call()
-        except Exception:
-            log.exception("job store call %s failed; retrying on the next round", getattr(call, "__name__", call))
-            return None
 
     def files(self, job_id: str) -> JobFiles:
         return JobFiles(self.store.job_dir(job_id))
