@@ -12,7 +12,7 @@ import pytest
 from service.client import RenderloopClient
 from service.jobs.blobs import BlobStore, file_digest, unique_bytes
 from service.scene_upload import SceneUploadError, plan_upload
-from service_harness import REPO, free_port, renderloop_cli as renderloop
+from service_harness import REPO, Server, free_port, renderloop_cli as renderloop
 
 TEXTURE = REPO / "scenes" / "dev" / "fine_texture" / "newspaper.png"
 UNRELATED_BYTES = 40 * 2**20
@@ -166,3 +166,19 @@ def test_twelve_jobs_of_one_upload_keep_one_copy_until_the_last_is_deleted(serve
         assert blobs.blobs() == [texture] and texture.stat().st_nlink == 2  # the last job still uses it
         client.delete(jobs[-1])
         assert blobs.blobs() == []
+
+
+@pytest.mark.slow  # a local Ray runtime: ~10 s to start, a minute on a loaded machine
+def test_a_ray_worker_renders_an_upload_from_its_links_behind_the_sandbox(tutorials, tmp_path):
+    pytest.importorskip("ray", reason="the Ray backend needs Ray")
+    server = Server(tmp_path / "data", tmp_path / "server.log", startup_seconds=300,
+                    env={"RENDERLOOP_CONCURRENCY": "", "RENDERLOOP_WORKERS": "1"}).start()
+    try:
+        with RenderloopClient(server.url) as client:
+            jobs = [client.submit(tutorials / "cbox.xml", spp_first=4, max_iterations=1) for _ in range(2)]
+            assert [client.wait(job_id, progress=False)["state"] for job_id in jobs] == ["completed"] * 2
+            assert client.preview(jobs[1]).shape == (12, 16, 3)
+        texture = server.data_dir / "jobs" / jobs[1] / "bundle" / "textures" / "wall.png"
+        assert texture.stat().st_nlink == 3  # its blob and both jobs
+    finally:
+        server.stop()
