@@ -43,7 +43,7 @@ _BOUNDS: dict[str, dict[str, Any]] = {
     "allocator": {"description": "null: 'error' with the denoiser, 'variance' without"},
     "priority": {"ge": PRIORITY_RANGE[0], "le": PRIORITY_RANGE[1],
                  "description": "queue order: higher-priority queued jobs start first"},
-    "name": {"max_length": MAX_NAME_CHARS,
+    "name": {"min_length": 1, "max_length": MAX_NAME_CHARS,
              "description": "what listings call the job; null: the bundle's entry XML, or the built-in scene's name"},
 }
 # Strict: "32" is not a width and "yes" not a boolean; NaN and ±Infinity are no numbers here.

@@ -130,6 +130,14 @@ def test_a_builtin_job_is_named_after_its_scene(server):
     assert job(server, result.stdout.strip())["name"] == "cornell-box"
 
 
+@pytest.mark.parametrize("name, message", [("", "at least 1 character"), ("two\nlines", "one printable line"),
+                                           ("x" * 129, "at most 128 characters")])
+def test_the_api_refuses_a_name_that_cannot_be_listed(server, name, message):
+    body = {"scene": "cornell-box", "width": 8, "height": 8, "max_iterations": 1, "name": name}
+    response = httpx.post(f"{server.url}/jobs", json=body, timeout=60)
+    assert response.status_code == 422 and message in response.text
+
+
 def test_submit_refuses_a_png_output_name_as_render_does(server):
     result = renderloop("submit", "cornell-box", "--server", server.url, "-o", "out.png")
     assert result.returncode == 2
