@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import time
 
+import httpx
 import numpy as np
 import pytest
 
@@ -65,11 +66,13 @@ def test_cancel_stops_a_running_job(server, token_file):
     canceled = cli(server, token_file, "cancel", job_id)
     assert canceled.returncode == 0, canceled.stderr
     assert canceled.stdout.split()[0] == job_id
+    headers = {"Authorization": f"Bearer {TOKEN}"}
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
-        record = json.loads(cli(server, token_file, "status", job_id).stdout)
+        record = httpx.get(f"{server.url}/jobs/{job_id}", headers=headers, timeout=30).json()
         if record["state"] != "running":
             break
+        time.sleep(0.2)
     assert record["state"] == "canceled" and record["iteration"] < 12
 
 
