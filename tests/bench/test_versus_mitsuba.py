@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from bench.cli import main as bench_main
 from bench.versus_mitsuba import add_arguments, measure_versus_mitsuba, run_versus_mitsuba_command, write_report
 from bench.versus_mitsuba_report import LOOP, UNIFORM, headline_table
 from bench.versus_mitsuba_run import Curve, CurvePoint, better_of, compare, error_at_time, time_at_error
@@ -152,3 +153,8 @@ def test_command_refuses_an_unknown_scene_and_a_max_below_16(capsys) -> None:
     args = parse(["--versus-mitsuba", "--scenes", "metals,sun_room", "--megapixels", "0.5"])
     assert args.scenes == ["metals", "sun_room"] and args.megapixels == 0.5 and args.max_spp == 1024
     assert args.costs_megapixels is None
+
+
+def test_renderloop_bench_dispatches_the_versus_mitsuba_mode(capsys) -> None:
+    assert bench_main(["--versus-mitsuba", "--scenes", "no_such_scene"]) == 2  # bench/cli.py → this mode
+    assert "unknown scene(s) no_such_scene" in capsys.readouterr().err
