@@ -5,13 +5,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service.render.splat import RADIANCE, SQ_RADIANCE, SQ_RADIANCE_SQ, WEIGHT, WEIGHT_SQ
-
 
 # A pixel counts as converged once this many samples all agreed (FrameBuffer.converged); the
 # tolerance absorbs float64 rounding of the sums of identical values.
 CONVERGED_MIN_SPP = 16
 CONVERGED_REL_TOLERANCE = 1e-9
+# Columns of the splat sums the renderer adds (service/render/splat.py): Σw, Σw·L, Σw²·L, Σw²·L², Σw².
+# Here, not in splat.py, so that reading a buffer never imports Dr.Jit (the CLI's start-up).
+WEIGHT, RADIANCE, SQ_RADIANCE, SQ_RADIANCE_SQ, WEIGHT_SQ = 0, slice(1, 4), slice(4, 7), slice(7, 10), 10
+SPLAT_CHANNELS = 11
 # The raw image's sums, optional (None under the box filter): checkpoints keep them by these names.
 SPLAT_ARRAYS = ("splat_weight", "splat_radiance", "splat_sq_radiance", "splat_sq_radiance_sq", "splat_weight_sq")
 

@@ -31,10 +31,7 @@ import drjit as dr
 import numpy as np
 
 from service.render.filters import PixelFilter
-
-# Columns of the per-pixel sums: Σw, Σw·L, Σw²·L, Σw²·L², Σw².
-WEIGHT, RADIANCE, SQ_RADIANCE, SQ_RADIANCE_SQ, WEIGHT_SQ = 0, slice(1, 4), slice(4, 7), slice(7, 10), 10
-CHANNELS = 11
+from service.render.framebuffer import SPLAT_CHANNELS as CHANNELS
 
 
 class FilmSplat:
