@@ -60,7 +60,13 @@ def terminate_mid_job(server: ServeProcess, whole_group: bool) -> tuple[str, dic
     return job_id, at_term, time.monotonic() - started
 
 
-@pytest.mark.parametrize("whole_group", [False, True], ids=["server", "process-group"])
+# The process-group signal is the harder case (Ray's daemons die under the server) and runs by
+# default; the server-only signal costs as much (two server starts, ~45 s on a loaded 2-core
+# machine) and is slow-marked: test_api_restart.py covers it on threads through the test launcher.
+SIGNAL_TARGETS = [pytest.param(False, id="server", marks=pytest.mark.slow), pytest.param(True, id="process-group")]
+
+
+@pytest.mark.parametrize("whole_group", SIGNAL_TARGETS)
 @pytest.mark.parametrize("backend", ["threads", "ray"])
 def test_sigterm_exits_0_within_10_s_without_a_traceback_and_requeues_the_running_job(serve, backend, whole_group):
     first = serve(backend)
