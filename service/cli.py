@@ -14,7 +14,7 @@ from pathlib import Path
 from service import client_command, denoise_command, train_command
 from service.api.security import (LOOPBACK_HOSTS, TOKEN_ENV, TOKEN_FILE_ENV, SecuritySettings, TokenFileError,
                                   is_loopback, read_token_file)
-from service.api.edge import HEADER_TIMEOUT_SECONDS, KEEP_ALIVE_SECONDS, MAX_CONNECTIONS, EdgeSettings
+from service.api.edge_settings import HEADER_TIMEOUT_SECONDS, KEEP_ALIVE_SECONDS, MAX_CONNECTIONS, EdgeSettings
 from service.api.streams import MAX_STREAMS_PER_CLIENT
 from service.jobs.ray_auth import cluster_auth_problem
 from service.jobs.worker_settings import WorkerSettings

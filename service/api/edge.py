@@ -19,25 +19,15 @@ import copy
 import logging
 import re
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import h11
 from uvicorn.config import LOGGING_CONFIG
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-HEADER_TIMEOUT_SECONDS = 10.0
-KEEP_ALIVE_SECONDS = 5
-# Below the usual 1024-descriptor limit, leaving room for the job store, Ray and job files.
-MAX_CONNECTIONS = 512
+from service.api.edge_settings import HEADER_TIMEOUT_SECONDS, MAX_CONNECTIONS, EdgeSettings
+
 SECRET_QUERY = re.compile(r"(?i)((?:^|[?&;])(?:token|sig|access_token)=)[^&;\s\"]*")
-
-
-@dataclass(frozen=True)
-class EdgeSettings:
-    header_timeout: float = HEADER_TIMEOUT_SECONDS
-    keep_alive_timeout: int = KEEP_ALIVE_SECONDS
-    max_connections: int = MAX_CONNECTIONS
 
 
 class GuardedH11Protocol(H11Protocol):
