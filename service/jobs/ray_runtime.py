@@ -60,6 +60,9 @@ RAY_TIMEOUTS = {
 # (RAY_worker_niceness, see docker/compose.yaml).
 WORKER_NICENESS = 0
 START_ATTEMPTS = 2
+# Ray features the service does not use, off for the processes of the local runtime: metrics
+# collection (one listening exporter less, measured: 11 → 10 ports).
+UNUSED_FEATURES = {"RAY_enable_metrics_collection": "0"}
 # Without these no job runs: the GCS, the raylet, and the dashboard agent (Ray 2.60's raylet
 # ends when its agent dies — issue 42 item 11).
 VITAL_DAEMONS = ("ray", "gcs_server", "raylet", "dashboard_agent", "runtime_env_agent")
@@ -159,7 +162,8 @@ class LocalRay:
         os.environ.pop(AUTH_MODE_ENV, None)
         for name, value in RAY_TIMEOUTS.items():
             os.environ.setdefault(name, value)
-        with environment({SINGLE_MACHINE_ENV: "0"}, secret_names(os.environ)), signal_handlers_kept():
+        inherited = {SINGLE_MACHINE_ENV: "0", **UNUSED_FEATURES}
+        with environment(inherited, secret_names(os.environ)), signal_handlers_kept():
             _loopback_node_address()
             self._init_with_retries()
         if os.environ.get(AUTH_MODE_ENV) != "token":
