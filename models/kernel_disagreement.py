@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from models.exposure import Exposure
+
 if TYPE_CHECKING:
     from models.denoiser import Denoiser, DenoiserCache
 
@@ -26,8 +28,11 @@ DISAGREEMENT_BOX = 5         # pixels: single-pixel differences are mostly the i
 
 def kernel_disagreement(kernels: Tensor, candidate: Tensor) -> Tensor:
     """(N, 1, H, W) in [0, 1]: the two images' per-pixel SMAPE, box-filtered over 5×5
-    (zero-padded, normalised by the pixels inside the image). Non-finite values read 0."""
-    k, c = kernels.float(), candidate.float()
+    (zero-padded, normalised by the pixels inside the image). Non-finite values read 0.
+    Both at the candidate's exposure (models.exposure): ε is absolute, D must not change with the
+    scene's units."""
+    exposure = Exposure.of(candidate)
+    k, c = exposure.forward(kernels.float()), exposure.forward(candidate.float())
     d = ((k - c).abs() / (k.abs() + c.abs() + DISAGREEMENT_EPSILON)).mean(1, keepdim=True)
     d = torch.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0).clamp(0.0, 1.0)
     return F.avg_pool2d(d, DISAGREEMENT_BOX, 1, DISAGREEMENT_BOX // 2, count_include_pad=False)
@@ -56,6 +61,4 @@ def apply_for_error_network(denoiser: "Denoiser", cache: "DenoiserCache", candid
         raise ValueError("an error network reading the kernels/candidate disagreement needs a denoiser with a "
                          "candidate image (oidn_candidate)")
     output, kernels = apply_with_kernels_image(denoiser, cache, lam)
-    if cache.exposure is not None:   # compared in the networks' exposure: D's ε is absolute
-        kernels, candidate = cache.exposure.forward(kernels), cache.exposure.forward(candidate)
     return output, kernel_disagreement(kernels, candidate)
