@@ -21,6 +21,8 @@ from pathlib import Path
 from bench.versus_mitsuba_run import LoopRun
 from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.worker import preview_layers
+from service.loop.allocate import iteration_budget
+from service.loop.loop import next_counts
 from service.loop.oidn import candidate_for
 from service.loop.tensors import frame_tensors, to_image
 
@@ -89,7 +91,9 @@ def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCost
     images = session.denoise(loop.state.buffers, lam)
     ms = {
         "render": 1000 * run.curve.points[-1].stages["render"],
-        "allocate": 1000 * statistics.median(p.stages["allocate"] for p in run.curve.points[1:] or run.curve.points),
+        # the next iteration's allocation from this state (iteration 0's is a constant fill)
+        "allocate": _median_ms(lambda: next_counts(loop.spec.allocator, buffer, loop.state.error_maps[0],
+                                                   iteration_budget(int(buffer.spp.sum())), seed=0), repeats),
         "to_tensors": _median_ms(lambda: frame_tensors(buffer), repeats),
         "oidn_candidate": _median_ms(lambda: candidate_for(denoiser, frame), repeats)
         if denoiser.config.oidn_candidate else 0.0,

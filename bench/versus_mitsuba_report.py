@@ -166,7 +166,7 @@ def oidn_ms_per_mp(run: SceneRun) -> float:
     return 1000 * statistics.median(calls) / run.film.megapixels
 
 
-def network_table(scenes: list[SceneRun]) -> str:
+def network_table(scenes: list[SceneRun], probe: CostProbe | None, threads: int) -> str:
     rows = [("denoiser (full pass, without its OIDN call)", lambda r: r.costs.per_megapixel("denoiser")),
             ("OIDN candidate inside the denoiser (0: these weights take none)",
              lambda r: r.costs.per_megapixel("oidn_candidate")),
@@ -177,6 +177,14 @@ def network_table(scenes: list[SceneRun]) -> str:
     for label, value in rows:
         values = [value(run) for run in scenes]
         lines.append(f"| {label} | {statistics.median(values):.0f} | {min(values):.0f} | {max(values):.0f} |")
+    if probe is not None:
+        c = probe.costs
+        lines += ["", f"At {c.megapixels:.2f} MP ({probe.scene}, `--costs-megapixels`): denoiser "
+                      f"{c.per_megapixel('denoiser'):.0f}, its OIDN candidate (an OIDN call, quality high) "
+                      f"{c.per_megapixel('oidn_candidate'):.0f}, error network {c.per_megapixel('error_network'):.0f}, "
+                      f"λ tail {c.per_megapixel('lambda_tail'):.0f} ms / MP; **a λ edit's tail takes "
+                      f"{c.ms['lambda_tail']:.0f} ms there** (bar ≤ 300 ms on 2 CPU threads, this run: "
+                      f"{threads} thread(s): {'met' if c.ms['lambda_tail'] <= 300 else 'not met'})."]
     mp = statistics.median(run.film.megapixels for run in scenes)
     tails = [run.costs.ms["lambda_tail"] for run in scenes]
     scaled = (f"; scaled linearly to 2 MP: {statistics.median(tails) * 2.0 / mp:.0f} ms" if mp >= 0.5 else
@@ -217,16 +225,23 @@ def fixed_costs_table(scenes: list[SceneRun], probe: CostProbe | None = None) ->
     return "\n".join(lines)
 
 
-def stall_note(scenes: list[SceneRun]) -> str:
+def stall_note(scenes: list[SceneRun], probe: CostProbe | None = None) -> str:
     worker = [run.costs.worker_ms for run in scenes]
     share = [run.costs.stall_share for run in scenes]
     megapixels = statistics.median(r.costs.megapixels for r in scenes)
+    at_probe = ""
+    if probe is not None:
+        c = probe.costs
+        first = c.share("checkpoint", 0) + c.share("preview", 0)
+        at_probe = (f" At {c.megapixels:.2f} MP they take **{c.worker_ms:.0f} ms per iteration** (checkpoint "
+                    f"{c.ms['checkpoint']:.0f} ms, previews {c.ms['preview']:.0f} ms), {first:.1%} of a 16-spp "
+                    "iteration there; every iteration pays it again, and the render waits.")
     return (f"**Checkpoints and previews stall rendering** by a median **{statistics.median(worker):.0f} ms per "
-            f"iteration** ({statistics.median(worker) / megapixels:.0f} ms / MP), "
+            f"iteration** at the benchmark's size ({statistics.median(worker) / megapixels:.0f} ms / MP), "
             f"{statistics.median(share):.1%} of a whole job's wall time at these settings "
             f"({min(share):.1%}–{max(share):.1%} over the scenes): service/jobs/worker.py writes both on the loop's "
             "thread between two iterations (`_finish_iteration`: `loop.state.save`, then `_publish`), so the next "
-            "render starts that much later. Writing them off the render path saves at most that.")
+            f"render starts that much later.{at_probe} Writing them off the render path saves at most that.")
 
 
 def fixed_costs_note(scenes: list[SceneRun]) -> str:
@@ -263,6 +278,7 @@ def report_text(results: Results) -> str:
         aovs=AOVS, max_lanes=f"{MAX_LANES:,}", iterations=len(levels), reference_spp=s.reference_spp,
         max_spp=s.max_spp, headline_table=headline_table(scenes), summary=summary(scenes, s.megapixels),
         curve_tables=curve_tables(scenes), stage_tables=stage_tables(scenes), memory_table=memory_table(scenes),
-        network_table=network_table(scenes), fixed_costs_note=fixed_costs_note(scenes),
-        fixed_costs_table=fixed_costs_table(scenes, results.probe), stall_note=stall_note(scenes), full_command=full_command(s),
+        network_table=network_table(scenes, results.probe, s.threads), fixed_costs_note=fixed_costs_note(scenes),
+        fixed_costs_table=fixed_costs_table(scenes, results.probe), stall_note=stall_note(scenes, results.probe),
+        full_command=full_command(s),
     )
