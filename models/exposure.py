@@ -2,7 +2,7 @@
 were trained on, and takes their output back out of it.
 
 The networks read log(1+x) of radiance and clamp fireflies at a fixed HDR_MAX (models.features):
-neither is scale-invariant, so the same scene in physical units (a light of 10¹⁰ W) came out
+neither is scale-invariant, so the same scene in physical units (its light × 10¹⁰) came out
 with 0.07 % of its samples' energy. Intel Open Image Denoise auto-exposes its HDR input for the
 same reason (its `Autoexposure` op: the image averaged over bins of at most 16×16 pixels, the
 mean log2 luminance of the bins above 1e-8, exposure = key 0.18 / 2^mean). We measure the same
@@ -21,10 +21,10 @@ validation scenes (0.017 … 0.34, median ≈ 0.1), where the error network's ca
 Radiance is multiplied by s (`Exposure.forward`), variances of radiance by s², and every output
 radiance divided by s again (`Exposure.inverse`). s is continuous, not rounded to whole stops:
 then a scene at any scale reaches the networks as the same numbers up to float rounding, and the
-loop makes the same allocation (with s in powers of two, ±½ stop apart, the error network's
-mean moved by up to ~8 % and the loop's SMAPE by ~4 % between scales). OIDN's bins skip an absolute 1e-8; ours skip
-bins below DARK_BIN_FRACTION of the image's mean bin luminance, so E scales exactly with the
-image (an absolute threshold drops the dark bins of a scene at 10⁻⁶ and shifts E).
+loop makes the same allocation (with s in powers of two the scales reached the networks up to
+½ stop apart, and the loop's SMAPE spread 4.5 % over them). OIDN's bins skip an absolute 1e-8;
+ours skip bins below DARK_BIN_FRACTION of the image's mean bin luminance, so E scales exactly
+with the image (an absolute threshold drops the dark bins of a scene at 10⁻⁶ and shifts E).
 """
 from __future__ import annotations
 
