@@ -44,7 +44,12 @@ class FilmSplat:
         self.channels = CHANNELS
         # One sums array for the whole film, kept on the device across chunks: the taps of a
         # chunk reach beyond its own pixel range, and only one kernel per film size is built.
-        self.sums = dr.zeros(mi.Float, self.height * self.width * self.channels)
+        # Float64: a pixel gathers samples from ~16 source pixels that different threads add in
+        # a varying order, and the variance is a difference of these sums. In float32 two runs of
+        # one seed differed by up to 1e-5 relative in raw_variance (1.4e-6 in raw), what a job
+        # shared between workers may differ by (tests/service/test_ray_workers.py); in float64
+        # they were bit-identical, at no measurable cost.
+        self.sums = dr.zeros(mi.Float64, self.height * self.width * self.channels)
         self.counts = mi.Float(np.asarray(counts, dtype=np.float32).ravel())
 
     def _axis(self, coordinate, size: int, tables):
@@ -87,7 +92,7 @@ class FilmSplat:
                       w2 * square[0], w2 * square[1], w2 * square[2], w2]
             base = index * self.channels
             for c, value in enumerate(values):
-                dr.scatter_reduce(dr.ReduceOp.Add, self.sums, value, base + c, active)
+                dr.scatter_reduce(dr.ReduceOp.Add, self.sums, mi.Float64(value), base + c, active)
 
     def host(self) -> np.ndarray:
         """(H, W, channels) float64 sums, read back once per render call."""
