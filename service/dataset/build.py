@@ -171,7 +171,7 @@ def _exr_frame(buffer: FrameBuffer, scene_seed: int, iteration: int, *, color: n
 
 def _render(job: _FrameJob, buffer: FrameBuffer, counts: np.ndarray, stream: int) -> None:
     render_samples(job.scene, counts, buffer, seed=render_seed(job.scene_seed, job.frame, stream),
-                   prev_sensor=job.prev_sensor)
+                   prev_sensor=job.prev_sensor, splat=False)  # training reads the per-pixel estimates only
 
 
 def _save(job: _FrameJob, item: str, frame: ExrFrame) -> None:

@@ -236,7 +236,7 @@ class RenderLoop:
                 prev = self.scenes[f - 1].sensors()[0] if (f > 0 and self.effects.motion_vectors) else None
                 render_samples(self.scenes[f], frame_counts, self.state.buffers[f], integrator=self.integrator,
                                seed=self.spec.seed * 7919 + f, prev_sensor=prev, prev_shapes=self.shape_motions[f],
-                               progress=check)
+                               progress=check, splat=not self.spec.denoise)
         timings["render"] = time.perf_counter() - t0
 
     def _splits_first_iteration(self) -> bool:

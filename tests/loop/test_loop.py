@@ -71,6 +71,15 @@ def test_no_denoise_returns_the_splatted_raw_image(tiny_networks):
     assert records[-1].predicted_error is None and records[-1].spp_mean == 32
 
 
+def test_a_denoised_job_pays_no_splat_and_its_noisy_layer_is_the_per_pixel_estimate(tiny_networks):
+    # The splat costs more than the render under a Gaussian film (docs/fidelity.md); a denoised
+    # job reads only the per-pixel estimates, so it renders without it.
+    loop = make_loop(tiny_networks, max_iterations=1)
+    buffer = list(loop.run())[-1].buffers[0]
+    assert buffer.splat_weight is None
+    np.testing.assert_array_equal(buffer.raw, buffer.mean)
+
+
 def test_lambda_change_uses_cached_features_and_changes_the_image(tiny_networks):
     loop = make_loop(tiny_networks, max_iterations=1)
     before = list(loop.run())[-1].denoised[0]
