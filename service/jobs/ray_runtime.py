@@ -187,6 +187,10 @@ class LocalRay:
     def stop(self) -> None:
         with signal_handlers_kept():
             ray.shutdown()
+        self.remove_token()
+
+    def remove_token(self) -> None:
+        """Delete the token and its folder (also on the way out after Ray died)."""
         if self.token_path is not None:
             shutil.rmtree(self.token_path.parent, ignore_errors=True)
             if os.environ.get(AUTH_TOKEN_PATH_ENV) == str(self.token_path):

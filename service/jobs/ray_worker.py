@@ -251,6 +251,7 @@ class RayJobWorker(JobWorker):
                       "restarts the server", failure, RUNTIME_DIED_EXIT_CODE)
             for job_id in self._claimed():
                 self.store.requeue(job_id)
+            self._runtime.remove_token()
             logging.shutdown()
             os._exit(RUNTIME_DIED_EXIT_CODE)
 
