@@ -9,6 +9,7 @@ import argparse
 from dataclasses import replace
 import os
 import sys
+import time
 from pathlib import Path
 
 from service import client_command, denoise_command, train_command
@@ -28,6 +29,7 @@ from service.render.scene_probe import MEMORY_ENV, SECONDS_ENV, ProbeLimits
 from service.job_options import JobOptionError, add_job_options, gives_stopping_rule, spec_from_args
 from service.loop.budget import describe_budget, scene_budget
 from service.loop.spec import SERVICE_LIMITS, LoopSpec, LoopSpecError
+from service.loop.stop_message import stop_message
 from service.dataset import command as dataset_command
 
 EXIT_USAGE = 2
@@ -106,7 +108,7 @@ def run_render(args) -> int:
 
     loop = RenderLoop(spec, load_cli_networks(args.weights) if spec.denoise else None)
     bar = tqdm(total=spec.max_iterations, unit="it", desc=Path(spec.scene).stem, file=sys.stderr)
-    record = None
+    record, started = None, time.perf_counter()
     for record in loop.run():
         err = "-" if record.predicted_error is None else f"{record.predicted_error:.4f}"
         bar.set_postfix(spp=f"{record.spp_mean:.1f}", error=err, refresh=False)
@@ -118,8 +120,10 @@ def run_render(args) -> int:
         if args.png:
             print(f"wrote {write_png(path.with_suffix('.png'), tonemap(frame.color))}")
     if record is not None:
-        print(f"{record.iteration + 1} iterations, {record.spp_mean:.1f} spp mean, stop: {record.stop_reason}; "
-              f"{describe_budget(spec)}")
+        said = stop_message(spec, record.stop_reason, record.iteration + 1, record.spp_mean,
+                            time.perf_counter() - started, record.predicted_error)
+        print(f"{record.iteration + 1} iterations, {record.spp_mean:.1f} spp mean, stop: {record.stop_reason}"
+              f"{f' ({said})' if said else ''}; {describe_budget(spec)}")
     return 0
 
 

@@ -29,7 +29,7 @@ SCENE = """<scene version="3.0.0">
     <emitter type="constant"/>
 </scene>
 """
-SUMMARY = re.compile(r"^(\d+) iterations, ([\d.]+) spp mean, stop: (\w+); (budget: .*)$", re.MULTILINE)
+SUMMARY = re.compile(r"^(\d+) iterations, ([\d.]+) spp mean, stop: (\w+)(?: \((.*)\))?; (budget: .*)$", re.MULTILINE)
 
 
 @pytest.fixture
@@ -61,7 +61,8 @@ def test_param_sets_the_scenes_sample_count_and_the_job_ends_at_it(scene):
     summary, spp = render(scene, "--param", "spp=48")
     assert float(summary.group(2)) == pytest.approx(48.0)
     assert summary.group(3) == "spp_budget"
-    assert summary.group(4) == "budget: 48 spp from the scene's sampler (sample_count)"
+    assert summary.group(4).startswith("reached the budget of 48 spp from the scene's sampler")  # the stop in words
+    assert summary.group(5) == "budget: 48 spp from the scene's sampler (sample_count)"
     assert spp.mean() == pytest.approx(48.0)
 
 
@@ -74,7 +75,7 @@ def test_a_scene_count_below_the_first_pass_is_one_pass_of_it(scene):
 def test_an_explicit_budget_wins_over_the_scenes(scene):
     summary, spp = render(scene, "--param", "spp=48", "--spp-budget", "20")
     assert float(summary.group(2)) == pytest.approx(20.0)
-    assert summary.group(4) == "budget: 20 spp"
+    assert summary.group(5) == "budget: 20 spp"
 
 
 def test_explain_names_the_budget_for_a_scene_and_for_a_builtin(scene):
