@@ -181,6 +181,10 @@ class JobActor:
             report.layers = preview_layers(self.loop, record)
         return report
 
+    def progress(self) -> tuple[int, float]:
+        """(finished iterations, mean spp) of the loop's state."""
+        return self.loop.state.iteration, self.loop.state.spp_mean
+
     def save_results(self) -> None:
         """The result EXRs of the job's current state (the leader holds every frame)."""
         if self.loop is not None and self.loop.state.iteration > 0:

@@ -47,6 +47,17 @@ class LambdaActors:
             raise
         return Relambda([images[f] for f in sorted(images)], full, tail)
 
+    def save_results(self, job_id: str, record: JobRecord, files: JobFiles, size: tuple[int, int]) -> tuple[int, float]:
+        """Write the result EXRs of the job's last checkpoint in a worker (a job canceled mid-
+        iteration: its actors are gone), then end that worker. Returns the checkpoint's
+        (iteration, mean spp)."""
+        actor = self._actor(job_id, record, files, size)
+        try:
+            self._call(actor.save_results.remote())
+            return self._call(actor.progress.remote())[0]
+        finally:
+            self.drop(job_id)
+
     def _actor(self, job_id: str, record: JobRecord, files: JobFiles, size: tuple[int, int]) -> Any:
         with self._lock:
             actor = self._actors.get(job_id)

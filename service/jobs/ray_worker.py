@@ -273,8 +273,12 @@ class RayJobWorker(JobWorker):
         if not cancel.is_set():
             self.store.requeue(job_id)
             return
-        record, files = self._require(job_id), self.files(job_id)
-        self._complete(job_id, self._checkpointed_loop(record, files), files, None, canceled=True)
+        record, files, size = self._require(job_id), self.files(job_id), self.image_size(job_id)
+        iterations, spp = 0, 0.0
+        if files.has_checkpoint() and size is not None:
+            # the checkpoint's results are written in a worker: this process never loads a scene
+            iterations, spp = self._lambda_actors.save_results(job_id, record, files, size)
+        self.store.finish(job_id, CANCELED, stop_reason="canceled", stop_message=canceled_message(iterations, spp))
 
     def _worker_failure(self, job_id: str) -> str | None:
         """Why a worker ended the job itself (its memory watchdog), if it did."""

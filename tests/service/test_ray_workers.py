@@ -124,6 +124,23 @@ def test_cancel_during_an_iteration_ends_the_job_and_its_worker_within_5_s(worke
     assert record.iteration < 8
 
 
+def test_a_cancel_mid_iteration_saves_the_checkpoints_results_in_a_worker_never_loading_the_scene_here(
+        worker, store, monkeypatch):
+    job_id = submit(store, worker, slow_job())
+    wait_until(store, job_id, lambda r: r.iteration >= 2)  # inside iteration 3: its actors are busy
+
+    def no_scene_here(*args, **kwargs):
+        raise AssertionError("the API process built a RenderLoop (loaded the scene) for a cancel")
+
+    monkeypatch.setattr(RenderLoop, "__init__", no_scene_here)  # this process is the server's
+    worker.cancel(job_id)
+    record = wait_until(store, job_id, lambda r: r.finished, timeout=30.0)
+    assert record.state == CANCELED and record.error is None
+    assert record.stop_message.startswith("canceled after 2 iterations")
+    result = read_exr(worker.files(job_id).result_path(0))  # the checkpoint's image, written by a worker
+    assert result.spp.mean() == pytest.approx(record.spp)
+
+
 def test_a_worker_killed_mid_job_resumes_on_another_from_its_checkpoint(worker, store):
     job_id = submit(store, worker, slow_job(iterations=5))
     wait_until(store, job_id, lambda r: r.iteration >= 2)
