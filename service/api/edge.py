@@ -1,4 +1,4 @@
-"""The HTTP edge: how uvicorn holds connections (issue 42, "slow clients"), and what its logs
+"""The HTTP edge: how uvicorn holds connections against slow clients, and what its logs
 may show.
 
 - A header deadline: uvicorn arms its keep-alive timer only after a response, so a client that

