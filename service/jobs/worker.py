@@ -4,9 +4,11 @@ current.
 One thread pool (`concurrency` threads, default 1) runs jobs: each thread takes the store's next
 queued job (highest priority, then oldest), and a lease thread keeps this server's leases and
 resumes jobs whose server died (service/jobs/queue_runner.py). After every
-iteration the worker checkpoints the loop state, writes the preview layers and bumps the
-preview version, then updates the record, in that order, so the record never claims an
-iteration a restart could not resume from. λ changes go through a per-job latest-wins
+iteration the worker copies the loop state (LoopState.snapshot) and hands it to the job's
+background writer (service/jobs/checkpoint_writer.py), which checkpoints it, writes the preview
+layers and bumps the preview version, then updates the record, in that order, so the record
+never claims an iteration a restart could not resume from, while the loop renders the next
+iteration. Every ending of a job flushes the writer first. λ changes go through a per-job latest-wins
 mailbox and re-denoise from the loop's cached features (`RenderLoop.set_lambda`).
 """
 from __future__ import annotations
@@ -15,7 +17,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Protocol
@@ -25,6 +27,7 @@ import numpy as np
 from models.pretrained import Networks
 from service.exr import ExrFrame
 from service.jobs.artifacts import JobFiles, Preview
+from service.jobs.checkpoint_writer import CheckpointWriter
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
 from service.jobs.queue_runner import LeaseLost, QueueRunner
@@ -115,7 +118,13 @@ def total_samples(buffers: list) -> int:
 
 def preview_layers(loop: RenderLoop, record: IterationRecord) -> list[dict[str, np.ndarray | None]]:
     """Each frame's preview layers after an iteration (JobFiles.save_preview takes them)."""
-    lam = loop.state.lam_map
+    return state_preview_layers(loop.state, record)
+
+
+def state_preview_layers(state: LoopState, record: IterationRecord) -> list[dict[str, np.ndarray | None]]:
+    """The preview layers of `record` with the λ map of `state` (a snapshot's, when written in
+    the background)."""
+    lam = state.lam_map
     return [
         {
             "denoised": record.denoised[f] if record.denoised else buf.raw,
@@ -147,6 +156,7 @@ class JobWorker(QueueRunner):
         self._concurrency = concurrency
         self._draining = 0  # pool tasks taking queued jobs (at most `concurrency`)
         self._lost: set[str] = set()  # live jobs whose lease another server took over
+        self._writers: dict[str, CheckpointWriter] = {}  # live jobs' background checkpoint writers
         self._eta: dict[str, EtaTracker] = {}  # live jobs' measured iteration costs (service/loop/eta.py)
         self._leases = threading.Thread(target=self._keep_leases, name="leases", daemon=True)
 
@@ -246,16 +256,38 @@ class JobWorker(QueueRunner):
         samples = total_samples(loop.state.buffers)  # a resumed job's earlier samples are not counted again
         with self._lock:
             self._eta[job_id] = EtaTracker(loop.spec, loop.state.spp_mean)
+        writer = CheckpointWriter(job_id[:8])
+        with self._lock:
+            self._writers[job_id] = writer
+        try:
+            self._render(job_id, record, loop, files, writer)
+        finally:
+            writer.close()  # a write still running (the render failed) lands before the job is marked
+            with self._lock:
+                self._writers.pop(job_id, None)
+
+    def _render(self, job_id: str, record: JobRecord, loop: RenderLoop, files: JobFiles,
+                writer: CheckpointWriter) -> None:
+        """Run the loop; every ending first flushes the background writer, so the record, the
+        checkpoint and the previews are complete (and a failed write fails the job) before the
+        job is completed, canceled, requeued or left to the server that took it over."""
+        cancel = self._cancel_event(job_id)
+        should_stop = lambda: cancel.is_set() or self._stopping.is_set() or self._lease_lost(job_id)  # noqa: E731
+        timings = dict(record.timings)
+        last: IterationRecord | None = None
+        samples = total_samples(loop.state.buffers)  # a resumed job's earlier samples are not counted again
         try:
             for last in loop.run(should_stop=should_stop):
                 timings = self._finish_iteration(job_id, loop, files, last, timings)
                 self.observer.iteration_finished(last.timings, total_samples(last.buffers) - samples)
                 samples = total_samples(last.buffers)
         except LeaseLost:
+            writer.flush()
             log.error("job %s: this server lost its lease (stalled longer than a lease?); another server runs it "
                       "now, stopping here without writing", job_id)
             return
         except IterationInterrupted:
+            writer.flush()
             # Stopped inside an iteration (within one wavefront chunk): the in-memory buffers
             # are partial, the checkpoint of the last finished iteration is what counts.
             if self._lease_lost(job_id):
@@ -265,6 +297,7 @@ class JobWorker(QueueRunner):
                 return
             self._complete(job_id, self._checkpointed_loop(record, files), files, None, canceled=True)
             return
+        writer.flush()
         finished = last is not None and last.stop_reason not in (None, "canceled")
         if not finished and not cancel.is_set() and self._stopping.is_set():
             self.store.requeue(job_id)  # server shutdown, not a user cancel: resume next start
@@ -302,24 +335,39 @@ class JobWorker(QueueRunner):
     def _finish_iteration(
         self, job_id: str, loop: RenderLoop, files: JobFiles, record: IterationRecord, timings: dict[str, float]
     ) -> dict[str, float]:
+        """Hand the iteration's checkpoint, previews and record to the background writer; the
+        loop renders the next iteration meanwhile. "io" counts what the render path still pays:
+        waiting for the previous write and copying the state."""
         if not self.store.renew_lease(job_id):  # the checkpoint is only ours to write while we hold the job
             with self._lock:
                 self._lost.add(job_id)
             raise LeaseLost(job_id)
+        with self._lock:
+            writer = self._writers[job_id]
         started = time.perf_counter()
-        loop.state.save(files.state_dir)
-        self._publish(job_id, files, preview_layers(loop, record))
+        writer.wait()  # one snapshot in memory at a time; a failed write fails the job here
+        snapshot = writer.spare = loop.state.snapshot(reuse=writer.spare)  # the last write's copy is free now
+        written = replace(record, buffers=snapshot.buffers, error=list(snapshot.error_maps),
+                          denoised=list(record.denoised))
         io_seconds = {"io": time.perf_counter() - started}
         timings = add_timings(add_timings(timings, record.timings), io_seconds)
         with self._lock:
             eta = self._eta.get(job_id)
         progress = None if eta is None else eta.after(
-            loop.state.iteration, record.spp_mean, {**record.timings, **io_seconds}, loop.state.elapsed,
+            snapshot.iteration, record.spp_mean, {**record.timings, **io_seconds}, snapshot.elapsed,
             record.stop_reason, record.predicted_error)
+        writer.submit(lambda: self._write_iteration(job_id, files, snapshot, written, timings, progress))
+        return timings
+
+    def _write_iteration(self, job_id: str, files: JobFiles, snapshot: LoopState, record: IterationRecord,
+                         timings: dict[str, float], progress) -> None:
+        """On the writer's thread, in the order restarts rely on: checkpoint, previews, record
+        (the record never claims an iteration a restart could not resume from)."""
+        snapshot.save(files.state_dir)
+        self._publish(job_id, files, state_preview_layers(snapshot, record))
         self.store.record_iteration(
             job_id, record.iteration + 1, record.spp_mean, record.predicted_error, timings, record.stop_reason, progress
         )
-        return timings
 
     def _publish(self, job_id: str, files: JobFiles, frames: list[dict[str, np.ndarray | None]]) -> int:
         """Write all frames' previews under one new version; returns it."""

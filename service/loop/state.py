@@ -13,6 +13,7 @@ from service.render.framebuffer import SPLAT_ARRAYS, FrameBuffer
 
 STATE_VERSION = 1
 BUFFER_ARRAYS = ("radiance_sum", "radiance_sq_sum", "spp", "albedo_sum", "normal_sum", "depth_sum")
+COPIED_ARRAYS = BUFFER_ARRAYS + ("motion_sum", "aov_sum") + SPLAT_ARRAYS  # every array field of a FrameBuffer
 
 
 @dataclass
@@ -35,6 +36,24 @@ class LoopState:
     @property
     def spp_mean(self) -> float:
         return float(np.mean([b.spp.mean() for b in self.buffers]))
+
+    def snapshot(self, reuse: "LoopState | None" = None) -> "LoopState":
+        """A copy the next iteration cannot change, for a checkpoint written in the background
+        (service/jobs/checkpoint_writer.py): the buffers' sums, the error maps and the λ map
+        are copied (the renderer adds to the sums in place; a λ edit may replace the map).
+        `reuse`: an earlier snapshot nothing reads any more (its write landed), whose buffer
+        arrays are overwritten instead of allocated again: at 2 MP a fresh copy's page faults
+        cost more than the copy itself."""
+        spares: list[FrameBuffer | None] = [None] * len(self.buffers)
+        if reuse is not None and len(reuse.buffers) == len(self.buffers):
+            spares = list(reuse.buffers)
+        return LoopState(
+            iteration=self.iteration,
+            buffers=[_copy_buffer(buf, spare) for buf, spare in zip(self.buffers, spares)],
+            lam_map=self.lam_map.copy(),  # small, and may live on in a published preview: never reused
+            error_maps=[None if e is None else e.copy() for e in self.error_maps],
+            elapsed=self.elapsed,
+        )
 
     def save(self, directory: str | Path) -> Path:
         """Write atomically: a crash mid-save leaves the previous checkpoint intact."""
@@ -94,3 +113,19 @@ class LoopState:
                 errors.append(data["error"] if "error" in data else None)
             buffers.append(buf)
         return cls(meta["iteration"], buffers, np.load(directory / "lambda.npy"), errors, meta["elapsed"])
+
+
+def _copy_array(array: np.ndarray | None, spare: np.ndarray | None) -> np.ndarray | None:
+    if array is None:
+        return None
+    if spare is not None and spare.shape == array.shape and spare.dtype == array.dtype:
+        np.copyto(spare, array)
+        return spare
+    return array.copy()
+
+
+def _copy_buffer(buf: FrameBuffer, spare: FrameBuffer | None) -> FrameBuffer:
+    """FrameBuffer.copy, writing into `spare`'s arrays where their shapes match."""
+    arrays = {name: _copy_array(getattr(buf, name), getattr(spare, name, None)) for name in COPIED_ARRAYS}
+    return FrameBuffer(**arrays, aov_names=buf.aov_names, passes=buf.passes, meta=dict(buf.meta),
+                       footprint=buf.footprint)

@@ -1,0 +1,115 @@
+"""Checkpoints and previews are written off the render path (service/jobs/checkpoint_writer.py):
+the thread worker with a real store and real renders, the checkpoint save made slow or failing."""
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from service.jobs.store import COMPLETED, FAILED, JobStore
+from service.jobs.worker import JobWorker
+from service.loop.loop import RenderLoop
+from service.loop.spec import LoopSpec
+from service.loop.state import LoopState
+
+SLOW_SAVE_SECONDS = 2.0  # far longer than a 16² iteration takes, even on a loaded host
+
+
+@pytest.fixture
+def store(tmp_path):
+    s = JobStore(tmp_path)
+    yield s
+    s.close()
+
+
+def run_job(store: JobStore, worker: JobWorker, iterations: int, timeout: float = 180.0):
+    spec = LoopSpec(scene="cornell-box", width=16, height=16, spp_first=4, max_iterations=iterations)
+    record = store.create(spec.to_stored(), spec.lam)
+    worker.submit(record.id)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        record = store.get(record.id)
+        if record.finished:
+            return record
+        time.sleep(0.05)
+    raise AssertionError(f"job did not finish within {timeout} s: {store.get(record.id)}")
+
+
+class Events:
+    """Timestamped (what, iteration) events from the render, writer and store threads."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.items: list[tuple[float, str, int]] = []
+
+    def add(self, what: str, iteration: int) -> None:
+        with self._lock:
+            self.items.append((time.monotonic(), what, iteration))
+
+    def times(self, what: str) -> dict[int, float]:
+        return {iteration: t for t, w, iteration in self.items if w == what}
+
+
+@pytest.fixture
+def events(monkeypatch, store) -> Events:
+    """Saves take SLOW_SAVE_SECONDS; saves, renders and iteration records are timestamped."""
+    log = Events()
+    save, render, record_iteration = LoopState.save, RenderLoop.render_step, store.record_iteration
+
+    def slow_save(self, directory):
+        log.add("save_start", self.iteration)
+        time.sleep(SLOW_SAVE_SECONDS)
+        path = save(self, directory)
+        log.add("save_end", self.iteration)
+        return path
+
+    def timed_render(self, timings, should_stop=lambda: False):
+        log.add("render_start", self.state.iteration)  # the iteration about to be rendered, 0-based
+        return render(self, timings, should_stop)
+
+    def recorded(job_id, iteration, *args, **kwargs):
+        log.add("record", iteration)
+        return record_iteration(job_id, iteration, *args, **kwargs)
+
+    monkeypatch.setattr(LoopState, "save", slow_save)
+    monkeypatch.setattr(RenderLoop, "render_step", timed_render)
+    monkeypatch.setattr(store, "record_iteration", recorded)
+    return log
+
+
+def test_the_next_iteration_renders_while_the_checkpoint_is_written(store, tiny_networks, events):
+    worker = JobWorker(store, tiny_networks)
+    try:
+        done = run_job(store, worker, iterations=3)
+    finally:
+        worker.stop()
+    assert (done.state, done.iteration) == (COMPLETED, 3)
+    save_end = events.times("save_end")
+    render_start, record = events.times("render_start"), events.times("record")
+    assert sorted(save_end) == [1, 2, 3]
+    for finished in (1, 2):  # iteration `finished` is being written while the next one renders
+        assert render_start[finished] < save_end[finished], events.items
+    for iteration in (1, 2, 3):  # the record never runs ahead of the checkpoint
+        assert record[iteration] >= save_end[iteration], events.items
+    # Rendering did not wait for the disk: three slow saves overlapped two iterations' work.
+    assert done.timings["io"] < SLOW_SAVE_SECONDS * 3, done.timings
+    assert LoopState.load(worker.files(done.id).state_dir).iteration == 3  # the last write landed
+
+
+@pytest.mark.parametrize("iterations", [1, 3])
+def test_a_failed_checkpoint_write_fails_the_job_with_the_writes_message(monkeypatch, store, tiny_networks,
+                                                                         iterations):
+    def full_disk(self, directory):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(LoopState, "save", full_disk)
+    worker = JobWorker(store, tiny_networks)
+    try:
+        done = run_job(store, worker, iterations=iterations)
+    finally:
+        worker.stop()
+    assert done.state == FAILED, done
+    assert "No space left on device" in (done.error or ""), done.error
+    assert done.iteration == 0  # no record claims an iteration whose checkpoint was never written
+    assert not worker.files(done.id).has_checkpoint()
