@@ -4,10 +4,11 @@ on the CPU, layout copies), the allocation, and what the job worker writes after
 (checkpoint, previews).
 
 Measured on a finished loop's final state, by calling the very functions the loop and the worker
-call (`DenoiseSession.denoise / predict_error / relambda`, `frame_tensors`, `LoopState.save`,
-`JobFiles.save_preview(preview_layers(…))`), each `repeats` times, the median kept. The worker
-(service/jobs/worker.py) writes the checkpoint and the previews on the loop's thread between two
-iterations, so their time is time the render waits.
+call (`DenoiseSession.denoise / predict_error / relambda`, `frame_tensors`, `LoopState.snapshot`,
+`LoopState.save`, `JobFiles.save_preview(preview_layers(…))`), each `repeats` times, the median
+kept. The thread backend's worker (service/jobs/worker.py) copies the state on the loop's thread
+(the snapshot: time the render waits) and writes the checkpoint and the previews from that copy
+on a background thread (service/jobs/checkpoint_writer.py) while the next iteration renders.
 """
 from __future__ import annotations
 
@@ -37,10 +38,12 @@ STAGES = (
     ("error_network", "error network", True),
     ("to_host", "denoised image → host array (device → host on a GPU)", True),
     ("lambda_tail", "λ tail from cached features (a λ edit)", True),
-    ("checkpoint", "checkpoint write (LoopState.save, atomic)", True),
-    ("preview", "preview write (all layers, atomic)", True),
+    ("snapshot", "state snapshot on the loop's thread (LoopState.snapshot, into the last one's arrays)", True),
+    ("checkpoint", "checkpoint write (LoopState.save, atomic; background thread)", True),
+    ("preview", "preview write (all layers, atomic; background thread)", True),
 )
-WORKER_WRITES = ("checkpoint", "preview")
+RENDER_PATH_WRITES = ("snapshot",)  # what the loop's thread pays for the worker's writes
+BACKGROUND_WRITES = ("checkpoint", "preview")
 
 
 @dataclass
@@ -57,7 +60,12 @@ class FixedCosts:
     @property
     def worker_ms(self) -> float:
         """What the worker's writes add to each iteration on the loop's thread."""
-        return sum(self.ms[s] for s in WORKER_WRITES)
+        return sum(self.ms[s] for s in RENDER_PATH_WRITES)
+
+    @property
+    def background_ms(self) -> float:
+        """The checkpoint and preview writes the background thread does meanwhile."""
+        return sum(self.ms[s] for s in BACKGROUND_WRITES)
 
     def share(self, stage: str, iteration: int) -> float:
         """`stage`'s time as a share of iteration `iteration` with the worker's writes added (the
@@ -106,6 +114,8 @@ def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCost
     with tempfile.TemporaryDirectory(prefix="versus-mitsuba-io-") as folder:
         files = JobFiles(Path(folder))
         layers = preview_layers(loop, record)
+        spare = loop.state.snapshot()  # the worker overwrites the last write's copy (checkpoint_writer.py)
+        ms["snapshot"] = _median_ms(lambda: loop.state.snapshot(spare), repeats)
         ms["checkpoint"] = _median_ms(lambda: loop.state.save(files.state_dir), repeats)
         ms["preview"] = _median_ms(lambda: [files.save_preview(f, Preview(1, frame_layers))
                                             for f, frame_layers in enumerate(layers)], repeats)

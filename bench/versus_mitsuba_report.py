@@ -9,7 +9,7 @@ from pathlib import Path
 
 from bench.common import BenchNetworks, fill, fmt, load_average, provenance
 from bench.dev_references import DevScene
-from bench.versus_mitsuba_costs import STAGES as COST_STAGES, WORKER_WRITES, FixedCosts
+from bench.versus_mitsuba_costs import STAGES as COST_STAGES, FixedCosts
 from bench.versus_mitsuba_run import Comparison, Curve, Reading
 from bench.versus_mitsuba_scene import AOVS, MAX_LANES, Film
 from service.render.runtime import active_variant
@@ -213,8 +213,9 @@ def probe_section(probe: CostProbe) -> list[str]:
     return ["", f"**At {probe.film} ({c.megapixels:.2f} MP), {probe.scene}:** one 16-spp iteration of the loop (error "
                 "allocator), no reference (`--costs-megapixels`); the same measurements. Peak RSS of the process "
                 f"during that iteration: **{probe.peak_rss_mb / 1024:.2f} GB** (growth {probe.rss_growth_mb:.0f} MB); "
-                f"checkpoint + preview writes: {c.worker_ms:.0f} ms per iteration "
-                f"({c.worker_ms / c.megapixels:.0f} ms / MP).", "", *fixed_costs_rows([c])]
+                f"the state snapshot on the loop's thread: {c.worker_ms:.0f} ms per iteration "
+                f"({c.worker_ms / c.megapixels:.0f} ms / MP); the checkpoint + preview writes it feeds, on a "
+                f"background thread: {c.background_ms:.0f} ms.", "", *fixed_costs_rows([c])]
 
 
 def fixed_costs_table(scenes: list[SceneRun], probe: CostProbe | None = None) -> str:
@@ -232,24 +233,25 @@ def stall_note(scenes: list[SceneRun], probe: CostProbe | None = None) -> str:
     at_probe = ""
     if probe is not None:
         c = probe.costs
-        first = c.share("checkpoint", 0) + c.share("preview", 0)
-        at_probe = (f" At {c.megapixels:.2f} MP they take **{c.worker_ms:.0f} ms per iteration** (checkpoint "
-                    f"{c.ms['checkpoint']:.0f} ms, previews {c.ms['preview']:.0f} ms), {first:.1%} of a 16-spp "
-                    "iteration there; every iteration pays it again, and the render waits.")
-    return (f"**Checkpoints and previews stall rendering** by a median **{statistics.median(worker):.0f} ms per "
-            f"iteration** at the benchmark's size ({statistics.median(worker) / megapixels:.0f} ms / MP), "
-            f"{statistics.median(share):.1%} of a whole job's wall time at these settings "
-            f"({min(share):.1%}–{max(share):.1%} over the scenes): service/jobs/worker.py writes both on the loop's "
-            "thread between two iterations (`_finish_iteration`: `loop.state.save`, then `_publish`), so the next "
-            f"render starts that much later.{at_probe} Writing them off the render path saves at most that.")
+        first = c.share("snapshot", 0)
+        at_probe = (f" At {c.megapixels:.2f} MP the snapshot takes **{c.worker_ms:.0f} ms per iteration**, "
+                    f"{first:.1%} of a 16-spp iteration there, and the writes it feeds {c.background_ms:.0f} ms "
+                    f"(checkpoint {c.ms['checkpoint']:.0f} ms, previews {c.ms['preview']:.0f} ms) beside the next "
+                    "render, which waits for them only if it ends first.")
+    return (f"**What the writes cost the render:** the thread backend's worker copies the loop state on the loop's "
+            f"thread (a median **{statistics.median(worker):.0f} ms per iteration** at the benchmark's size, "
+            f"{statistics.median(worker) / megapixels:.0f} ms / MP, {statistics.median(share):.1%} of a whole job's "
+            f"wall time, {min(share):.1%}–{max(share):.1%} over the scenes) and writes the checkpoint and the "
+            "previews from that copy on a background thread (service/jobs/checkpoint_writer.py) while the next "
+            f"iteration renders.{at_probe} The Ray backend's leader actor still writes its checkpoint on its own "
+            "thread (service/jobs/ray_actor.py).")
 
 
 def fixed_costs_note(scenes: list[SceneRun]) -> str:
-    worker = " and ".join(WORKER_WRITES)
     return ("Measured on each scene's finished loop (error allocator) at this size, by calling the functions the "
             "loop and the job worker call, median of 3 calls each; ms / MP divides by the film's megapixels. "
-            "Shares: of that iteration's wall time (its four loop stages) plus the worker's "
-            f"{worker} writes; the render row's ms are the last iteration's, its shares each iteration's own. "
+            "Shares: of that iteration's wall time (its four loop stages) plus the state snapshot the worker "
+            "takes on the loop's thread; the render row's ms are the last iteration's, its shares each iteration's own. "
             "On the CPU the tensors live in host memory, so the two copy rows are layout copies; on a GPU "
             "they are the host/device transfers.")
 

@@ -42,7 +42,8 @@ def test_tiny_run_writes_a_filled_report_with_every_section(tiny_results, tmp_pa
     assert "$" not in text  # every template field was filled
     for needed in ("Command: `renderloop bench --versus-mitsuba --tiny`", "Machine:", "Mitsuba variant:",
                    "## Headline", "equal-error speed-up", "## Peak memory", "## Networks and OIDN, ms per megapixel",
-                   "## Fixed costs per iteration", "checkpoint write", "preview write", "stall rendering",
+                   "## Fixed costs per iteration", "state snapshot on the loop's thread", "checkpoint write",
+                   "preview write", "What the writes cost the render",
                    "**A small run**", "renderloop bench --versus-mitsuba -o docs", "256 spp", "quality high"):
         assert needed in text, needed
     assert "nan" not in text.lower().replace("nanos", "")
