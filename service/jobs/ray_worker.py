@@ -31,6 +31,7 @@ from ray.exceptions import RayActorError, RayTaskError
 
 from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles
+from service.jobs.queue_runner import LeaseLost
 from service.jobs.ray_lambda import LambdaActors
 from service.jobs.ray_runtime import LocalRay, chain_sigterm, join_cluster
 from service.jobs.ray_actor import ACTOR_THREADS, FAILURE_FILE, ActorPlan, IterationReport, JobActor
@@ -212,6 +213,10 @@ class RayJobWorker(JobWorker):
             except IterationInterrupted:
                 self._interrupted(job_id, cancel)
                 return
+            except LeaseLost:
+                log.error("job %s: this server lost its lease (stalled longer than a lease?); another server runs it "
+                          "now, stopping here without writing", job_id)
+                return
             except WorkerDied as died:
                 failure = self._worker_failure(job_id)
                 if failure is not None:
@@ -267,6 +272,15 @@ class RayJobWorker(JobWorker):
             return "not connected to Ray"
         return self._runtime.failure() if self._runtime is not None else None
 
+    def _hold_lease(self, job_id: str) -> None:
+        """Before the leader checkpoints: the job must still be this server's (as the thread
+        backend renews before each checkpoint); else another server resumed it, and nothing
+        here may write its files or record any more."""
+        if not self.store.renew_lease(job_id):
+            with self._lock:
+                self._lost.add(job_id)
+            raise LeaseLost(job_id)
+
     def _interrupted(self, job_id: str, cancel: threading.Event) -> None:
         """Stopped inside an iteration: a user cancel keeps what the checkpoint holds; a
         shutdown requeues the job to resume next start."""
@@ -306,7 +320,7 @@ class RayJobWorker(JobWorker):
         timings, last = dict(record.timings), None
         eta = EtaTracker(job_spec(record), record.spp)
         while not cancel.is_set() and not self._stopping.is_set():
-            report = run_iteration(group)
+            report = run_iteration(group, before_finish=lambda: self._hold_lease(job_id))
             published = time.perf_counter()
             self._publish(job_id, files, report.layers)
             io_seconds = {"io": time.perf_counter() - published}
@@ -399,13 +413,16 @@ def _call(*refs) -> list:
         raise cause from None
 
 
-def run_iteration(group: list) -> IterationReport:
+def run_iteration(group: list, before_finish: Callable[[], None] = lambda: None) -> IterationReport:
     """One iteration over a job's actors: render, exchange the buffers, denoise, exchange the
     outputs, finish. Frames pass between the actors as object references, never through here;
-    each phase starts once the last one ended everywhere (and raised nothing)."""
+    each phase starts once the last one ended everywhere (and raised nothing). `before_finish`
+    runs before the finish phase, in which the leader writes the checkpoint (it may raise to
+    stop the job there)."""
     started = time.perf_counter()
     exchange = len(group) > 1
     rendered = [ref for ref in _call(*[actor.render_phase.remote(exchange) for actor in group]) if ref is not None]
     denoised = [ref for ref in _call(*[actor.denoise_phase.remote(rendered) for actor in group]) if ref is not None]
+    before_finish()
     seconds = time.perf_counter() - started  # one clock for all actors: the same time-limit decision
     return _call(*[actor.finish_phase.remote(denoised, seconds) for actor in group])[0]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sqlite3
 import time
 from pathlib import Path
 
@@ -142,6 +143,26 @@ def test_a_cancel_mid_iteration_saves_the_checkpoints_results_in_a_worker_never_
     assert record.iteration >= 2 and record.stop_message.startswith(f"canceled after {record.iteration} iterations")
     result = read_exr(worker.files(job_id).result_path(0))  # the checkpoint's image, written by a worker
     assert result.spp.mean() == pytest.approx(record.spp)
+
+
+def test_a_job_whose_lease_another_server_took_is_left_alone_without_another_write(worker, store, tmp_path):
+    job_id = submit(store, worker, slow_job(iterations=11))
+    wait_until(store, job_id, lambda r: r.iteration >= 2)
+    running_pids(worker, job_id)
+    # What another server does once this one's lease lapsed (a stall): the job is its own now.
+    with sqlite3.connect(tmp_path / "data" / "jobs.sqlite") as db:
+        db.execute("UPDATE jobs SET lease_owner = 'another-server' WHERE id = ?", (job_id,))
+    taken = store.get(job_id)
+    deadline = time.monotonic() + 60.0
+    while worker.worker_pids(job_id) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert worker.worker_pids(job_id) == [], "this server still renders a job another server holds"
+    stopped = store.get(job_id)
+    time.sleep(2.0)  # nothing more is written from here on
+    after = store.get(job_id)
+    assert after == stopped and (after.state, after.lease_owner) == ("running", "another-server")
+    # at most the iteration that had renewed the lease before it was taken
+    assert after.iteration <= taken.iteration + 1
 
 
 def test_a_worker_killed_mid_job_resumes_on_another_from_its_checkpoint(worker, store):
