@@ -32,8 +32,10 @@ def status_events(client: httpx.Client, job_id: str) -> list[dict]:
 
 
 def test_a_running_job_streams_its_eta_and_the_finished_job_says_why_it_stopped(client):
-    job = client.post("/jobs", json={"scene": "cornell-box", "width": 48, "height": 48, "max_iterations": 4,
-                                     "time_limit": 600}).json()
+    # Iterations long enough (96², 256 → 2048 spp) that the stream, which polls four times a
+    # second, sees the job running between them on a quiet machine too.
+    job = client.post("/jobs", json={"scene": "cornell-box", "width": 96, "height": 96, "max_iterations": 4,
+                                     "spp_first": 256, "time_limit": 600}).json()
     events = status_events(client, job["id"])
     running = [e for e in events if e["state"] == "running" and e["iteration"] >= 1]
     assert running, events
