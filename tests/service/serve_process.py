@@ -17,6 +17,26 @@ RAY_STARTUP_SECONDS = 300  # a Ray runtime on a loaded 2-core machine can take m
 BACKENDS = {"threads": ["--concurrency", "1"], "ray": ["--workers", "1"]}
 
 
+def start_serve(args: list[str], url: str, log_path: Path, env: dict[str, str], startup_seconds: float,
+                new_session: bool = False) -> subprocess.Popen:
+    """`renderloop serve ARGS` as a subprocess logging to `log_path`, once its /healthz answers 200."""
+    with open(log_path, "ab") as log:
+        process = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", *args], cwd=REPO,
+                                   env={**env, "PYTHONUNBUFFERED": "1"}, stdout=log, stderr=subprocess.STDOUT,
+                                   start_new_session=new_session)
+    deadline = time.monotonic() + startup_seconds
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise RuntimeError(f"server exited early:\n{log_path.read_text(errors='replace')}")
+        try:
+            if httpx.get(url + "/healthz", timeout=2).status_code == 200:
+                return process
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError(f"server did not come up:\n{log_path.read_text(errors='replace')}")
+
+
 class ServeProcess:
     """`renderloop serve` itself (the console script's code path, not the test launcher)."""
 
@@ -27,24 +47,11 @@ class ServeProcess:
         self.process: subprocess.Popen | None = None
 
     def start(self) -> "ServeProcess":
-        command = [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port),
-                   "--data-dir", str(self.data_dir), *self.backend]
         env = {k: v for k, v in os.environ.items() if k not in ("RENDERLOOP_TOKEN", "RENDERLOOP_CONCURRENCY")}
-        with open(self.log_path, "ab") as log:
-            # Its own session: a process-group signal reaches this server's group and nothing of pytest.
-            self.process = subprocess.Popen(command, cwd=REPO, env={**env, "PYTHONUNBUFFERED": "1"}, stdout=log,
-                                            stderr=subprocess.STDOUT, start_new_session=True)
-        deadline = time.monotonic() + RAY_STARTUP_SECONDS
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                raise RuntimeError(f"server exited early:\n{self.log()}")
-            try:
-                if httpx.get(self.url + "/healthz", timeout=2).status_code == 200:
-                    return self
-            except httpx.TransportError:
-                pass
-            time.sleep(0.2)
-        raise RuntimeError(f"server did not come up:\n{self.log()}")
+        # Its own session: a process-group signal reaches this server's group and nothing of pytest.
+        self.process = start_serve(["--port", str(self.port), "--data-dir", str(self.data_dir), *self.backend],
+                                   self.url, self.log_path, env, RAY_STARTUP_SECONDS, new_session=True)
+        return self
 
     def log(self) -> str:
         return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
