@@ -291,7 +291,10 @@ class RayJobWorker(JobWorker):
         iterations, spp = 0, 0.0
         if files.has_checkpoint() and size is not None:
             # the checkpoint's results are written in a worker: this process never loads a scene
-            iterations, spp = self._lambda_actors.save_results(job_id, record, files, size)
+            try:
+                iterations, spp = self._lambda_actors.save_results(job_id, record, files, size)
+            except Exception:  # noqa: BLE001 — the user asked for a cancel: it ends canceled, without results
+                log.exception("job %s: canceled, but its checkpoint's results could not be written", job_id)
         self.store.finish(job_id, CANCELED, stop_reason="canceled", stop_message=canceled_message(iterations, spp))
 
     def _worker_failure(self, job_id: str) -> str | None:

@@ -123,7 +123,7 @@ def test_cancel_during_an_iteration_ends_its_worker_within_5_s_and_the_job_as_ca
     # The record follows once the checkpoint's results are written, in a fresh worker (a process
     # start: seconds on a loaded machine).
     record = wait_until(store, job_id, lambda r: r.finished, timeout=60.0)
-    assert record.state == CANCELED and record.stop_reason == "canceled"
+    assert record.state == CANCELED and record.stop_reason == "canceled", record.error
     assert record.iteration < 11
 
 
