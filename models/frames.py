@@ -1,7 +1,7 @@
 """One frame's worth of tensors handed to the networks.
 
 Everything is NCHW float; radiance is linear HDR. Motion follows the EXR contract
-(DESIGN.md): pixel (x, y) in frame t was at (x + mx, y + my) in frame t-1.
+(docs/design.md): pixel (x, y) in frame t was at (x + mx, y + my) in frame t-1.
 """
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ The softmax makes every output pixel a convex combination of its input neighbour
 bounds the output and keeps training stable. For a temporal window the logits of all frames
 share ONE softmax (eq. 4 over frames), so the network decides how much each frame
 contributes. Kernels are applied by a loop over the k² offsets: an unfold would materialise a
-k²-times copy of the image (≈1.3 GB at 256² for 21×21, DESIGN.md).
+k²-times copy of the image (≈1.3 GB at 256² for 21×21, docs/design.md).
 """
 from __future__ import annotations
 

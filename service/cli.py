@@ -1,4 +1,4 @@
-"""`renderloop render|denoise|serve|submit|jobs|status|cancel|download|delete|bench|dataset|train` (DESIGN.md, CLI contract).
+"""`renderloop render|denoise|serve|submit|jobs|status|cancel|download|delete|bench|dataset|train` (docs/cli.md).
 
 Every user error ends as one `renderloop: error: …` line and exit status 2; tracebacks are
 for bugs only.
@@ -33,6 +33,8 @@ from service.loop.stop_message import stop_message
 from service.dataset import command as dataset_command
 
 EXIT_USAGE = 2
+DESCRIPTION = ("Adaptive-sampling renders of Mitsuba 3 scenes, denoised, as commands or as an HTTP service. "
+               "Every command and flag: docs/cli.md; how it works: docs/design.md.")
 
 
 class CliError(Exception):
@@ -40,7 +42,7 @@ class CliError(Exception):
 
 
 def load_cli_networks(weights: Path | None):
-    """Torch threads and networks, chosen once per command and passed down (DESIGN.md)."""
+    """Torch threads and networks, chosen once per command and passed down (docs/design.md)."""
     from models.pretrained import load_networks
     from service.loop.tensors import configure_torch_threads
 
@@ -322,7 +324,7 @@ def run_serve(args) -> int:
 # -- main -------------------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="renderloop", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="renderloop", description=DESCRIPTION)
     sub = parser.add_subparsers(dest="command", required=True)
     add_render_parser(sub)
     add_serve_parser(sub)

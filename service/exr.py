@@ -1,4 +1,4 @@
-"""The one module that reads and writes the project's multi-layer EXR layout (DESIGN.md).
+"""The one module that reads and writes the project's multi-layer EXR layout (docs/exr.md).
 
 Layers (float32 unless noted): `R,G,B` final radiance; `noisy.*` the raw image (the samples
 splatted through the film's filter, as hdrfilm develops them); `variance.*` its variance;
@@ -84,7 +84,7 @@ def result_frame(buffer: FrameBuffer, color: np.ndarray, *, error: np.ndarray | 
 
 def _channel(array: np.ndarray, dtype) -> np.ndarray:
     # OpenEXR 3.x writes a strided view as garbage without an error: always hand it a
-    # contiguous copy of the exact dtype (DESIGN.md, runtime facts).
+    # contiguous copy of the exact dtype (docs/design.md, "Runtime facts").
     return np.ascontiguousarray(array, dtype=dtype)
 
 
@@ -141,7 +141,7 @@ def read_exr(path: str | Path) -> ExrFrame:
     try:
         with OpenEXR.File(str(path), separate_channels=True) as exr:
             channels = {name: np.array(ch.pixels) for name, ch in exr.channels().items()}
-            # The header belongs to the open file: copy it inside the `with` (DESIGN.md).
+            # The header belongs to the open file: copy it inside the `with` (docs/design.md).
             raw_header = dict(exr.header())
     except Exception as exc:  # OpenEXR raises plain RuntimeError on corrupt input
         raise ExrError(f"{path}: not a readable EXR file ({exc})") from exc

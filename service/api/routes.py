@@ -1,4 +1,4 @@
-"""The HTTP routes (DESIGN.md, "HTTP"): submit jobs, poll them, fetch previews and results,
+"""The HTTP routes (docs/design.md, "Contracts"): submit jobs, poll them, fetch previews and results,
 change λ, cancel, follow events. Handlers are thin: records live in service.jobs.store,
 rendering in service.jobs.worker, bundle checks in service.jobs.bundle, request parsing in
 service.api.submit. The store and worker reach handlers as dependencies."""

@@ -1,6 +1,6 @@
 """Where a surface point was one frame earlier, on shapes that move between frames.
 
-A motion vector (DESIGN.md, EXR layout) says where a pixel's first-hit point was on the previous
+A motion vector (docs/exr.md) says where a pixel's first-hit point was on the previous
 frame's film. Projecting the hit point with the previous frame's camera covers camera motion
 only: a point on a turning object is somewhere else one frame earlier. `shape_motion` pairs the
 shapes of two loaded frames and keeps, per moving shape, how to take a point back:

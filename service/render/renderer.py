@@ -2,7 +2,7 @@
 
 Reads like Mitsuba 3's own Python render loop (prepare → sample rays → sample → develop);
 the one difference is the per-pixel sample count: pixel indices are expanded by their counts
-into one flat wavefront (DESIGN.md, runtime facts), split into chunks of at most
+into one flat wavefront (docs/design.md, "Runtime facts"), split into chunks of at most
 `max_wavefront` lanes so memory stays bounded.
 """
 from __future__ import annotations

@@ -39,7 +39,7 @@ from service.render.runtime import mitsuba
 from service.render.scenes import load_scene_info
 
 SCENES = Path(__file__).parent / "scenes"
-# SMAPE's ε (Vogels et al. 2018, eq. 2; DESIGN.md); relMSE's for the per-pixel weights.
+# SMAPE's ε (Vogels et al. 2018, eq. 2; docs/design.md); relMSE's for the per-pixel weights.
 SMAPE_EPS = 1e-2
 RELMSE_EPS = 1e-2
 SEEDS = 2
