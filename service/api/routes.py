@@ -29,8 +29,9 @@ from service.api.submit import (builtin_job, invalid, is_multipart, json_body, p
 from service.images import png_bytes
 from service.jobs import bundle
 from service.jobs.errors import JobConflict, JobNotFound
+from service.jobs.record import job_spec
 from service.jobs.store import CANCELED, FAILED, STATES, JobRecord, JobStore
-from service.jobs.worker import JobWorker, job_spec
+from service.jobs.worker import JobWorker
 from service.render.effects import inspect_scene
 from service.render.scenes import describe_builtin_scenes, film_size
 

@@ -31,8 +31,8 @@ import torch
 from models.pretrained import Networks
 from service.atomic import atomic_write_bytes
 from service.jobs.artifacts import JobFiles
-from service.jobs.store import JobRecord
-from service.jobs.worker import bundle_scene, job_spec, preview_layers, total_samples
+from service.jobs.record import JobRecord, bundle_scene, job_spec
+from service.jobs.worker import preview_layers, total_samples
 from service.loop.loop import RenderLoop
 from service.loop.state import LoopState
 from service.render.framebuffer import FrameBuffer

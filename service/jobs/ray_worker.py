@@ -35,9 +35,9 @@ from service.jobs.queue_runner import LeaseLost
 from service.jobs.ray_lambda import LambdaActors
 from service.jobs.ray_runtime import LocalRay, chain_sigterm, join_cluster
 from service.jobs.ray_actor import ACTOR_THREADS, FAILURE_FILE, ActorPlan, IterationReport, JobActor
-from service.jobs.store import CANCELED, COMPLETED, FAILED, JobRecord, JobStore
-from service.jobs.worker import (JobWorker, NoObserver, Relambda, WorkerObserver, add_timings, bundle_scene,
-                                 job_spec)
+from service.jobs.record import CANCELED, COMPLETED, FAILED, JobRecord, bundle_scene, job_spec
+from service.jobs.store import JobStore
+from service.jobs.worker import JobWorker, NoObserver, Relambda, WorkerObserver, add_timings
 from service.loop.eta import EtaTracker
 from service.loop.loop import IterationInterrupted
 from service.loop.spec import estimated_memory

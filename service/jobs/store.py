@@ -18,8 +18,6 @@ import shutil
 import threading
 import time
 import uuid
-from dataclasses import dataclass, field
-from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -27,66 +25,10 @@ from service.jobs.db.connect import Database, open_database
 from service.jobs.db.schema import JOBS, DuplicateKey
 from service.jobs.leases import Leases, new_owner, owner_is_gone
 from service.jobs.quotas import QuotaExceeded, Quotas
+# The record and its states live in service/jobs/record.py; imported from here too, as before.
+from service.jobs.record import (CANCELED, CANCELED_WHILE_QUEUED, COMPLETED, FAILED, QUEUED, RUNNING,  # noqa: F401
+                                 STATES, TERMINAL_STATES, JobRecord, JobState)
 from service.loop.eta import Progress
-
-
-class JobState(StrEnum):
-    """A job's life: queued → running → one of the three terminal states (stored as text)."""
-
-    QUEUED = "queued"
-    RUNNING = "running"
-    COMPLETED = "completed"
-    FAILED = "failed"
-    CANCELED = "canceled"
-
-
-QUEUED, RUNNING, COMPLETED, FAILED, CANCELED = JobState
-STATES = tuple(state.value for state in JobState)
-TERMINAL_STATES = frozenset({COMPLETED, FAILED, CANCELED})
-CANCELED_WHILE_QUEUED = "canceled before it started"
-
-
-@dataclass
-class JobRecord:
-    """One row of the jobs table, decoded."""
-
-    id: str
-    state: str
-    spec: dict[str, Any]
-    iteration: int = 0  # finished iterations
-    spp: float = 0.0  # mean samples per pixel so far
-    predicted_error: float | None = None
-    stop_reason: str | None = None
-    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage, summed
-    error: str | None = None
-    created_at: float = 0.0  # unix seconds
-    started_at: float | None = None
-    finished_at: float | None = None
-    preview_version: int = 0
-    lambda_value: float | None = None  # the global λ last set; None once a per-pixel map is set
-    resumed_from: int | None = None  # iteration the last restart resumed at; None if never resumed
-    effects: dict[str, Any] | None = None  # the effects report once the scene is loaded
-    priority: int = 0  # higher-priority queued jobs are claimed first
-    client: str | None = None  # who submitted it (service.jobs.quotas.client_key)
-    idempotency_key: str | None = None
-    lease_owner: str | None = None  # the server that runs (or last ran) it
-    lease_expires_at: float | None = None
-    eta_seconds: float | None = None  # seconds left as estimated after the last iteration (loop/eta.py)
-    eta_finish_at: float | None = None  # unix seconds: when that estimate ends the job
-    eta_basis: str | None = None  # what the estimate rests on, in words
-    stop_message: str | None = None  # stop_reason in words (loop/stop_message.py)
-
-    @property
-    def finished(self) -> bool:
-        return self.state in TERMINAL_STATES
-
-    @classmethod
-    def from_row(cls, row: dict[str, Any]) -> "JobRecord":
-        values = dict(row)
-        values["spec"] = json.loads(values["spec"])
-        values["timings"] = json.loads(values["timings"])
-        values["effects"] = json.loads(values["effects"]) if values.get("effects") else None
-        return cls(**values)
 
 
 class AlreadySubmitted(RuntimeError):

@@ -31,7 +31,8 @@ from service.jobs.checkpoint_writer import CheckpointWriter
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
 from service.jobs.queue_runner import LeaseLost, QueueRunner
-from service.jobs.store import CANCELED, COMPLETED, FAILED, JobRecord, JobStore
+from service.jobs.record import CANCELED, COMPLETED, FAILED, JobRecord, bundle_scene, job_spec
+from service.jobs.store import JobStore
 from service.loop.eta import EtaTracker
 from service.loop.loop import IterationInterrupted, RenderLoop
 from service.loop.spec import IterationRecord, LoopSpec
@@ -44,20 +45,6 @@ log = logging.getLogger(__name__)
 IDLE_LOOPS_KEPT = 2  # finished loops kept in memory so λ changes after the run stay cheap
 LAMBDA_WAIT_SECONDS = 300.0
 DELETE_WAIT_SECONDS = 30.0  # a running job stops within one chunk; this bounds a stuck one
-
-
-def job_spec(record: JobRecord, bundle_dir: Path | None = None) -> LoopSpec:
-    """A job record's stored spec as the loop's LoopSpec; a bundle's scene resolves inside
-    `bundle_dir` (left relative without it)."""
-    values = {key: value for key, value in record.spec.items() if key != "bundle_scene"}
-    entry = bundle_scene(record)
-    scene = str(bundle_dir / entry) if (entry and bundle_dir is not None) else None
-    return LoopSpec.from_stored(values, scene=scene)
-
-
-def bundle_scene(record: JobRecord) -> str | None:
-    """The entry XML of an uploaded job, relative to its bundle; None for a built-in scene."""
-    return record.spec["bundle_scene"] if "bundle_scene" in record.spec else None
 
 
 @dataclass(frozen=True)
