@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from bench.as_written import add_arguments as add_as_written_arguments, run_as_written_command
 from bench.calibration_report import run_calibration_report
 from bench.dev_references import DEFAULT_REFERENCE_DIR, SUITES, VAL_REFERENCE_DIR, scaled_reference_dir, write_references
 from bench.dev_suite_report import run_dev_suite_report
@@ -30,8 +31,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--denoiser", action="store_true",
                    help="denoiser quality on held-out scenes (needs --data), or with --suite dev on scenes/dev vs OIDN")
     p.add_argument("--data", type=Path, help="data set with a held-out split (for --denoiser)")
-    p.add_argument("--size", type=int, default=256, help="image side for --sampler (default 256)")
-    p.add_argument("--spp", type=int, default=64, help="samples per pixel for --sampler (default 64)")
+    p.add_argument("--size", type=int, default=None, help="image side for --sampler (default 256) or --as-written (128)")
+    p.add_argument("--spp", type=int, default=None, help="samples per pixel for --sampler (default 64) or --as-written (128)")
     p.add_argument("--repeats", type=int, default=3)
     # Not docs/: a run inside the repository must not overwrite the committed reports by default.
     p.add_argument("-o", "--out", type=Path, default=Path("bench-reports"),
@@ -62,6 +63,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "sequence on 1 vs 2 workers → scale.md")
     add_loop_arguments(p)  # --loop [--quick] --weights --cache
     add_versus_mitsuba_arguments(p)  # --versus-mitsuba --megapixels --max-spp --scenes
+    add_as_written_arguments(p)  # --as-written --tutorials --seeds
 
 
 def add_parser(sub) -> None:
@@ -110,6 +112,8 @@ def run_bench(args: argparse.Namespace) -> int:
         return run_loop_command(args)
     if args.versus_mitsuba:
         return run_versus_mitsuba_command(args)
+    if args.as_written:
+        return run_as_written_command(args)
     if args.scale:
         print(f"wrote {run_scale_report(args.out, weights_dir=args.weights)}")
         return 0
@@ -125,7 +129,7 @@ def run_bench(args: argparse.Namespace) -> int:
     if not (args.sampler or args.models or args.denoiser or args.memory):
         args.sampler = True
     if args.sampler:
-        results = bench_sampler(args.size, args.spp, args.repeats)
+        results = bench_sampler(args.size or 256, args.spp or 64, args.repeats)
         for r in results:
             print(f"sampler: {r.case.label}: ours {r.ours_msps:.2f} M samples/s, mi.render {r.mi_render_msps:.2f}"
                   f" → ratio {r.ratio:.2f}x")

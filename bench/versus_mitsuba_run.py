@@ -140,11 +140,12 @@ class LoopRun:
     last: IterationRecord
 
 
-def make_loop(scene: DevScene, film: Film, networks: Networks, allocator: str, iterations: int) -> RenderLoop:
+def make_loop(scene: DevScene, film: Film, networks: Networks, allocator: str, iterations: int,
+              seed: int = LOOP_SEED) -> RenderLoop:
     """The loop as a job runs it, on the scene as written at `film`'s size; uniform allocation
     does not pay for the error network."""
     spec = LoopSpec(scene=str(scene.path), width=film.width, height=film.height, spp_first=FIRST_SPP,
-                    max_iterations=iterations, allocator=allocator, denoise=True, seed=LOOP_SEED)
+                    max_iterations=iterations, allocator=allocator, denoise=True, seed=seed)
     predictor = networks.error_predictor if allocator == "error" else NoErrorPrediction()
     return RenderLoop(spec, Networks(networks.denoiser, predictor))
 
