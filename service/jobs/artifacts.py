@@ -2,7 +2,7 @@
 
     bundle/            the uploaded scene bundle (checked by service.jobs.bundle), its files hard
                        links to `DATA/blobs/` (service/jobs/blobs.py: one copy per content)
-    state/             the loop checkpoint (LoopState.save/load)
+    state/             the loop checkpoint (service/jobs/checkpoints.py)
     lambda.npy         the job's current λ map (H, W) float32; newest request wins
     previews/frame_NNN.npz   latest preview layers of one frame plus their version
     result/frame_NNN.exr     the final multi-layer EXR per frame
@@ -20,7 +20,7 @@ import numpy as np
 
 from service.atomic import atomic_write, atomic_write_bytes
 from service.exr import ExrFrame, write_exr
-from service.loop.state import LoopState
+from service.jobs.checkpoints import JobCheckpoint
 
 PREVIEW_LAYERS = ("denoised", "noisy", "error", "spp", "lambda")
 
@@ -62,10 +62,11 @@ class JobFiles:
     def result_path(self, frame: int) -> Path:
         return self.root / "result" / f"frame_{frame:03d}.exr"
 
-    # -- checkpoint (LoopState.save swaps it in atomically itself) ----------------------------
-
-    def has_checkpoint(self) -> bool:
-        return LoopState.exists(self.state_dir)
+    @property
+    def checkpoint(self) -> JobCheckpoint:
+        """The job's checkpoint in `state/` (service/jobs/checkpoints.py owns it); a running
+        job keeps one instance for its background writes."""
+        return JobCheckpoint(self.state_dir, name=self.root.name[:8])
 
     # -- λ map ----------------------------------------------------------------------------------
 

@@ -13,15 +13,16 @@ What the render path still pays is the snapshot (LoopState.snapshot). Measured o
 1920×1080, 200 MiB at 1024²), median of 5: at 2 MP LoopState.save 504 ms (235–1182), a fresh
 snapshot 84 ms (but 0.6–1.1 s while the allocator still faults its pages in), a snapshot into
 the previous one's arrays 46 ms (22–60); at 1024² save 334 ms, snapshot 81 ms, reused 35 ms.
-So the worker reuses the last write's snapshot (`spare`), and the render path pays ~1/10 of
-the write.
+So the job's checkpoint (service/jobs/checkpoints.py) reuses the last write's snapshot, and
+the render path pays ~1/10 of the write. The Ray driver uses one of these too, for the previews
+and the record that follow the leader actor's checkpoint.
 """
 from __future__ import annotations
 
 import logging
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, Callable
+from typing import Callable
 
 log = logging.getLogger("service.jobs.worker")  # one logger for the worker's messages
 
@@ -32,9 +33,6 @@ class CheckpointWriter:
     def __init__(self, name: str) -> None:
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"checkpoint-{name}")
         self._pending: Future | None = None
-        # What the caller handed the last write (a LoopState snapshot): once `wait` returned,
-        # nothing reads it any more and the next snapshot may overwrite its arrays.
-        self.spare: Any = None
 
     def wait(self) -> float:
         """Wait for the write in flight, if any; re-raise what it raised. Returns seconds waited."""

@@ -34,7 +34,6 @@ from service.jobs.artifacts import JobFiles
 from service.jobs.record import JobRecord, bundle_scene, job_spec
 from service.jobs.worker import preview_layers, total_samples
 from service.loop.loop import RenderLoop
-from service.loop.state import LoopState
 from service.render.framebuffer import FrameBuffer
 from service.render.runtime import VARIANT_ENV, mitsuba
 
@@ -126,6 +125,7 @@ class JobActor:
     def __init__(self, networks: Networks, plan: ActorPlan) -> None:
         self.plan = plan
         self.files = JobFiles(plan.job_dir)
+        self.checkpoint = self.files.checkpoint  # written by the leader, in the background
         self.networks = use_devices(networks, plan.cpus)
         self.watch = MemoryWatch(plan.memory_share, str(self.files.root / FAILURE_FILE))
         self._cancel = threading.Event()
@@ -139,7 +139,7 @@ class JobActor:
         """Load the scene and the last checkpoint: (effects report, iteration resumed from,
         whether a stop rule was already met, samples so far)."""
         record, files = self.plan.record, self.files
-        state = LoopState.load(files.state_dir) if files.has_checkpoint() else None
+        state = self.checkpoint.load()
         root = files.bundle_dir if bundle_scene(record) else None
         self.loop = RenderLoop(job_spec(record, files.bundle_dir), self.networks, state=state, scene_root=root,
                                owned=range(*self.plan.owned))
@@ -177,9 +177,18 @@ class JobActor:
         report = IterationReport(record.iteration, record.spp_mean, record.predicted_error, record.stop_reason,
                                  total_samples(record.buffers), dict(self._timings))
         if self.plan.leader:
-            self.loop.state.save(self.files.state_dir)  # before the driver publishes: the order rule
+            # Off the render path: the copy now, the save on the checkpoint's thread while the
+            # next iteration renders; the driver records this iteration only once
+            # `checkpointed_through` says it landed (the order rule: checkpoint, previews, record).
+            started = time.perf_counter()
+            self.checkpoint.write_in_background(self.checkpoint.snapshot(self.loop.state))
+            report.timings["io"] = report.timings.get("io", 0.0) + time.perf_counter() - started
             report.layers = preview_layers(self.loop, record)
         return report
+
+    def checkpointed_through(self, iteration: int) -> None:
+        """Return once iteration `iteration` is on disk; raise the save's failure if it failed."""
+        self.checkpoint.wait_through(iteration)
 
     def progress(self) -> tuple[int, float]:
         """(finished iterations, mean spp) of the loop's state."""

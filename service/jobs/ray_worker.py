@@ -31,6 +31,7 @@ from ray.exceptions import RayActorError, RayTaskError
 
 from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles
+from service.jobs.checkpoint_writer import CheckpointWriter
 from service.jobs.queue_runner import LeaseLost
 from service.jobs.ray_lambda import LambdaActors
 from service.jobs.ray_runtime import LocalRay, chain_sigterm, join_cluster
@@ -289,7 +290,7 @@ class RayJobWorker(JobWorker):
             return
         record, files, size = self._require(job_id), self.files(job_id), self.image_size(job_id)
         iterations, spp = 0, 0.0
-        if files.has_checkpoint() and size is not None:
+        if files.checkpoint.exists() and size is not None:
             # the checkpoint's results are written in a worker: this process never loads a scene
             try:
                 iterations, spp = self._lambda_actors.save_results(job_id, record, files, size)
@@ -322,23 +323,40 @@ class RayJobWorker(JobWorker):
                  samples: int) -> IterationReport | None:
         timings, last = dict(record.timings), None
         eta = EtaTracker(job_spec(record), record.spp)
-        while not cancel.is_set() and not self._stopping.is_set():
-            report = run_iteration(group, before_finish=lambda: self._hold_lease(job_id))
-            published = time.perf_counter()
-            self._publish(job_id, files, report.layers)
-            io_seconds = {"io": time.perf_counter() - published}
-            timings = add_timings(add_timings(timings, report.timings), io_seconds)
-            # the loop's own time (what its time limit counts) is the stages' sum less the driver's I/O
-            progress = eta.after(report.iteration + 1, report.spp_mean, {**report.timings, **io_seconds},
-                                 sum(timings.values()) - timings.get("io", 0.0), report.stop_reason,
-                                 report.predicted_error)
-            self.store.record_iteration(job_id, report.iteration + 1, report.spp_mean, report.predicted_error,
-                                        timings, report.stop_reason, progress)
-            self.observer.iteration_finished(report.timings, report.samples - samples)
-            samples, last = report.samples, report
-            if report.stop_reason is not None:
-                break
+        # The previews and the record follow the leader's checkpoint on this thread, while the
+        # actors render the next iteration (the leader saves in the background too).
+        publisher = CheckpointWriter(f"publish-{job_id[:8]}")
+        try:
+            while not cancel.is_set() and not self._stopping.is_set():
+                report = run_iteration(group, before_finish=lambda: self._hold_lease(job_id))
+                started = time.perf_counter()
+                publisher.wait()  # one iteration behind at most; a failed checkpoint fails the job here
+                io_seconds = {"io": report.timings.get("io", 0.0) + time.perf_counter() - started}
+                timings = add_timings(timings, {**report.timings, **io_seconds})
+                # the loop's own time (what its time limit counts) is the stages' sum less the I/O
+                progress = eta.after(report.iteration + 1, report.spp_mean, {**report.timings, **io_seconds},
+                                     sum(timings.values()) - timings.get("io", 0.0), report.stop_reason,
+                                     report.predicted_error)
+                publisher.submit(lambda report=report, timings=timings, progress=progress: self._record_iteration(
+                    job_id, files, group[0], report, timings, progress))
+                self.observer.iteration_finished(report.timings, report.samples - samples)
+                samples, last = report.samples, report
+                if report.stop_reason is not None:
+                    break
+            publisher.flush()  # the job ends only once its last iteration is on disk and recorded
+        finally:
+            publisher.close()
         return last
+
+    def _record_iteration(self, job_id: str, files: JobFiles, leader, report: IterationReport,
+                          timings: dict[str, float], progress) -> None:
+        """On the publisher's thread: once the leader's checkpoint of this iteration is on disk,
+        the previews, then the record (the record never claims an iteration a restart could not
+        resume from)."""
+        _call(leader.checkpointed_through.remote(report.iteration + 1))
+        self._publish(job_id, files, report.layers)
+        self.store.record_iteration(job_id, report.iteration + 1, report.spp_mean, report.predicted_error,
+                                    timings, report.stop_reason, progress)
 
     def _end(self, job_id: str, group: list, last: IterationReport | None, cancel: threading.Event) -> None:
         finished = last is not None and last.stop_reason not in (None, "canceled")
@@ -394,7 +412,7 @@ class RayJobWorker(JobWorker):
         """A job without running actors: finished, in its λ actor (service.jobs.ray_lambda);
         queued or starting, nothing to do (its loop reads the saved map when it opens)."""
         files, size = self.files(job_id), self.image_size(job_id)
-        if record.state != COMPLETED or not files.has_checkpoint() or size is None:
+        if record.state != COMPLETED or not files.checkpoint.exists() or size is None:
             return None
         return self._lambda_actors.relambda(job_id, record, files, size, lam)
 

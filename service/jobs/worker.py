@@ -4,11 +4,11 @@ current.
 One thread pool (`concurrency` threads, default 1) runs jobs: each thread takes the store's next
 queued job (highest priority, then oldest), and a lease thread keeps this server's leases and
 resumes jobs whose server died (service/jobs/queue_runner.py). After every
-iteration the worker copies the loop state (LoopState.snapshot) and hands it to the job's
-background writer (service/jobs/checkpoint_writer.py), which checkpoints it, writes the preview
-layers and bumps the preview version, then updates the record, in that order, so the record
-never claims an iteration a restart could not resume from, while the loop renders the next
-iteration. Every ending of a job flushes the writer first. λ changes go through a per-job latest-wins
+iteration the worker has the job's checkpoint (service/jobs/checkpoints.py) copy the loop state
+and save the copy on its background thread, which then writes the preview layers, bumps the
+preview version and updates the record, in that order, so the record never claims an iteration
+a restart could not resume from, while the loop renders the next iteration. Every ending of a
+job waits for that write first. λ changes go through a per-job latest-wins
 mailbox and re-denoise from the loop's cached features (`RenderLoop.set_lambda`).
 """
 from __future__ import annotations
@@ -27,7 +27,7 @@ import numpy as np
 from models.pretrained import Networks
 from service.exr import ExrFrame
 from service.jobs.artifacts import JobFiles, Preview
-from service.jobs.checkpoint_writer import CheckpointWriter
+from service.jobs.checkpoints import JobCheckpoint
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
 from service.jobs.queue_runner import LeaseLost, QueueRunner
@@ -143,7 +143,7 @@ class JobWorker(QueueRunner):
         self._concurrency = concurrency
         self._draining = 0  # pool tasks taking queued jobs (at most `concurrency`)
         self._lost: set[str] = set()  # live jobs whose lease another server took over
-        self._writers: dict[str, CheckpointWriter] = {}  # live jobs' background checkpoint writers
+        self._checkpoints: dict[str, JobCheckpoint] = {}  # live jobs' checkpoints (their background writes)
         self._eta: dict[str, EtaTracker] = {}  # live jobs' measured iteration costs (service/loop/eta.py)
         self._leases = threading.Thread(target=self._keep_leases, name="leases", daemon=True)
 
@@ -235,26 +235,20 @@ class JobWorker(QueueRunner):
             return  # canceled while queued, or the server is going down
         record = self._require(job_id)
         files = self.files(job_id)
-        cancel = self._cancel_event(job_id)
-        loop = self._open_loop(job_id, record, files)
-        should_stop = lambda: cancel.is_set() or self._stopping.is_set() or self._lease_lost(job_id)  # noqa: E731
-        timings = dict(record.timings)
-        last: IterationRecord | None = None
-        samples = total_samples(loop.state.buffers)  # a resumed job's earlier samples are not counted again
+        checkpoint = files.checkpoint  # this job's one instance: its background writes go through it
+        loop = self._open_loop(job_id, record, files, checkpoint)
         with self._lock:
             self._eta[job_id] = EtaTracker(loop.spec, loop.state.spp_mean)
-        writer = CheckpointWriter(job_id[:8])
-        with self._lock:
-            self._writers[job_id] = writer
+            self._checkpoints[job_id] = checkpoint
         try:
-            self._render(job_id, record, loop, files, writer)
+            self._render(job_id, record, loop, files, checkpoint)
         finally:
-            writer.close()  # a write still running (the render failed) lands before the job is marked
+            checkpoint.close()  # a write still running (the render failed) lands before the job is marked
             with self._lock:
-                self._writers.pop(job_id, None)
+                self._checkpoints.pop(job_id, None)
 
     def _render(self, job_id: str, record: JobRecord, loop: RenderLoop, files: JobFiles,
-                writer: CheckpointWriter) -> None:
+                checkpoint: JobCheckpoint) -> None:
         """Run the loop; every ending first flushes the background writer, so the record, the
         checkpoint and the previews are complete (and a failed write fails the job) before the
         job is completed, canceled, requeued or left to the server that took it over."""
@@ -269,12 +263,12 @@ class JobWorker(QueueRunner):
                 self.observer.iteration_finished(last.timings, total_samples(last.buffers) - samples)
                 samples = total_samples(last.buffers)
         except LeaseLost:
-            writer.flush()
+            checkpoint.wait()
             log.error("job %s: this server lost its lease (stalled longer than a lease?); another server runs it "
                       "now, stopping here without writing", job_id)
             return
         except IterationInterrupted:
-            writer.flush()
+            checkpoint.wait()
             # Stopped inside an iteration (within one wavefront chunk): the in-memory buffers
             # are partial, the checkpoint of the last finished iteration is what counts.
             if self._lease_lost(job_id):
@@ -284,7 +278,7 @@ class JobWorker(QueueRunner):
                 return
             self._complete(job_id, self._checkpointed_loop(record, files), files, None, canceled=True)
             return
-        writer.flush()
+        checkpoint.wait()
         finished = last is not None and last.stop_reason not in (None, "canceled")
         if not finished and not cancel.is_set() and self._stopping.is_set():
             self.store.requeue(job_id)  # server shutdown, not a user cancel: resume next start
@@ -300,12 +294,11 @@ class JobWorker(QueueRunner):
         return RenderLoop(job_spec(record, files.bundle_dir), self.networks, state=state, scene_root=root)
 
     def _checkpointed_loop(self, record: JobRecord, files: JobFiles) -> RenderLoop | None:
-        if not files.has_checkpoint():
-            return None
-        return self._make_loop(record, files, LoopState.load(files.state_dir))
+        state = files.checkpoint.load()
+        return None if state is None else self._make_loop(record, files, state)
 
-    def _open_loop(self, job_id: str, record: JobRecord, files: JobFiles) -> RenderLoop:
-        state = LoopState.load(files.state_dir) if files.has_checkpoint() else None
+    def _open_loop(self, job_id: str, record: JobRecord, files: JobFiles, checkpoint: JobCheckpoint) -> RenderLoop:
+        state = checkpoint.load()
         loop = self._make_loop(record, files, state)
         self.store.set_effects(job_id, loop.effects.as_record())
         if state is not None:
@@ -330,10 +323,9 @@ class JobWorker(QueueRunner):
                 self._lost.add(job_id)
             raise LeaseLost(job_id)
         with self._lock:
-            writer = self._writers[job_id]
+            checkpoint = self._checkpoints[job_id]
         started = time.perf_counter()
-        writer.wait()  # one snapshot in memory at a time; a failed write fails the job here
-        snapshot = writer.spare = loop.state.snapshot(reuse=writer.spare)  # the last write's copy is free now
+        snapshot = checkpoint.snapshot(loop.state)  # after the last write landed; a failed one fails the job here
         written = replace(record, buffers=snapshot.buffers, error=list(snapshot.error_maps),
                           denoised=list(record.denoised))
         io_seconds = {"io": time.perf_counter() - started}
@@ -343,14 +335,15 @@ class JobWorker(QueueRunner):
         progress = None if eta is None else eta.after(
             snapshot.iteration, record.spp_mean, {**record.timings, **io_seconds}, snapshot.elapsed,
             record.stop_reason, record.predicted_error)
-        writer.submit(lambda: self._write_iteration(job_id, files, snapshot, written, timings, progress))
+        checkpoint.write_in_background(
+            snapshot, then=lambda saved: self._publish_iteration(job_id, files, saved, written, timings, progress))
         return timings
 
-    def _write_iteration(self, job_id: str, files: JobFiles, snapshot: LoopState, record: IterationRecord,
-                         timings: dict[str, float], progress) -> None:
-        """On the writer's thread, in the order restarts rely on: checkpoint, previews, record
-        (the record never claims an iteration a restart could not resume from)."""
-        snapshot.save(files.state_dir)
+    def _publish_iteration(self, job_id: str, files: JobFiles, snapshot: LoopState, record: IterationRecord,
+                           timings: dict[str, float], progress) -> None:
+        """On the checkpoint's writer thread once the checkpoint landed, in the order restarts
+        rely on: checkpoint, previews, record (the record never claims an iteration a restart
+        could not resume from)."""
         self._publish(job_id, files, state_preview_layers(snapshot, record))
         self.store.record_iteration(
             job_id, record.iteration + 1, record.spp_mean, record.predicted_error, timings, record.stop_reason, progress
@@ -469,9 +462,10 @@ class JobWorker(QueueRunner):
         if loop is not None or record.state != COMPLETED:
             return loop  # queued or starting: the loop reads the saved map when it opens
         files = self.files(job_id)
-        if not files.has_checkpoint():
+        state = files.checkpoint.load()
+        if state is None:
             return None
         # After a restart: rebuild from the checkpoint; set_lambda recomputes the cache once.
-        loop = self._make_loop(record, files, LoopState.load(files.state_dir))
+        loop = self._make_loop(record, files, state)
         self._keep_idle(job_id, loop)
         return loop

@@ -112,4 +112,4 @@ def test_a_failed_checkpoint_write_fails_the_job_with_the_writes_message(monkeyp
     assert done.state == FAILED, done
     assert "No space left on device" in (done.error or ""), done.error
     assert done.iteration == 0  # no record claims an iteration whose checkpoint was never written
-    assert not worker.files(done.id).has_checkpoint()
+    assert not worker.files(done.id).checkpoint.exists()

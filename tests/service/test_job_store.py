@@ -196,7 +196,7 @@ def test_artifacts_roundtrip(tmp_path):
     preview = files.load_preview(0)
     assert preview.version == 7 and preview.layers["error"] is None
     assert preview.layers["denoised"].shape == (4, 6, 3)
-    assert not files.has_checkpoint()
+    assert not files.checkpoint.exists()
 
 
 def test_latest_wins_skips_superseded_requests():

@@ -1,0 +1,98 @@
+"""Test-side probe for Ray's worker processes (never imported by the product).
+
+A test puts this folder first on the PYTHONPATH of the local Ray runtime it starts (Ray's
+processes inherit the environment of `ray.init`), with RENDERLOOP_PROBE_DIR naming a folder.
+In every process that then imports the loop, it
+- logs `render_start` (the 0-based iteration about to render), `denoise_end`, `save_start` and
+  `save_end` (the checkpoint's iteration) with wall-clock times to PROBE_DIR/events.jsonl;
+- makes LoopState.save behave as PROBE_DIR/save_mode says at each call: `slow SECONDS`
+  (sleeps first), `fail` (raises ENOSPC, as a full disk does), absent: as written.
+So a test can watch the leader actor from outside its process: whether it renders the next
+iteration while its checkpoint is written, and when each checkpoint landed.
+"""
+from __future__ import annotations
+
+import errno
+import importlib.abc
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+PROBE_DIR = os.environ.get("RENDERLOOP_PROBE_DIR")
+
+
+def log(what: str, iteration: int) -> None:
+    line = json.dumps([time.time(), what, int(iteration), os.getpid()]) + "\n"
+    with open(Path(PROBE_DIR) / "events.jsonl", "a") as events:
+        events.write(line)
+
+
+def save_mode() -> list[str]:
+    path = Path(PROBE_DIR) / "save_mode"
+    return path.read_text().split() if path.is_file() else []
+
+
+def patch_state(module) -> None:
+    save = module.LoopState.save
+
+    def probed_save(self, directory):
+        mode = save_mode()
+        log("save_start", self.iteration)
+        if mode[:1] == ["fail"]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        if mode[:1] == ["slow"]:
+            time.sleep(float(mode[1]))
+        path = save(self, directory)
+        log("save_end", self.iteration)
+        return path
+
+    module.LoopState.save = probed_save
+
+
+def patch_loop(module) -> None:
+    render, denoise = module.RenderLoop.render_step, module.RenderLoop.denoise_step
+
+    def probed_render(self, timings, should_stop=lambda: False):
+        log("render_start", self.state.iteration)
+        return render(self, timings, should_stop)
+
+    def probed_denoise(self, *args, **kwargs):
+        result = denoise(self, *args, **kwargs)
+        log("denoise_end", self.state.iteration)
+        return result
+
+    module.RenderLoop.render_step = probed_render
+    module.RenderLoop.denoise_step = probed_denoise
+
+
+PATCHES = {"service.loop.state": patch_state, "service.loop.loop": patch_loop}
+
+
+class ProbeFinder(importlib.abc.MetaPathFinder):
+    """Lets the real finders load the module, then patches it before anyone uses it."""
+
+    def find_spec(self, name, path, target=None):
+        if name not in PATCHES:
+            return None
+        for finder in sys.meta_path:
+            if finder is self or not hasattr(finder, "find_spec"):
+                continue
+            spec = finder.find_spec(name, path, target)
+            if spec is not None:
+                break
+        else:
+            return None
+        exec_module = spec.loader.exec_module
+
+        def exec_and_patch(module) -> None:
+            exec_module(module)
+            PATCHES[name](module)
+
+        spec.loader.exec_module = exec_and_patch
+        return spec
+
+
+if PROBE_DIR:
+    sys.meta_path.insert(0, ProbeFinder())
