@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import true_error_map
+from bench.report_images import save_figure
 from bench.loop_run import PRODUCT, Headline, SceneResult
 from service.images import linear_to_srgb
 
@@ -79,7 +80,7 @@ def write_plots(results: list[SceneResult], head: Headline, folder: Path) -> lis
 
 def _save(fig, path: Path, dpi: int = 90) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi, pil_kwargs={"optimize": True})  # small PNGs: they are committed
+    save_figure(fig, path, dpi=dpi, pil_kwargs={"optimize": True})  # small PNGs, rewritten only when changed
     plt.close(fig)
     return path
 

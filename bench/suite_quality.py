@@ -19,6 +19,7 @@ import numpy as np
 from bench.common import OidnDenoise, image_metrics, true_error_map
 from bench.dev_references import DevScene
 from bench.quality_measures import mean_abs_change, shadow_contrast_ratio
+from bench.report_images import save_figure
 from models.pretrained import Networks
 from service.images import linear_to_srgb
 from service.loop.denoise_session import DenoiseSession
@@ -171,6 +172,6 @@ def write_crops(name: str, shown: dict[int, dict[str, np.ndarray]], reference: n
             ax.axis("off")
     fig.suptitle(f"{name}: the {CROP}² crop where KPCN's 16-spp error is largest", fontsize=7)
     path = folder / f"{name}.png"
-    fig.savefig(path, dpi=80, bbox_inches="tight")
+    save_figure(fig, path, dpi=80, bbox_inches="tight")  # rewritten only when the picture changed
     plt.close(fig)
     return path

@@ -75,6 +75,7 @@ def flicker_table(flicker: dict[str, dict[str, float]], animated: frozenset[str]
 
 
 REPORT_NAMES = {"dev": REPORT_NAME, "val": "val-quality.md"}  # --suite → the report's file
+SUITE_TITLES = {"dev": "development suite", "val": "validation scenes"}  # --suite → the report's title
 
 
 def write_suite_quality_report(results: list[SceneQuality], flicker: dict[str, dict[str, float]], out_dir: Path,
@@ -84,7 +85,7 @@ def write_suite_quality_report(results: list[SceneQuality], flicker: dict[str, d
     out_dir.mkdir(parents=True, exist_ok=True)
     path.write_text(fill(
         "suite_quality.md", provenance=provenance(variant=active_variant()), oidn=oidn_note, weights=weights,
-        about=SUITES[suite].about,
+        suite_title=SUITE_TITLES[suite], about=SUITES[suite].about,
         count=len(results), spp_levels=", ".join(str(s) for s in results[0].scores), summary=summary_table(results),
         flicker=flicker_table(flicker, animated), shadows=shadow_table(results), scenes=scene_tables(results, out_dir)))
     return path

@@ -51,6 +51,7 @@ def test_development_suite_loop_benchmark_scores_against_the_committed_reference
     text = report.read_text()
     assert report.name == "benchmarks-dev.md" and "$" not in text
     assert "each scene's own film size" in text and "| point_object |" in text
+    assert text.startswith("# What accuracy costs in time: the render loop benchmark at each scene's own film size")
     assert "one single-frame 256² denoise took" in text and "probe failed" not in text  # threads chosen by measuring
     if importlib.util.find_spec("pyoidn") is not None:
         assert "uniform + OIDN at equal wall time on" in text

@@ -27,6 +27,7 @@ def test_suite_quality_report_scores_noisy_ours_and_oidn_at_every_sample_count(t
     pytest.importorskip("pyoidn")
     text = run_suite_quality_report(tmp_path, only=["point_object"]).read_text()
     assert "$" not in text and "Command:" in text
+    assert text.startswith("# The denoiser on the development suite:")
     rows = [line for line in text.splitlines() if line.startswith("| 16 |") or line.startswith("| 256 |")]
     per_method = [r for r in rows if r.count("|") == 7]  # the per-scene table: spp, method, 4 scores
     assert len(per_method) == 6

@@ -29,6 +29,7 @@ def test_validation_report_scores_noisy_ours_and_oidn(tmp_path: Path):
     assert report.name == "val-quality.md"
     text = report.read_text()
     assert "scenes/val/" in text and "$" not in text
+    assert text.startswith("# The denoiser on the validation scenes:")  # not titled as the development suite
     rows = [line for line in text.splitlines() if line.startswith("| 16 |") and line.count("|") == 7]
     assert len(rows) == 3
     for row in rows:
