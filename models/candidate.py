@@ -35,13 +35,6 @@ GATE_LOGIT_BOUND = 10.0
 VARIANCE_FLOOR = 1e-4   # z-score guard where all samples agreed (variance 0: black or constant pixels)
 WINDOWS = (3, 7)        # box windows of the disagreement statistic: single pixels are too noisy to judge
 N_STATS = len(WINDOWS) + 2
-# The firefly statistics (DenoiserConfig.gate_firefly): a pixel's relative variance of the mean,
-# Var(m)/m², is ≈ CV²/n for well-behaved samples and → 1 when one sample dominates the mean (one
-# value F among n near 0: m = F/n, sample variance F²/n, so Var(m) = F²/n² = m²). That firefly
-# also inflates the variance the disagreement z divides by, so z alone hides it; max-pooled over
-# FIREFLY_WINDOW it marks the neighbours the kernels would spread the firefly onto.
-FIREFLY_WINDOW = 7
-N_FIREFLY_STATS = 2
 
 
 def disagreement(noisy: Tensor, candidate: Tensor, variance: Tensor) -> Tensor:
@@ -50,12 +43,6 @@ def disagreement(noisy: Tensor, candidate: Tensor, variance: Tensor) -> Tensor:
     left the samples behind (erased structure) or where the samples hold a firefly."""
     d = noisy - candidate
     return (d * d / (variance + VARIANCE_FLOOR)).mean(1, keepdim=True)
-
-
-def relative_variance(noisy: Tensor, variance: Tensor) -> Tensor:
-    """Var(m) / m² per pixel, mean over colour channels (FIREFLY_WINDOW's comment: ≈ 1 where one
-    sample dominates the mean); VARIANCE_FLOOR keeps black pixels at ≈ 0 instead of 0/0."""
-    return (variance / (noisy * noisy + VARIANCE_FLOOR)).mean(1, keepdim=True)
 
 
 def _in_image_count(n: int, r: int, like: Tensor) -> Tensor:
@@ -81,17 +68,13 @@ def box_mean(x: Tensor, k: int) -> Tensor:
     return total / (_in_image_count(h, r, x).view(-1, 1) * _in_image_count(w, r, x))
 
 
-def gate_statistics(noisy: Tensor, candidate: Tensor, variance: Tensor, firefly: bool = False) -> Tensor:
-    """(N, N_STATS [+ N_FIREFLY_STATS], H, W): log(1 + box-averaged z) per window, log brightness
-    of the candidate, and the mean |log(1+noisy) − log(1+candidate)|; with `firefly`, also log(1 +
-    relative variance) at the pixel and max-pooled around it. All compressed to a CNN-friendly range."""
+def gate_statistics(noisy: Tensor, candidate: Tensor, variance: Tensor) -> Tensor:
+    """(N, N_STATS, H, W): log(1 + box-averaged z) per window, log brightness of the candidate,
+    and the mean |log(1+noisy) − log(1+candidate)|, all compressed to a CNN-friendly range."""
     z = disagreement(noisy, candidate, variance)
     pooled = [box_mean(z, k) for k in WINDOWS]
     ln, lc = log_transform(noisy), log_transform(candidate)
     stats = [*(torch.log1p(p) for p in pooled), lc.mean(1, keepdim=True), (ln - lc).abs().mean(1, keepdim=True)]
-    if firefly:
-        r = torch.log1p(relative_variance(noisy, variance))
-        stats += [r, F.max_pool2d(r, FIREFLY_WINDOW, stride=1, padding=FIREFLY_WINDOW // 2)]
     return torch.cat(stats, 1)
 
 
@@ -99,10 +82,9 @@ class CandidateGate(nn.Module):
     """prepare: features → gate hidden planes (λ-independent, cached);
     apply: hidden planes + λ code → candidate logit g (N,1,H,W) through a λ module."""
 
-    def __init__(self, cin: int, width: int, lambda_module: nn.Module, firefly: bool = False):
+    def __init__(self, cin: int, width: int, lambda_module: nn.Module):
         super().__init__()
-        self.firefly = firefly
-        self.hidden = Pointwise(cin + N_STATS + (N_FIREFLY_STATS if firefly else 0), width)
+        self.hidden = Pointwise(cin + N_STATS, width)
         self.specialise = lambda_module          # k = 1: one logit per pixel
         with torch.no_grad():
             self.specialise.base[:, -1].fill_(GATE_INIT_LOGIT)   # the bias column (ones input last)
@@ -111,7 +93,7 @@ class CandidateGate(nn.Module):
         """(N,C,H,W) centre features and images → (N,1,width+1,H,W) with a ones channel last.
         The hidden layer reads [features; statistics] as two GEMMs, W·[f; s] = W_f·f + W_s·s,
         instead of concatenating its input: one full-size copy fewer per pyramid level."""
-        stats = gate_statistics(noisy, candidate, variance, self.firefly)
+        stats = gate_statistics(noisy, candidate, variance)
         n, c, height, width = kernel_features.shape
         weight = self.hidden.weight
         h = torch.baddbmm(self.hidden.bias.view(1, -1, 1), weight[:, :c].expand(n, -1, -1),

@@ -1,5 +1,7 @@
 """Checkpoints: config (as a dict) + model kind + format version + state dict, so a model is
-rebuilt from the file alone and every mismatch fails loudly with CheckpointError."""
+rebuilt from the file alone and every mismatch fails loudly with CheckpointError. Its `extra`
+dict says how it was made: at least the recipe's short name (scripts/train-weights.sh,
+docs/models.md) and the hash of the data sets' manifests it trained on (RECIPE_KEY, DATA_KEY)."""
 from __future__ import annotations
 
 import dataclasses
@@ -13,8 +15,9 @@ from models.denoiser import Denoiser, DenoiserConfig
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 
 FORMAT_VERSION = 2
-# Format 1 denoisers predate the λ module's s(1) anchor; they load through an exact conversion.
-READABLE_VERSIONS = (1, FORMAT_VERSION)
+READABLE_VERSIONS = (FORMAT_VERSION,)
+RECIPE_KEY = "recipe"   # extra[...]: the recipe's short name, e.g. "shipped-denoiser"
+DATA_KEY = "data"       # extra[...]: "sha256:<hex>" of the data sets' manifests (service.training.provenance)
 MODEL_KINDS: dict[str, tuple[type[nn.Module], type]] = {
     Denoiser.kind: (Denoiser, DenoiserConfig),
     ErrorPredictor.kind: (ErrorPredictor, ErrorPredictorConfig),
@@ -26,6 +29,7 @@ class CheckpointError(Exception):
 
 
 def save_checkpoint(path: str | Path, model: nn.Module, extra: dict[str, Any] | None = None) -> Path:
+    """extra: how the weights were made (RECIPE_KEY, DATA_KEY, the step, the validation figure)."""
     kind = getattr(model, "kind", None)
     if kind not in MODEL_KINDS:
         raise CheckpointError(f"cannot save {type(model).__name__}: not one of {sorted(MODEL_KINDS)}")
@@ -80,7 +84,5 @@ def load_checkpoint(path: str | Path, expected_kind: str | None = None, device: 
         model.load_state_dict(ckpt["state_dict"])
     except RuntimeError as e:
         raise CheckpointError(f"{path}: weights do not fit the {kind} built from its config:\n{e}") from e
-    if kind == Denoiser.kind and ckpt["format_version"] == 1:
-        model.specialise.anchor_at_symmetric_()
     model.checkpoint_extra = ckpt.get("extra", {})
     return model.to(device).eval()

@@ -33,7 +33,6 @@ from models.frames import FrameTensors
 from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
 from models.layers import ConvPair, Pointwise, cat_channels_last, conv3x3, res_blocks, trunk_in_bfloat16
 from models.pyramid import down, down_frame, pad_to, up, up_nearest
-from models.unet import UNetTrunk
 from models.warp import flow_to_center, warp
 
 from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN  # noqa: F401  (re-exported: eq. 6 range)
@@ -41,9 +40,13 @@ from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN  # noqa: F401  (re-export
 
 @dataclass
 class DenoiserConfig:
+    """The shipped network's configuration is the default (tests/models/test_shipped_config.py):
+    a width-16 single-frame multi-scale KPCN whose window's neighbours only add samples, with the
+    OIDN candidate in every level's joint softmax and read by the trunk, and the settings chosen
+    after training on the validation scenes. The temporal KPCN is `temporal_config()`."""
     source: str = "mitsuba-path"   # render source → encoder input (models.features.FEATURE_SETS)
-    width: int = 32                # feature channels everywhere between encoder and kernel head
-    spatial_blocks: int = 2        # residual blocks of the spatial feature extractor (the "levels" trunk's)
+    width: int = 16                # feature channels everywhere between encoder and kernel head
+    spatial_blocks: int = 2        # residual blocks of the spatial feature extractor
     temporal_blocks: int = 3       # residual blocks of the temporal feature extractor (paper: 3)
     kernel_size: int = 5           # k; per level, so the 3-level pyramid reaches 5·4 = 20 px
     levels: int = 3                # pyramid levels (paper: 3)
@@ -51,43 +54,39 @@ class DenoiserConfig:
     lambda_width: int = 16         # hidden channels of the λ module: kernel head input and λ-MLP width
     lambda_rank: int = 2           # λ-dependent directions of the kernel head W(λ) = W₀ + Σ sᵣ(λ)ΔWᵣ
     composite_width: int = 8       # channels of the per-pixel α CNN (eq. 5)
-    temporal: bool = True          # False: single-frame model (a window's neighbours only add samples)
-    accumulate: bool = True        # single-frame: pool the window's consistent samples in (models.accumulation)
-    multiscale: bool = True        # False: finest level only, no compositing
-    oidn_candidate: bool = False   # an external denoiser's image joins every level's joint softmax (models.candidate)
+    temporal: bool = False         # False: single-frame model (the window's consistent samples pooled in, models.accumulation)
+    multiscale: bool = True        # False: finest level only, no compositing (the first training stage)
+    oidn_candidate: bool = True    # an external denoiser's image joins every level's joint softmax (models.candidate)
     gate_width: int = 8            # hidden channels of the candidate gate
-    gate_firefly: bool = False     # the gate also reads the samples' relative variance (models.candidate)
-    energy_tolerance: float = 0.0  # τ of models.energy: > 0 pulls the image's total towards the samples'; 0 = off
-    energy_block: int = 0          # > 0 (with τ): then each block of this many pixels a side as well (models.energy)
-    # Logits added to the candidate gate after training (models.candidate.CandidateGate.weight):
-    # > 0 leans to the candidate, in full at λ = 1 and not at all at λ = 10.
-    gate_offset: float = 0.0                  # the finest level's
-    coarse_gate_offset: float | None = None   # every coarser level's; None: gate_offset
-    # Feature extractor: "levels" runs the paper's encoder + residual blocks on each level's
-    # pooled inputs; "unet" one U-Net over the finest inputs feeds every level (models.unet).
-    trunk: str = "levels"
-    # Post-training: with a candidate, eq. 5's swap never lifts a pixel above both its fine result
-    # and the candidate's own value there (ScaleCompositor's cap); False = the block-wise cap alone.
-    candidate_cap: bool = False
     # The trunk also reads the candidate (log of its demodulated image at each level): kernels
     # predicted with a clean estimate of the image in view, as a cross-bilateral filter is
     # guided by one. Single-frame only (a neighbour frame has no candidate of its own).
-    candidate_features: bool = False
-    # Post-training: each level's kernel result clamped to [c/(1+t), c·(1+t)] around the candidate c
-    # before the blend, t widening to no clamp at λ = 10 (models.candidate.clamp_around); None = off.
-    # A highlight the kernels spread beyond what OIDN saw is a relMSE outlier (docs/guided-kernels.md).
-    kernel_clamp: float | None = None
-    # Post-training: the kernels filter radiance ÷ max(albedo, floor), the candidate joins in that
-    # space, and the result is multiplied back by the same (models.features.demodulation_albedo);
-    # the trunk's own features stay as trained (its guide, the candidate, is in the floored
-    # space). 0 = the plain albedo. The sky seen directly (a camera ray that misses: albedo 0)
-    # otherwise left bright dots along the edges of what borders it (docs/models.md, "The albedo floor").
-    albedo_floor: float = 0.0
+    candidate_features: bool = True
+    # --- post-training settings (POST_TRAINING_SETTINGS): chosen on the validation scenes for
+    # given weights; training runs without them (NEUTRAL_SETTINGS). Figures: docs/models.md.
+    energy_tolerance: float = 0.03  # τ of models.energy: > 0 pulls the image's total towards the samples'; 0 = off
+    energy_block: int = 32          # > 0 (with τ): then each block of this many pixels a side as well (models.energy)
+    # Logits added to the candidate gate (models.candidate.CandidateGate.weight):
+    # > 0 leans to the candidate, in full at λ = 1 and not at all at λ = 10.
+    gate_offset: float = 2.0                  # the finest level's
+    coarse_gate_offset: float | None = 10.0   # every coarser level's; None: gate_offset
+    # With a candidate, eq. 5's swap never lifts a pixel above both its fine result and the
+    # candidate's own value there (ScaleCompositor's cap); False = the block-wise cap alone.
+    candidate_cap: bool = True
+    # Each level's kernel result clamped to [c/(1+t), c·(1+t)] around the candidate c before the
+    # blend, t widening to no clamp at λ = 10 (models.candidate.clamp_around); None = off.
+    # A highlight the kernels spread beyond what OIDN saw is a relMSE outlier.
+    kernel_clamp: float | None = 0.5
+    # The kernels filter radiance ÷ max(albedo, floor), the candidate joins in that space, and
+    # the result is multiplied back by the same (models.features.demodulation_albedo); the
+    # trunk's own features stay as trained. 0 = the plain albedo. The sky seen directly (a camera
+    # ray that misses: albedo 0) otherwise left bright dots along the edges of what borders it.
+    albedo_floor: float = 0.05
 
     def without_post_training_settings(self) -> "DenoiserConfig":
         """This config with the settings chosen after training (on validation scenes, for given
-        weights) back at their defaults: what a fine-tuning run starts from and trains through."""
-        return dataclasses.replace(self, **{name: getattr(DenoiserConfig, name) for name in POST_TRAINING_SETTINGS})
+        weights) off: what a fine-tuning run starts from and trains through."""
+        return dataclasses.replace(self, **NEUTRAL_SETTINGS)
 
     def level_gate_offset(self, level: int) -> float:
         """The logit offset of pyramid level `level` (0 = finest)."""
@@ -99,15 +98,26 @@ class DenoiserConfig:
 
     @property
     def alignment(self) -> int:
-        """Sizes must divide by 2^(levels-1) for the 2×2 pyramid (2^levels under the U-Net,
-        whose bottleneck sits one octave below the coarsest level); inputs are padded to it."""
-        return 2 ** (self.n_levels - (self.trunk == "levels"))
+        """Sizes must divide by 2^(levels-1) for the 2×2 pyramid; inputs are padded to it."""
+        return 2 ** (self.n_levels - 1)
 
 
-TRUNKS = ("levels", "unet")
+# The post-training settings switched off: how a network trains, and how it runs before they
+# are chosen for its weights.
+NEUTRAL_SETTINGS: dict = {"energy_tolerance": 0.0, "energy_block": 0, "gate_offset": 0.0, "coarse_gate_offset": None,
+                          "candidate_cap": False, "kernel_clamp": None, "albedo_floor": 0.0}
+
+
+def temporal_config(**fields) -> DenoiserConfig:
+    """The temporal multi-scale KPCN (Vogels et al. 2018: one kernel per warped frame of the
+    2M+1 window, all jointly softmax-normalised), the product's named design, not shipped yet:
+    the shipped sizes, the temporal extractor on, no candidate, no post-training settings."""
+    return DenoiserConfig(**{"temporal": True, "oidn_candidate": False, "candidate_features": False,
+                             **NEUTRAL_SETTINGS, **fields})
+
+
 # The config fields chosen after training, on validation scenes, for given weights (above).
-POST_TRAINING_SETTINGS = ("energy_tolerance", "energy_block", "gate_offset", "coarse_gate_offset", "candidate_cap", "kernel_clamp",
-                          "albedo_floor")
+POST_TRAINING_SETTINGS = tuple(NEUTRAL_SETTINGS)
 CANDIDATE_CHANNELS = 3   # trunk input channels DenoiserConfig.candidate_features adds (log demodulated RGB)
 
 # Inference bands of rows for the λ tail: a band's F·k² weight planes and its 3-channel output
@@ -262,24 +272,18 @@ class Denoiser(nn.Module):
         super().__init__()
         self.config = cfg = config or DenoiserConfig()
         self.features = feature_set(cfg.source)              # unknown source fails here
-        if cfg.trunk not in TRUNKS:
-            raise ValueError(f"unknown trunk {cfg.trunk!r}; known: {', '.join(TRUNKS)}")
         if cfg.candidate_features and not (cfg.oidn_candidate and not cfg.temporal):
             raise ValueError("candidate_features reads the OIDN candidate of a single-frame network: "
                              "it needs oidn_candidate=True and temporal=False")
         cin = self.features.channels + (CANDIDATE_CHANNELS if cfg.candidate_features else 0)
-        if cfg.trunk == "unet":
-            self.unet = UNetTrunk(cin, cfg.width, cfg.n_levels)
-        else:
-            self.encoder = Encoder(cin, cfg.width)
-            self.spatial = res_blocks(cfg.width, cfg.spatial_blocks)
+        self.encoder = Encoder(cin, cfg.width)
+        self.spatial = res_blocks(cfg.width, cfg.spatial_blocks)
         self.temporal = TemporalExtractor(cfg.width, cfg.temporal_blocks) if cfg.temporal else None
         self.kernel_head = Pointwise(cfg.width, cfg.lambda_width)
         self.specialise = LambdaModule(cfg.lambda_width, cfg.lambda_width, cfg.kernel_size, cfg.lambda_rank)
         self.composite = ScaleCompositor(cfg.composite_width) if cfg.multiscale else None
         self.gate = CandidateGate(
             cfg.lambda_width, cfg.gate_width, LambdaModule(cfg.gate_width, cfg.lambda_width, 1, cfg.lambda_rank),
-            firefly=cfg.gate_firefly,
         ) if cfg.oidn_candidate else None
 
     # -- prepare: everything before λ -----------------------------------------------------
@@ -289,8 +293,6 @@ class Denoiser(nn.Module):
         input): a single-frame network's is one frame, the window's consistent samples pooled in."""
         if self.temporal is not None or len(window) == 1:
             return window, center
-        if not self.config.accumulate:
-            return [window[center]], 0
         # pooled in the networks' exposure, so sanitising clamps fireflies relative to the image
         exposure = Exposure.of(window[center % len(window)].color)
         pooled = accumulate_window([sanitize_frame(exposure.forward_frame(f))[0] for f in window], center % len(window))
@@ -330,7 +332,6 @@ class Denoiser(nn.Module):
                  if candidate is not None else None)
         n_bad += extra[2] if extra is not None else 0
         guide = extra[0] if self.config.candidate_features else None
-        trunk_features = self._unet_features(frames, guide) if self.config.trunk == "unet" else None
         levels = []
         for level in range(self.config.n_levels):
             if level:
@@ -339,9 +340,8 @@ class Denoiser(nn.Module):
                 # pooled like the images (variance of a 4-pixel mean ÷ 4), so a level whose
                 # gate is saturated returns exactly D(candidate) and eq. 5 then changes nothing
                 extra = None if extra is None else (down(extra[0]), down(extra[1]) * 0.25, 0)
-            level_features = None if trunk_features is None else trunk_features[level]
             guide = extra[0] if self.config.candidate_features else None
-            cache = self._prepare_level(frames, images, center, level_features, guide)
+            cache = self._prepare_level(frames, images, center, guide)
             if extra is not None:
                 cache.candidate = extra[0]
                 cache.gate_hidden = self.gate.prepare(cache.hidden[:, 0, :-1], images[center], extra[0], extra[1])
@@ -365,22 +365,15 @@ class Denoiser(nn.Module):
             return cat_channels_last(self.features.planes(frames[0]) + extra, dtype)
         return torch.cat([self.features.build(f).permute(0, 2, 3, 1) for f in frames], 0).permute(0, 3, 1, 2)
 
-    def _unet_features(self, frames: list[FrameTensors], guide: Tensor | None = None) -> list[tuple[Tensor, ...]]:
-        """Per pyramid level, each frame's U-Net features (finest first), from the finest inputs."""
+    def _prepare_level(self, frames: list[FrameTensors], images: list[Tensor], center: int,
+                       guide: Tensor | None = None) -> LevelCache:
+        """One pyramid level's trunk (reading `guide`, the demodulated candidate, with
+        candidate_features), warping and pre-λ kernel head."""
+        n = frames[0].color.shape[0]
         bf16 = trunk_in_bfloat16(frames[0].color)
         inputs = self._trunk_inputs(frames, guide, torch.bfloat16 if bf16 else None)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            return [f.float().split(frames[0].color.shape[0], 0) for f in self.unet(inputs)]
-
-    def _prepare_level(self, frames: list[FrameTensors], images: list[Tensor], center: int,
-                       feats: tuple[Tensor, ...] | None = None, guide: Tensor | None = None) -> LevelCache:
-        """feats: this level's per-frame U-Net features; None: the level's own trunk (reads `guide`)."""
-        n = frames[0].color.shape[0]
-        if feats is None:
-            bf16 = trunk_in_bfloat16(frames[0].color)
-            inputs = self._trunk_inputs(frames, guide, torch.bfloat16 if bf16 else None)
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                feats = self.spatial(self.encoder(inputs)).float().split(n, 0)
+            feats = self.spatial(self.encoder(inputs)).float().split(n, 0)
         motions = [f.motion for f in frames]
         c_feat, c_img = feats[center], images[center]
         out_images, feats_to_center = [c_img], [c_feat]

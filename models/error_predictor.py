@@ -2,17 +2,14 @@
 without a reference, so the adaptive sampler can send samples where the error is.
 
     [encoder features of the noisy frame, log demodulated denoised (, log2 samples per pixel)
-     (, √ the kernels/candidate disagreement) (, the residual test)] → conv3x3 → 6 residual blocks
-     → conv3x3 → softplus (errors are ≥ 0)
+     (, √ the kernels/candidate disagreement)] → conv3x3 → 6 residual blocks → conv3x3
+     → softplus (errors are ≥ 0)
 
 The sample-count channel (`sample_count_input`) tells the network how far each pixel has
 converged under the loop's non-uniform counts; relative variance is already among the encoder
 features. The disagreement channel (`disagreement_input`) is where the denoiser's kernels' image
-and its OIDN candidate differ (models/kernel_disagreement.py). The residual channel
-(`residual_input`) tests what the denoiser removed against the samples' noise: log(1 + box₅ z),
-z = |denoised − noisy|² / Var(noisy mean) per pixel. A denoiser that removed only noise leaves
-z ≈ 1; where it also removed detail (blurred a texture, a shadow's edge, a defocused
-highlight) z ≫ 1 — the bias part of the error, which repeats from render to render.
+and its OIDN candidate differ (models/kernel_disagreement.py). The shipped network reads both (the defaults below are its
+configuration, tests/models/test_shipped_config.py).
 
 Trained with L1 against models.losses.smape_map(denoised, reference).
 """
@@ -26,7 +23,6 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.candidate import box_mean, disagreement as noise_units_squared
 from models.exposure import Exposure
 from models.features import (HDR_MAX, demodulate, feature_set, log_transform, sample_count_feature, sanitize,
                              sanitize_frame)
@@ -40,19 +36,18 @@ class ErrorPredictorConfig:
     source: str = "mitsuba-path"  # render source → input features (models.features.FEATURE_SETS)
     width: int = 16               # narrow: it runs every sampling iteration, and only has to rank pixels
     blocks: int = 6               # paper: six residual blocks
-    sample_count_input: bool = False  # + log2(1 + spp) per pixel (weights trained on the loop's own counts)
-    disagreement_input: bool = False  # + √D, D = the kernels' image against the candidate's (needs a candidate)
-    residual_input: bool = False      # + log(1 + box₅ z): the removed residual in units of the samples' noise
+    sample_count_input: bool = True   # + log2(1 + spp) per pixel (weights trained on the loop's own counts)
+    disagreement_input: bool = True   # + √D, D = the kernels' image against the candidate's (needs a candidate)
     # Calibration: the prediction times this. Procedural training scenes are easier for the
     # denoiser than hand-written ones, so the mean prediction runs low on them by a roughly
     # constant factor; fitted on the validation scenes (`renderloop bench --calibration --suite
     # val --fit-scale DIR`). Allocation ∝ error is unchanged by it; --target-error is not.
-    output_scale: float = 1.0
+    output_scale: float = 0.9678349869049819
     # Calibration from the second iteration on (service.loop.change_calibration): the loop rescales
     # the map so its mean is √(the network's mean × change_scale × how much the denoised image
     # moved since the previous iteration). None: the network's mean alone. Fitted with
     # output_scale; the network never reads it.
-    change_scale: float | None = None
+    change_scale: float | None = 1.505622165667582
 
 
 class ErrorPredictor(nn.Module):
@@ -69,8 +64,7 @@ class ErrorPredictor(nn.Module):
     @property
     def input_channels(self) -> int:
         cfg = self.config
-        return (self.features.channels + 3 + int(cfg.sample_count_input) + int(cfg.disagreement_input)
-                + int(cfg.residual_input))
+        return self.features.channels + 3 + int(cfg.sample_count_input) + int(cfg.disagreement_input)
 
     def forward(self, frame: FrameTensors, denoised: Tensor, disagreement: Tensor | None = None) -> Tensor:
         """frame: the noisy input; denoised (N,3,H,W) → (N,1,H,W) predicted SMAPE ≥ 0.
@@ -90,23 +84,11 @@ class ErrorPredictor(nn.Module):
             if disagreement is None:
                 raise ValueError("this error network reads the kernels/candidate disagreement: none was given")
             inputs.append(disagreement_feature(sanitize(disagreement.float(), 0.0, 1.0)[0]))
-        if self.config.residual_input:
-            inputs.append(residual_feature(f, d))
         x = cat_channels_last(inputs)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=trunk_in_bfloat16(x)):
             raw = self.out(self.blocks(self.head.relu(x))).float()
         error = F.softplus(raw)
         return (error * self.config.output_scale).contiguous()
-
-
-RESIDUAL_BOX = 5  # pixels: one pixel's z is a χ² of 3 draws at best; 25 of them make a test
-
-
-def residual_feature(frame: FrameTensors, denoised: Tensor) -> Tensor:
-    """(N,1,H,W) log(1 + box₅ z), z = mean over colour of (denoised − noisy)² / Var(noisy mean)
-    (models.candidate.disagreement, with its floor for pixels whose samples all agreed)."""
-    z = noise_units_squared(frame.color, denoised, frame.variance)
-    return torch.log1p(box_mean(z, RESIDUAL_BOX))
 
 
 def change_scale_of(error_network: object) -> float | None:

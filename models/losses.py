@@ -22,20 +22,6 @@ def smape_map(d: Tensor, r: Tensor, eps: float = SMAPE_EPS) -> Tensor:
     return smape_elementwise(d, r, eps).mean(dim=1, keepdim=True)
 
 
-def noisy_target_loss(d: Tensor, t: Tensor, eps: float = SMAPE_EPS) -> Tensor:
-    """Relative MSE with the result's own magnitude as the denominator and no gradient through
-    it: mean((d − t)² / (sg|d| + ε)²) (Noise2Noise, Lehtinen et al. 2018, §3.4: their loss for
-    Monte Carlo renders trained against noisy targets).
-
-    Why it may be trained against an independent noisy render t of the reference r: for target
-    noise of mean 0, E[(d − t)²] = (d − r)² + Var t, and Var t does not depend on d, so the
-    expected gradient is the one the clean reference gives (the denominator is a constant to the
-    gradient). SMAPE (eq. 2) and eq. 6's H((d − r)(r − c)) have no such property: their
-    expectation over t is another function of d, minimised elsewhere than at r."""
-    scale = (d.detach().abs() + eps) ** 2
-    return ((d - t) ** 2 / scale).mean()
-
-
 def l1(d: Tensor, r: Tensor) -> Tensor:
     return (d - r).abs().mean()
 

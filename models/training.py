@@ -20,7 +20,7 @@ from models.error_predictor import ErrorPredictor
 from models.features import demodulate
 from models.frames import FrameTensors
 from models.kernel_disagreement import apply_for_error_network
-from models.losses import asymmetric_loss, l1, noisy_target_loss, smape, smape_map
+from models.losses import asymmetric_loss, l1, smape, smape_map
 
 LAMBDA_BLOCK = 8  # per-pixel λ maps are drawn on a coarse grid: painted maps are piecewise smooth
 VALIDATION_LAMBDAS = (2.0, 4.0, 10.0)  # λ-stage validation: spread over log λ ∈ (0, log 10]
@@ -43,23 +43,10 @@ def cut_window(frames: list[FrameTensors], centre: int, single: bool) -> tuple[l
     return ([frames[centre]], 0) if single else (frames, centre)
 
 
-def result_loss(d: Tensor, reference: Tensor, noisy: Tensor, lam: Tensor, noisy_target: bool = False) -> Tensor:
-    """Eq. 6 against a clean reference; against a noisy target (an independent render of the
-    reference: Noise2Noise data), the loss whose expectation over the target's noise is
-    unchanged (models.losses.noisy_target_loss). Eq. 6 weighs each pixel by the side of the
-    reference the result lies on, which a noisy target misreports: noisy targets train at λ = 1."""
-    if not noisy_target:
-        return asymmetric_loss(d, reference, noisy, lam)
-    if bool((lam != 1).any()):
-        raise ValueError("noisy targets train at λ = 1 only: eq. 6's weighting needs a clean reference")
-    return noisy_target_loss(d, reference)
-
-
 def denoiser_loss(model: Denoiser, frames: list[FrameTensors], centre: int, reference: Tensor,
-                  lam: Tensor, candidate: Tensor | None = None, noisy_target: bool = False) -> Tensor:
+                  lam: Tensor, candidate: Tensor | None = None) -> Tensor:
     """Eq. 6 on the composited result, plus COARSE_LEVEL_WEIGHT × eq. 6 on each coarse level's
-    own result against the pooled reference (noisy_target: `result_loss`'s noisy-target loss in
-    place of eq. 6 everywhere; pooling keeps a target's mean, so the coarse terms stay unbiased).
+    own result against the pooled reference.
 
     Why the per-level term: a coarse result reaches the output only through the compositor's α
     (eq. 5), so its gradient is scaled by α. Without this term α falls to ~0 within the first few
@@ -72,23 +59,22 @@ def denoiser_loss(model: Denoiser, frames: list[FrameTensors], centre: int, refe
     kernel_only: list[Tensor] = []
     levels = model.filter_levels(cache, lam, kernel_only)
     noisy = frames[centre].color
-    loss = result_loss(model.merge_levels(cache, levels), reference, noisy, lam, noisy_target)
+    loss = asymmetric_loss(model.merge_levels(cache, levels), reference, noisy, lam)
     if candidate is not None:
         # Why: the kernels reach the output only through (1 − σ(g)); where the gate trusts the
         # candidate their gradient vanishes, and from random init the gate learned to trust it
         # everywhere (the kernels never got good enough to be chosen). Their own loss keeps
         # them learning, so the gate has a real second candidate to weigh.
-        loss = loss + KERNEL_PATH_WEIGHT * result_loss(model.merge_levels(cache, kernel_only), reference, noisy,
-                                                       lam, noisy_target)
+        loss = loss + KERNEL_PATH_WEIGHT * asymmetric_loss(model.merge_levels(cache, kernel_only), reference, noisy,
+                                                           lam)
         levels = kernel_only
     if len(levels) > 1:
-        loss = loss + COARSE_LEVEL_WEIGHT * coarse_levels_loss(model, cache, levels, noisy, reference, lam,
-                                                               noisy_target)
+        loss = loss + COARSE_LEVEL_WEIGHT * coarse_levels_loss(model, cache, levels, noisy, reference, lam)
     return loss
 
 
 def coarse_levels_loss(model: Denoiser, cache: DenoiserCache, levels: list[Tensor], noisy: Tensor, reference: Tensor,
-                       lam: Tensor, noisy_target: bool = False) -> Tensor:
+                       lam: Tensor) -> Tensor:
     """Mean of eq. 6 over the coarse levels, in the demodulated space the levels filter, with
     reference, noisy input and λ pooled like the pyramid pools its inputs."""
     align = model.config.alignment
@@ -100,7 +86,7 @@ def coarse_levels_loss(model: Denoiser, cache: DenoiserCache, levels: list[Tenso
     terms = []
     for result in levels[1:]:
         target, noisy, lam = down(target), down(noisy), down(lam)
-        terms.append(result_loss(result, target, noisy, lam, noisy_target))
+        terms.append(asymmetric_loss(result, target, noisy, lam))
     return torch.stack(terms).mean()
 
 

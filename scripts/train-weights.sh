@@ -1,65 +1,83 @@
 #!/usr/bin/env bash
-# The denoiser's training recipe as one script: render its training data, then fine-tune the
-# shipped network on it. Every step is a renderloop command; run it from the repository root
-# with the venv active (`make setup; source .venv/bin/activate`).
+# The shipped networks' recipe from scratch (docs/models.md): data sets → denoiser stages →
+# error network → post-training settings. Every step is a renderloop command; run it from the
+# repository root with the venv active (`make setup; source .venv/bin/activate`).
 #
-#   scripts/train-weights.sh            # run it (resumable: finished data and stages are kept)
+#   scripts/train-weights.sh            # the recipe (resumable: finished data and stages are kept)
+#   scripts/train-weights.sh --smoke    # the same commands on 2 scenes of 16² and 2 steps each
 #   DRY_RUN=1 scripts/train-weights.sh  # print the commands only
 #
-# Variables:
-#   PROFILE=cpu  2-core CPU: about 65 min as measured (docs/training-recipe.md)
-#   PROFILE=gpu  the same steps scaled for a CUDA machine: 10x the scenes, 4x the steps, batch 32;
-#                the renderer picks cuda_ad_rgb by itself where a GPU works
-#                (service/render/runtime.py). Never run yet: no session has been lent a GPU.
-#   DATA=datasets  OUT=out/recipe  INIT=models/weights/denoiser.pt (the network it fine-tunes,
-#                  and where the post-training settings come from)
-#
-# It writes $OUT/final/denoiser.pt. Shipping it is a copy into models/weights/, after it has been
-# compared with the shipped weights on the validation scenes (`python -m
-# bench.experiments.gate_offset --suite val --weights $OUT/final`) and measured once on the suite
-# (`renderloop bench --denoiser --suite dev --weights $OUT/final`). Its one CPU run tied on both,
-# so the shipped weights are still the chain their checkpoint records (docs/training-recipe.md).
-# The error network is not retrained here: its data (docs/error-network.md) takes another 80 CPU
-# minutes.
+# Variables: DATA=datasets  OUT=out/recipe (--smoke: out/smoke/datasets, out/smoke). It writes $OUT/final/{denoiser,error_predictor}.pt, a
+# --weights folder. The denoiser carries DenoiserConfig's post-training settings (chosen on
+# scenes/val for the shipped weights); the error network is calibrated on scenes/val last.
+# Shipping is a copy into models/weights/ after `renderloop bench --denoiser --suite dev
+# --weights $OUT/final` beats the shipped weights there.
 set -euo pipefail
 
-PROFILE=${PROFILE:-cpu}
-DATA=${DATA:-datasets}
-OUT=${OUT:-out/recipe}
-INIT=${INIT:-models/weights/denoiser.pt}
-
-case "$PROFILE" in
-  cpu) SCALE=1; STEP_SCALE=1; BATCH=8 ;;
-  gpu) SCALE=10; STEP_SCALE=4; BATCH=32 ;;
-  *) echo "train-weights: PROFILE must be cpu or gpu, got '$PROFILE'" >&2; exit 2 ;;
+MODE=full
+case "${1:-}" in
+  "") ;;
+  --smoke) MODE=smoke ;;
+  *) echo "train-weights: unknown argument '$1' (--smoke or nothing)" >&2; exit 2 ;;
 esac
+if [ "$MODE" = full ]; then DATA=${DATA:-datasets}; OUT=${OUT:-out/recipe}
+else DATA=${DATA:-out/smoke/datasets}; OUT=${OUT:-out/smoke}; fi
+DENOISER_RECIPE=kpcn-single-frame-oidn
+ERROR_RECIPE=error-spp-disagreement
 
 run() {
   echo "+ $*"
   if [ -z "${DRY_RUN:-}" ]; then "$@"; fi
 }
 
-# 1. Data (each build resumes where it stopped; the seeds are the shipped data's).
-run renderloop dataset -o "$DATA/ens128" --scenes $((400 * SCALE)) --size 128 --frames 1 --seed 0 --split train \
-  --reference-spp 512
-run renderloop dataset -o "$DATA/shaded128" --scenes $((40 * SCALE)) --size 128 --frames 1 --seed 11 --split train \
-  --reference-spp 2048 --loop-branch --layout shaded
-run renderloop dataset -o "$DATA/window128d" --scenes $((60 * SCALE)) --size 128 --frames 1 --seed 7 --split train \
-  --reference-spp 1024 --layout window
+# scenes SIZE REFERENCE_SPP STEPS: the full recipe's, or the smoke run's tiny ones
+if [ "$MODE" = full ]; then
+  scenes() { echo "$1"; }; SIZE=128; spp() { echo "$1"; }; steps() { echo "$1"; }
+  FIT=(--batch 8 --crop 64 --quiet --resume)
+else
+  scenes() { echo 2; }; SIZE=16; spp() { echo 64; }; steps() { echo 2; }
+  FIT=(--batch 2 --crop 16 --quiet)
+fi
+dataset() {  # OUT_NAME SCENES SEED REFERENCE_SPP [more dataset flags]
+  local name=$1 n=$2 seed=$3 reference=$4; shift 4
+  run renderloop dataset -o "$DATA/$name" --scenes "$(scenes "$n")" --size "$SIZE" --frames 1 --seed "$seed" \
+    --split train --reference-spp "$(spp "$reference")" --quiet "$@"
+}
+train() {  # STAGE OUT STEPS LR VAL_EVERY [more train flags]
+  local stage=$1 out=$2 n=$3 lr=$4 every=$5; shift 5
+  local val=$every; [ "$MODE" = smoke ] && val=1
+  run renderloop train --stage "$stage" -o "$out" --steps "$(steps "$n")" --lr "$lr" --val-every "$val" "${FIT[@]}" "$@"
+}
 
-# --resume: a stage stopped part-way continues from its saved state, and a finished one only
-# writes its checkpoint's settings again (a best-so-far checkpoint exists long before the end).
-TRAIN=(--data "$DATA/ens128" --data "$DATA/shaded128" --data "$DATA/window128d"
-       --oidn-candidate --single-frame --candidate-features --batch "$BATCH" --crop 64 --resume --quiet)
+# 1. The denoiser's data: 400 procedural scenes (rooms and ground planes, mixed materials) and
+#    40 rooms lit only by a tiny bulb inside a lampshade (fireflies), single frames.
+dataset ens128 400 0 512
+dataset shaded128 40 11 2048 --layout shaded
+DENOISER_DATA=(--data "$DATA/ens128" --data "$DATA/shaded128" --recipe "$DENOISER_RECIPE")
 
-# 2. Every weight at λ = 1 (trunk, kernels, gate, compositor), from the shipped network.
-run renderloop train "${TRAIN[@]}" --stage multiscale --init "$INIT" --keep-settings -o "$OUT/multiscale" \
-  --steps $((8000 * STEP_SCALE)) --val-every 500 --lr 5e-4
+# 2. The denoiser (Vogels et al. 2018's stages on the shipped configuration: single frame, OIDN
+#    candidate in the joint softmax and read by the trunk): one pyramid level, then all three and
+#    the compositor, then the candidate's gate alone, then the λ directions alone. Each stage
+#    starts from the previous file; λ = 1 until the last.
+train single "$OUT/single" 4000 1e-3 500 "${DENOISER_DATA[@]}"
+train multiscale "$OUT/multiscale" 10000 5e-4 500 "${DENOISER_DATA[@]}" --init "$OUT/single/stage_single.pt"
+train gate "$OUT/gate" 1200 3e-3 200 "${DENOISER_DATA[@]}" --init "$OUT/multiscale/stage_multiscale.pt"
+train lambda "$OUT/final" 1500 1e-3 250 "${DENOISER_DATA[@]}" --init "$OUT/gate/stage_gate.pt"
 
-# 3. The λ directions again, on the new trunk. Both stages carry $INIT's post-training settings
-#    (gate offsets, caps, clamp, energy tolerance: chosen on the validation scenes) through.
-run renderloop train "${TRAIN[@]}" --stage lambda --init "$OUT/multiscale/stage_multiscale.pt" --keep-settings \
-  -o "$OUT/final" --steps $((1500 * STEP_SCALE)) --val-every 250 --lr 1e-3
+# 3. The error network learns the error of the loop's own inputs (`--loop-branch`: the 16-spp
+#    buffer continued by the loop's allocator), which needs an error network to allocate with:
+#    a first one on the uniform/adaptive levels of the denoiser's data drives those builds.
+run mkdir -p "$OUT/bootstrap"
+run cp "$OUT/final/denoiser.pt" "$OUT/bootstrap/denoiser.pt"
+train error "$OUT/bootstrap" 3000 1e-3 500 "${DENOISER_DATA[@]}"
+dataset loop128r4k 97 0 4096 --loop-branch --weights "$OUT/bootstrap"
+dataset window128 60 7 4096 --loop-branch --layout window --weights "$OUT/bootstrap"
+train error "$OUT/final" 5000 1e-3 500 --data "$DATA/loop128r4k" --data "$DATA/window128" \
+  --recipe "$ERROR_RECIPE" --error-levels spp16,loop32,loop64,loop128
 
-# The shipped error network beside it, so the folder is a whole --weights directory.
-run cp models/weights/error_predictor.pt "$OUT/final/error_predictor.pt"
+# 4. Post-training settings. The denoiser's (gate offsets, caps, kernel clamp, energy, albedo
+#    floor) were written by its last stage. The error network's calibration (output and change
+#    scale) is fitted on the nine validation scenes; the smoke run's networks are not worth it.
+if [ "$MODE" = full ]; then
+  run renderloop bench --calibration --suite val --weights "$OUT/final" --fit-scale "$OUT/final"
+fi

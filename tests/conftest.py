@@ -8,9 +8,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from models.denoiser import Denoiser, DenoiserConfig
+from models.denoiser import Denoiser, temporal_config
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.pretrained import Networks
+from tests.models.conftest import PLAIN_ERROR_NETWORK
 
 # The suite runs on shared 2-core machines, where torch's one-thread-per-core default makes
 # small denoises 30× slower (docs/benchmarks.md); servers started by tests inherit this.
@@ -52,9 +53,9 @@ def tiny_networks() -> Networks:
     """Small untrained networks, seeded: the loop's plumbing (features cache, λ tail, error
     maps) runs through real networks at a fraction of the shipped ones' cost."""
     torch.manual_seed(0)
-    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1)).eval()
+    denoiser = Denoiser(temporal_config(width=8, spatial_blocks=1)).eval()
     # The λ module starts as "no specialisation"; perturb it so λ visibly matters.
     with torch.no_grad():
         for parameter in denoiser.specialise.parameters():
             parameter.add_(torch.randn_like(parameter) * 0.5)
-    return Networks(denoiser, ErrorPredictor(ErrorPredictorConfig(width=8)).eval())
+    return Networks(denoiser, ErrorPredictor(ErrorPredictorConfig(width=8, **PLAIN_ERROR_NETWORK)).eval())

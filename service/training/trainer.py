@@ -1,4 +1,4 @@
-"""Training the denoiser (the paper's staged recipe, or end to end) and the error network.
+"""Training the denoiser (the paper's staged recipe) and the error network.
 
 Random crops, Adam with a cosine schedule, validation every K steps on held-back training
 scenes (the held-out split stays unseen for the quality report) with the best checkpoint kept,
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import hashlib
 import sys
 import time
 from pathlib import Path
@@ -19,16 +18,16 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
-from models.denoiser import POST_TRAINING_SETTINGS, Denoiser, DenoiserConfig
+from models.checkpoint import load_checkpoint, save_checkpoint
+from models.denoiser import POST_TRAINING_SETTINGS, Denoiser, DenoiserConfig, temporal_config
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.losses import smape_map
 from models.training import (cut_window, denoiser_lambda_loss, denoiser_loss, denoiser_smape, error_predictor_loss,
                              sample_lambda)
 from service.dataset.build import INPUT_ITEMS, DatasetError
 from service.dataset.loader import DenoiserDataset, collate_samples
-from service.training.config import (DENOISER_STAGES, ERROR_NETWORK_STAGES, FINE_TUNE_STAGES, STAGE_PLANS,
-                                     StagePlan, TrainConfig, TrainConfigError)
+from service.training.config import STAGE_PLANS, StagePlan, TrainConfig, TrainConfigError
+from service.training.provenance import file_digest, provenance
 
 VALIDATION_EVERY_NTH_SCENE = 8  # scenes with index % 8 == 7 are held back for validation
 
@@ -43,39 +42,14 @@ def _split_items(dataset):
 
 
 def _datasets(config, radius: int, candidate: bool = False, levels: tuple[str, ...] = INPUT_ITEMS):
-    """Training and validation items. With config.val_data, validation is that data set's
-    held-back scenes, and training leaves those scene seeds out (Noise2Noise data holds the same
-    scenes as the clean set it is validated on)."""
+    """Training and validation items (every 8th scene held back)."""
     train = DenoiserDataset(config.data_roots, split="train", levels=levels, radius=radius, crop=config.crop,
                             seed=config.seed, candidate=candidate)
-    if config.val_data is None:
-        train_items, val_items = _split_items(train)
-        val = copy.copy(train)
-    else:
-        val = DenoiserDataset(config.val_data, split="train", levels=levels, radius=radius, crop=None,
-                              seed=config.seed, candidate=candidate)
-        _, val_items = _split_items(val)
-        held = {item.scene for item in val_items}
-        train_items = [item for item in train.items if item.scene not in held]
-        if not train_items:
-            raise DatasetError(f"every training scene is one of {config.val_data}'s validation scenes")
+    train_items, val_items = _split_items(train)
+    val = copy.copy(train)
     val.crop = None
     train.items, val.items = train_items, val_items or train_items[:4]
     return train, val
-
-
-def _provenance(command: str, stage: str, init: Path | None) -> dict:
-    """What a checkpoint records about how it was made. A network started from `init` also
-    records that file by content (a path such as models/weights/… is overwritten when the result
-    ships) and that file's own command."""
-    extra = {"command": command, "stage": stage}
-    if init is not None:
-        digest = hashlib.sha1(Path(init).read_bytes()).hexdigest()[:10]
-        earlier = read_checkpoint(init).get("extra", {})
-        # the whole chain: a file made from --init records that file's own start as well
-        chain = f"; init={earlier['init']}" if isinstance(earlier.get("init"), str) else ""
-        extra["init"] = f"{init} sha1 {digest} (command={earlier.get('command', 'unknown')}{chain})"
-    return extra
 
 
 def _batches(dataset, batch: int, seed: int):
@@ -89,9 +63,9 @@ def _batches(dataset, batch: int, seed: int):
         epoch += 1
 
 
-def _fit(stage: str, model, loss_fn, val_fn, config: TrainConfig, device, extra: dict, keep_from: int = 0,
+def _fit(stage: str, model, loss_fn, val_fn, config: TrainConfig, device, extra: dict,
          out_name: str | None = None) -> dict:
-    """Generic loop: Adam, periodic validation, best checkpoint from step `keep_from` on,
+    """Generic loop: Adam, periodic validation, the best checkpoint kept,
     resumable state."""
     out_file = config.out / (out_name or "error_predictor.pt")
     state_file = config.out / f".train_{stage}.pt"
@@ -124,7 +98,7 @@ def _fit(stage: str, model, loss_fn, val_fn, config: TrainConfig, device, extra:
             model.eval()
             val = val_fn()
             history.append({"step": step + 1, "train_loss": running, "val": val})
-            if val < best and step + 1 > keep_from:
+            if val < best:
                 best = val
                 save_checkpoint(out_file, model, {**extra, "step": step + 1, "val": val})
             torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
@@ -132,56 +106,34 @@ def _fit(stage: str, model, loss_fn, val_fn, config: TrainConfig, device, extra:
     return {"best_val": best, "history": history, "checkpoint": str(out_file)}
 
 
-def _denoiser_to_train(config, device, switches: dict):
+def base_config(config: TrainConfig) -> DenoiserConfig:
+    """The network a run trains: the shipped configuration, or the temporal KPCN (--temporal)."""
+    return temporal_config() if config.temporal else DenoiserConfig()
+
+
+def _denoiser_to_train(config: TrainConfig, device, switches: dict) -> Denoiser:
     """A fresh network, or --init's weights in a network with the stage's switches (modules the
-    earlier stage lacked — compositor, temporal extractor — start fresh)."""
-    wanted = {"oidn_candidate": config.oidn_candidate, "temporal": config.temporal}
+    earlier stage lacked — compositor, temporal extractor — start fresh). Either trains without
+    the post-training settings."""
     if config.init is None:
-        sizes = {"width": config.width, "spatial_blocks": config.spatial_blocks, "trunk": config.trunk}
-        base = DenoiserConfig(**{k: v for k, v in sizes.items() if v is not None}, **wanted,
-                              gate_firefly=config.gate_firefly, candidate_features=config.candidate_features)
-        return Denoiser(dataclasses.replace(base, **switches)).to(device)
-    trained = load_checkpoint(config.init, expected_kind="denoiser", device=device)
-    # a candidate gate the earlier weights lack starts fresh (near "copy the candidate"), and so
-    # does a gate layer whose inputs --gate-firefly widens; the checkpoint's post-training
-    # settings (gate offsets, energy factor) are not trained through
-    wanted["gate_firefly"] = config.gate_firefly or trained.config.gate_firefly
-    wanted["candidate_features"] = config.candidate_features or trained.config.candidate_features
-    full = dataclasses.replace(trained.config.without_post_training_settings(), multiscale=True, **wanted)
-    model = Denoiser(dataclasses.replace(full, **switches)).to(device)
-    # Only the gate's widened layer and the trunk's first conv (widened by --candidate-features)
-    # may differ in shape; any other mismatch stays a loud error.
-    shapes = {name: tensor.shape for name, tensor in model.state_dict().items()}
-    weights = {}
-    for name, tensor in trained.state_dict().items():
-        shape = shapes.get(name, tensor.shape)
-        if shape == tensor.shape:
-            weights[name] = tensor
-        elif name in TRUNK_INPUT_WEIGHTS and shape[0] == tensor.shape[0] and shape[2:] == tensor.shape[2:]:
-            weights[name] = widen_input_channels(tensor, shape[1])
-        elif not name.startswith("gate."):
-            raise ValueError(f"{config.init}: {name} has shape {tuple(tensor.shape)}, this network {tuple(shape)}")
-    model.load_state_dict(weights, strict=False)
+        start = base_config(config)
+    else:
+        trained = load_checkpoint(config.init, expected_kind="denoiser", device=device)
+        start = dataclasses.replace(trained.config, multiscale=True, temporal=config.temporal)
+    model = Denoiser(dataclasses.replace(start.without_post_training_settings(), **switches)).to(device)
+    if config.init is not None:
+        shapes = {name: tensor.shape for name, tensor in model.state_dict().items()}
+        for name, tensor in trained.state_dict().items():
+            if name in shapes and shapes[name] != tensor.shape:
+                raise ValueError(f"{config.init}: {name} has shape {tuple(tensor.shape)}, this network {tuple(shapes[name])}")
+        model.load_state_dict(trained.state_dict(), strict=False)
     return model
 
 
-# The first convolution of each trunk: the layer --candidate-features widens.
-TRUNK_INPUT_WEIGHTS = ("encoder.conv1.weight", "unet.down.0.conv1.weight")
-
-
-def widen_input_channels(weight: torch.Tensor, channels: int) -> torch.Tensor:
-    """A conv weight (out, in, k, k) with zero weights for the input channels appended after
-    `in`: the widened network computes exactly what the trained one did until it learns to read them."""
-    extra = weight.new_zeros(weight.shape[0], channels - weight.shape[1], *weight.shape[2:])
-    return torch.cat([weight, extra], 1)
-
-
-def train_denoiser(config, device, stage: str = "denoiser", plan: StagePlan = StagePlan({}, "mixed")) -> dict:
-    """plan.schedule: "symmetric" (λ = 1), "random" (log λ ~ U(0, log 10)) or "mixed" (λ = 1 for
-    --symmetric-fraction of the steps, then random)."""
+def train_denoiser(config: TrainConfig, device, stage: str, plan: StagePlan) -> dict:
+    """plan.schedule: "symmetric" (λ = 1) or "random" (log λ ~ U(0, log 10))."""
     torch.manual_seed(config.seed)
     model = _denoiser_to_train(config, device, plan.switches)
-    schedule = "symmetric" if config.noisy_targets else plan.schedule
     if plan.trainable is not None and config.init is not None:
         for name, parameter in model.named_parameters():
             parameter.requires_grad_(name.startswith(plan.trainable))
@@ -189,7 +141,6 @@ def train_denoiser(config, device, stage: str = "denoiser", plan: StagePlan = St
     train, val = _datasets(config, radius, model.config.oidn_candidate)
     batches = _batches(train, config.batch, config.seed)
     gen = torch.Generator().manual_seed(config.seed)
-    symmetric_steps = {"symmetric": config.steps, "random": 0}.get(schedule, int(config.symmetric_fraction * config.steps))
 
     def loss_fn(step: int):
         b = next(batches)
@@ -200,9 +151,9 @@ def train_denoiser(config, device, stage: str = "denoiser", plan: StagePlan = St
         n, _, h, w = ref.shape
         # Vogels et al. train the λ specialisation on top of a network that already denoises:
         # a random λ from step 0 rewards doing nothing (λ > 1 punishes every blur), so the
-        # symmetric loss (λ = 1) comes first.
-        lam = torch.ones(n, 1, h, w) if step < symmetric_steps else sample_lambda(n, h, w, gen)
-        return denoiser_loss(model, frames, centre, ref, lam.to(device), candidate, config.noisy_targets)
+        # symmetric stages come first.
+        lam = torch.ones(n, 1, h, w) if plan.schedule == "symmetric" else sample_lambda(n, h, w, gen)
+        return denoiser_loss(model, frames, centre, ref, lam.to(device), candidate)
 
     def val_fn() -> float:
         scores = []
@@ -211,32 +162,28 @@ def train_denoiser(config, device, stage: str = "denoiser", plan: StagePlan = St
             frames = [s.noisy.map(lambda _, t, k=k: t[k:k + 1].to(device)) for k in range(s.noisy.color.shape[0])]
             reference = s.reference[s.centre:s.centre + 1].to(device)
             candidate = None if s.candidate is None else s.candidate[None].to(device)
-            if schedule == "random":
+            if plan.schedule == "random":
                 scores.append(denoiser_lambda_loss(model, frames, s.centre, reference, candidate=candidate))
             else:
                 scores.append(denoiser_smape(model, frames, s.centre, reference, candidate))
         return sum(scores) / len(scores)
 
-    # Checkpoints from a symmetric phase have an untrained λ module (λ would do nothing): when
-    # a λ phase follows, the kept one must come from it.
-    keep_from = symmetric_steps if symmetric_steps < config.steps else 0
-    out_name = "denoiser.pt" if stage in ("denoiser", "lambda", *FINE_TUNE_STAGES) else f"stage_{stage}.pt"
-    result = _fit(stage, model, loss_fn, val_fn, config, device, _provenance(config.command_line, stage, config.init),
-                  keep_from, out_name)
-    if config.keep_settings:
-        carry_post_training_settings(config.init, Path(result["checkpoint"]))
+    extra = provenance(config.recipe, config.data_roots, stage, config.init)
+    result = _fit(stage, model, loss_fn, val_fn, config, device, extra, out_name=plan.out_name)
+    if plan.out_name == "denoiser.pt":
+        write_post_training_settings(Path(result["checkpoint"]), base_config(config))
     return result
 
 
-def carry_post_training_settings(source: Path, target: Path) -> None:
-    """Rewrite `target` (a denoiser checkpoint) with `source`'s post-training settings; its
-    weights and provenance stay as trained."""
-    stored = read_checkpoint(source)["config"]
-    settings = {name: stored.get(name, getattr(DenoiserConfig, name)) for name in POST_TRAINING_SETTINGS}
+def write_post_training_settings(target: Path, settings_from: DenoiserConfig) -> None:
+    """Rewrite `target` (a finished denoiser) with `settings_from`'s post-training settings — the
+    defaults, chosen on the validation scenes for the shipped weights (docs/models.md); weights and
+    provenance stay as trained."""
     trained = load_checkpoint(target, expected_kind="denoiser")
+    settings = {name: getattr(settings_from, name) for name in POST_TRAINING_SETTINGS}
     model = Denoiser(dataclasses.replace(trained.config, **settings))
     model.load_state_dict(trained.state_dict())
-    save_checkpoint(target, model, {**trained.checkpoint_extra, "settings_from": str(source)})
+    save_checkpoint(target, model, trained.checkpoint_extra)
 
 
 def start_at_typical_error(model, denoiser, batch, device) -> None:
@@ -255,43 +202,22 @@ def start_at_typical_error(model, denoiser, batch, device) -> None:
         model.out.bias.fill_(median + torch.log(-torch.expm1(torch.tensor(-median))).item())
 
 
-def _error_network_to_train(init: Path | None, device, disagreement: bool = False,
-                            width: int | None = None, residual: bool = False) -> ErrorPredictor:
-    """A fresh error network, or `init`'s weights with its calibration back to none (output scale
-    1, no change scale): both are fitted after training, on validation scenes (`renderloop bench
-    --calibration --fit-scale`), so a fine-tuning run must neither train through nor keep them. `disagreement` adds the
-    kernels/candidate disagreement channel; an `init` without it gets a zero-weighted one, so
-    training starts from exactly that network; `residual` adds the residual test the same way
-    (after it). `width`: a fresh network's (None: the default)."""
+def _error_network_to_train(init: Path | None, device, disagreement: bool) -> ErrorPredictor:
+    """A fresh error network of the shipped configuration (reading the kernels/candidate
+    disagreement when the denoiser has a candidate), or `init`'s weights; either with its
+    calibration back to none (output scale 1, no change scale): both are fitted after training,
+    on validation scenes (`renderloop bench --calibration --fit-scale`)."""
+    uncalibrated = {"output_scale": 1.0, "change_scale": None}
     if init is None:
-        # The sample count tells the network how converged each pixel is under the loop's
-        # non-uniform counts (every data set's EXRs carry their spp layer).
-        sizes = {} if width is None else {"width": width}
-        return ErrorPredictor(ErrorPredictorConfig(sample_count_input=True, disagreement_input=disagreement,
-                                                   residual_input=residual, **sizes)).to(device)
+        return ErrorPredictor(ErrorPredictorConfig(disagreement_input=disagreement, **uncalibrated)).to(device)
     trained = load_checkpoint(init, expected_kind="error_predictor", device=device)
-    model = ErrorPredictor(dataclasses.replace(
-        trained.config, output_scale=1.0, change_scale=None, disagreement_input=disagreement or trained.config.disagreement_input,
-        residual_input=residual or trained.config.residual_input)).to(device)
-    weights = trained.state_dict()
-    weights["head.weight"] = _head_for_inputs(weights["head.weight"], trained.config, model.config)
-    model.load_state_dict(weights)
+    if trained.config.disagreement_input != disagreement:
+        raise TrainConfigError(f"{init} {'reads' if trained.config.disagreement_input else 'does not read'} the "
+                               f"kernels/candidate disagreement; the denoiser it would learn "
+                               f"{'has no' if not disagreement else 'has a'} candidate")
+    model = ErrorPredictor(dataclasses.replace(trained.config, **uncalibrated)).to(device)
+    model.load_state_dict(trained.state_dict())
     return model
-
-
-def _head_for_inputs(weight: torch.Tensor, old: ErrorPredictorConfig, new: ErrorPredictorConfig) -> torch.Tensor:
-    """The first conv's weight for `new`'s inputs: `old`'s columns where it had the channel, zero
-    columns for the optional channels it gains (each sits at its own place in the input order)."""
-    optional = ("disagreement_input", "residual_input")   # ErrorPredictor.forward's order, after the base
-    base = weight.shape[1] - sum(int(getattr(old, name)) for name in optional)
-    columns, at = [weight[:, :base]], base
-    for name in optional:
-        if getattr(old, name):
-            columns.append(weight[:, at:at + 1])
-            at += 1
-        elif getattr(new, name):
-            columns.append(weight.new_zeros(weight.shape[0], 1, *weight.shape[2:]))
-    return torch.cat(columns, 1)
 
 
 def train_error_predictor(config, device) -> dict:
@@ -299,13 +225,8 @@ def train_error_predictor(config, device) -> dict:
     denoiser = load_checkpoint(config.out / "denoiser.pt", expected_kind="denoiser", device=device).eval()
     for p in denoiser.parameters():
         p.requires_grad_(False)
-    # --init names an error network only with --stage error (staged and all runs: the denoiser's)
-    init = config.init if config.stage == "error" else None
-    if config.error_disagreement and not denoiser.config.oidn_candidate:
-        raise TrainConfigError(f"--error-disagreement reads the kernels' image against the OIDN candidate's: "
-                               f"{config.out / 'denoiser.pt'} has no candidate")
-    model = _error_network_to_train(init, device, config.error_disagreement, config.error_width,
-                                    config.error_residual)
+    init = config.init
+    model = _error_network_to_train(init, device, denoiser.config.oidn_candidate)
     train, val = _datasets(config, 0, denoiser.config.oidn_candidate, config.error_levels or INPUT_ITEMS)
     batches = _batches(train, config.batch, config.seed + 1)
     if init is None:
@@ -327,16 +248,14 @@ def train_error_predictor(config, device) -> dict:
                                                      candidate)))
         return sum(losses) / len(losses)
 
-    extra = _provenance(config.command_line, "error", init)
+    extra = provenance(config.recipe, config.data_roots, "error", init)
     # The error network predicts one denoiser's error: name that denoiser by content.
-    target = config.out / "denoiser.pt"
-    extra["denoiser"] = f"{target} sha1 {hashlib.sha1(target.read_bytes()).hexdigest()[:10]}"
+    extra["denoiser"] = file_digest(config.out / "denoiser.pt")
     return _fit("error", model, loss_fn, val_fn, config, device, extra)
 
 
 def run_training(config: TrainConfig, report: Callable[[str], None] = lambda line: None) -> list[str]:
-    """Train what `config.stage` names; returns one summary line per trained network, each also
-    handed to `report` as soon as that network is done (a staged run takes hours)."""
+    """Train what `config.stage` names; returns its summary lines, each also handed to `report`."""
     config.validate()
     device = torch.device(config.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     config.out.mkdir(parents=True, exist_ok=True)
@@ -347,17 +266,13 @@ def run_training(config: TrainConfig, report: Callable[[str], None] = lambda lin
         report(line)
         return line
 
-    if config.stage in ("denoiser", "all"):
-        result = train_denoiser(config, device)
-        lines.append(report_line(f"denoiser: best validation SMAPE {result['best_val']:.4f} → {result['checkpoint']}"))
-    stages = list(DENOISER_STAGES) if config.stage == "staged" else [config.stage] if config.stage in STAGE_PLANS else []
-    for stage in stages:
-        plan = STAGE_PLANS[stage]
-        result = train_denoiser(config, device, stage, plan)
+    if config.stage in STAGE_PLANS:
+        plan = STAGE_PLANS[config.stage]
+        result = train_denoiser(config, device, config.stage, plan)
         metric = "eq. 6 loss at λ = 2, 4, 10" if plan.schedule == "random" else "SMAPE"
-        lines.append(report_line(f"stage {stage}: best validation {metric} {result['best_val']:.4f} → {result['checkpoint']}"))
-        config = dataclasses.replace(config, init=Path(result["checkpoint"]), resume=False)  # the next stage starts here
-    if config.stage in ERROR_NETWORK_STAGES:
+        lines.append(report_line(f"stage {config.stage}: best validation {metric} {result['best_val']:.4f} "
+                                 f"→ {result['checkpoint']}"))
+    else:
         result = train_error_predictor(config, device)
         lines.append(report_line(f"error predictor: best validation L1 {result['best_val']:.4f} → {result['checkpoint']}"))
     lines.append(report_line(f"trained in {time.perf_counter() - started:.0f} s on {device}"))

@@ -15,6 +15,7 @@ from bench.quality_measures import block_means
 from models.checkpoint import read_checkpoint, save_checkpoint
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.pretrained import ERROR_PREDICTOR_FILE
+from tests.models.conftest import PLAIN_ERROR_NETWORK
 from service.loop.change_calibration import calibrated_mean
 
 
@@ -75,7 +76,7 @@ def test_fitted_change_scale_makes_the_calibrated_median_ratio_one_after_the_out
 
 def test_calibrated_error_network_carries_the_scale_and_the_command(tmp_path: Path):
     source, target = tmp_path / "src", tmp_path / "dst"
-    model = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, output_scale=1.2))
+    model = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, **{**PLAIN_ERROR_NETWORK, "output_scale": 1.2}))
     save_checkpoint(source / ERROR_PREDICTOR_FILE, model, {"command": "renderloop train …"})
     write_calibrated_error_network(source, target, 1.5, "renderloop bench --calibration --suite val", 1.3)
     written = read_checkpoint(target / ERROR_PREDICTOR_FILE)

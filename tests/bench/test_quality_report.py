@@ -10,8 +10,9 @@ import pytest
 import torch
 
 from models.checkpoint import save_checkpoint
-from models.denoiser import Denoiser, DenoiserConfig
+from models.denoiser import Denoiser, temporal_config
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
+from tests.models.conftest import PLAIN_ERROR_NETWORK
 import bench.quality_eval as evaluation
 import bench.quality_measures as measures
 import bench.quality_report as quality
@@ -22,7 +23,7 @@ NETWORK_ROWS = (evaluation.NOISY, evaluation.SINGLE, evaluation.MULTISCALE, eval
 
 def tiny_denoiser() -> Denoiser:
     torch.manual_seed(0)
-    return Denoiser(DenoiserConfig(width=8, lambda_width=8, temporal_blocks=1)).eval()
+    return Denoiser(temporal_config(width=8, lambda_width=8, temporal_blocks=1)).eval()
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +34,7 @@ def report(tmp_path_factory) -> Path:
     data, weights = root / "data", root / "weights"
     build_dataset(data, scenes=2, size=16, frames=3, seed=0, split="heldout", reference_spp=64, progress=False)
     save_checkpoint(weights / "denoiser.pt", tiny_denoiser(), extra={"command": "tiny untrained"})
-    save_checkpoint(weights / "error_predictor.pt", ErrorPredictor(ErrorPredictorConfig(width=8, blocks=1)))
+    save_checkpoint(weights / "error_predictor.pt", ErrorPredictor(ErrorPredictorConfig(width=8, blocks=1, **PLAIN_ERROR_NETWORK)))
     crops = root / "docs" / quality.CROPS_DIR
     crops.mkdir(parents=True)
     (crops / "heldout_scene_of_an_older_data_set_reference.png").write_bytes(b"stale")
@@ -132,7 +133,7 @@ def test_evaluate_takes_the_temporal_result_from_its_one_prepare_and_counts_it_a
     original = Denoiser.prepare
     monkeypatch.setattr(Denoiser, "prepare", lambda self, *a, **k: prepares.append(self) or original(self, *a, **k))
     with torch.no_grad():
-        out = evaluation.evaluate([image], methods, denoiser, ErrorPredictor(ErrorPredictorConfig(width=8, blocks=1)), ())[0]
+        out = evaluation.evaluate([image], methods, denoiser, ErrorPredictor(ErrorPredictorConfig(width=8, blocks=1, **PLAIN_ERROR_NETWORK)), ())[0]
         assert sum(p is denoiser for p in prepares) == 2   # MULTISCALE's, and one for TEMPORAL + error map
         torch.testing.assert_close(out.results[evaluation.TEMPORAL], evaluation.windowed(denoiser, image))
 

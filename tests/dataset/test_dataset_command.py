@@ -37,21 +37,26 @@ def parse_train(argv: list[str]) -> argparse.Namespace:
     return parser.parse_args(["train", *argv])
 
 
-def test_train_reads_noisy_targets_and_a_clean_validation_set():
-    config = train_config(parse_train(["--data", "n2n", "--noisy-targets", "--val-data", "clean", "--stage", "denoiser"]))
-    assert config.noisy_targets and config.val_data == Path("clean")
-    config.validate()
-
-
 @pytest.mark.parametrize("argv, message", [
-    (["--stage", "denoiser"], "--noisy-targets needs --val-data"),
-    (["--stage", "error", "--val-data", "clean"], "needs clean references"),
-    (["--stage", "staged", "--val-data", "clean"], "needs clean references"),
+    (["--stage", "lambda"], "--stage lambda trains part of a denoiser: name it with --init"),
+    (["--stage", "gate", "--init", "d.pt", "--temporal"], "leave out --temporal"),
+    (["--stage", "temporal"], "add --temporal"),
+    (["--stage", "single", "--recipe", "my recipe"], "--recipe is a short name"),
 ])
-def test_noisy_targets_refuse_what_they_cannot_train_in_one_line(capsys, argv, message):
-    assert run_train(parse_train(["--data", "n2n", "--noisy-targets", *argv])) == 2
+def test_train_refuses_what_it_cannot_train_in_one_line(capsys, argv, message):
+    assert run_train(parse_train(["--data", "d", *argv])) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("renderloop train: error:") and message in err and "\n" not in err
+
+
+def test_train_has_only_the_recipes_flags():
+    parser = argparse.ArgumentParser(prog="renderloop")
+    add_train_parser(parser.add_subparsers(dest="command", required=True))
+    train = parser._subparsers._group_actions[0].choices["train"]
+    flags = {option for action in train._actions for option in action.option_strings if option.startswith("--")}
+    assert flags == {"--help", "--data", "--stage", "--out", "--init", "--steps", "--batch", "--crop", "--lr",
+                     "--val-every", "--seed", "--temporal", "--error-levels", "--recipe", "--resume", "--device",
+                     "--quiet"}
 
 
 @pytest.mark.parametrize("option, value", [("--scenes", "0"), ("--size", "2"), ("--frames", "-1"),

@@ -60,8 +60,8 @@ def test_a_data_set_over_several_folders_serves_the_items_of_all_of_them(still_d
         DenoiserDataset([still_dataset, sequence_dataset], split="heldout")
 
 
-def test_validation_from_another_data_set_leaves_its_scenes_out_of_training(sequence_dataset):
-    config = TrainConfig(data=sequence_dataset, val_data=sequence_dataset, crop=16)
+def test_validation_scenes_are_held_back_from_training(sequence_dataset):
+    config = TrainConfig(data=sequence_dataset, crop=16)
     train, val = _datasets(config, radius=0)
     train_scenes, val_scenes = {i.scene for i in train.items}, {i.scene for i in val.items}
     assert train_scenes and val_scenes and not train_scenes & val_scenes

@@ -5,15 +5,28 @@ import sys
 import pytest
 import torch
 
-from models.checkpoint import load_checkpoint, save_checkpoint
-from models.denoiser import Denoiser, DenoiserConfig
+from models.checkpoint import DATA_KEY, RECIPE_KEY, load_checkpoint
+from models.denoiser import NEUTRAL_SETTINGS, POST_TRAINING_SETTINGS, DenoiserConfig, Denoiser, temporal_config
 from models.training import denoiser_loss, sample_lambda
 from service.dataset.loader import DenoiserDataset, collate_samples
+from service.training.provenance import data_hash
 
 pytestmark = pytest.mark.slow
+TINY_RUN = ["--steps", "2", "--val-every", "1", "--batch", "2", "--crop", "16", "--quiet"]
 
 
-def test_a_tiny_denoiser_loss_falls_and_stays_finite_on_hdr_data(sequence_dataset):
+def train(*argv: str) -> subprocess.CompletedProcess:
+    result = subprocess.run([sys.executable, "-m", "service.cli", "train", *argv, *TINY_RUN],
+                            capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr
+    return result
+
+
+def settings_of(model) -> dict:
+    return {name: getattr(model.config, name) for name in POST_TRAINING_SETTINGS}
+
+
+def test_a_tiny_temporal_denoiser_loss_falls_and_stays_finite_on_hdr_data(sequence_dataset):
     torch.manual_seed(0)
     data = DenoiserDataset(sequence_dataset, split="train", radius=1, crop=16, seed=0)
     batch = collate_samples([data[i] for i in range(min(4, len(data)))])
@@ -23,7 +36,7 @@ def test_a_tiny_denoiser_loss_falls_and_stays_finite_on_hdr_data(sequence_datase
         frame.variance[0] *= 1e6
     for ref in batch.references:
         ref[0] *= 1e3
-    model = Denoiser(DenoiserConfig(width=8, spatial_blocks=1))
+    model = Denoiser(temporal_config(width=8, spatial_blocks=1))
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     gen = torch.Generator().manual_seed(0)
     losses = []
@@ -39,67 +52,33 @@ def test_a_tiny_denoiser_loss_falls_and_stays_finite_on_hdr_data(sequence_datase
     assert sum(losses[-5:]) / 5 < 0.9 * sum(losses[:5]) / 5
 
 
-@pytest.mark.parametrize("stage", ["all", "staged"])
-def test_train_command_writes_loadable_checkpoints_with_their_command(sequence_dataset, tmp_path, stage):
-    out = tmp_path / "weights"
-    result = subprocess.run(
-        [sys.executable, "-m", "service.cli", "train", "--data", str(sequence_dataset), "--stage", stage,
-         "-o", str(out), "--steps", "4", "--val-every", "2", "--batch", "2", "--crop", "16", "--width", "8",
-         "--spatial-blocks", "2", "--quiet"],
-        capture_output=True, text=True, timeout=900)
-    assert result.returncode == 0, result.stderr
-    denoiser = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser")
-    assert denoiser.config.width == 8 and denoiser.config.spatial_blocks == 2
-    assert "renderloop train" in denoiser.checkpoint_extra["command"]
-    assert denoiser.config.temporal and denoiser.config.multiscale  # the shipped one is the full network
-    if stage == "staged":
-        single = load_checkpoint(out / "stage_single.pt", expected_kind="denoiser")
-        assert not single.config.temporal and not single.config.multiscale
-        assert denoiser.checkpoint_extra["stage"] == "lambda"
-    load_checkpoint(out / "error_predictor.pt", expected_kind="error_predictor")
+def test_the_recipes_stages_chain_into_the_shipped_configuration_with_recipe_and_data_recorded(sequence_dataset,
+                                                                                                tmp_path):
+    """single → multiscale → gate → lambda → error, each from the previous file (scripts/train-weights.sh)."""
+    data = ["--data", str(sequence_dataset), "--recipe", "tiny"]
+    train(*data, "--stage", "single", "-o", str(tmp_path / "single"))
+    train(*data, "--stage", "multiscale", "--init", str(tmp_path / "single/stage_single.pt"), "-o", str(tmp_path / "ms"))
+    train(*data, "--stage", "gate", "--init", str(tmp_path / "ms/stage_multiscale.pt"), "-o", str(tmp_path / "gate"))
+    result = train(*data, "--stage", "lambda", "--init", str(tmp_path / "gate/stage_gate.pt"),
+                   "-o", str(tmp_path / "final"))
+    assert "stage lambda: best validation" in result.stdout
+    single = load_checkpoint(tmp_path / "single/stage_single.pt", expected_kind="denoiser")
+    assert not single.config.multiscale and settings_of(single) == NEUTRAL_SETTINGS   # trained without them
+    denoiser = load_checkpoint(tmp_path / "final/denoiser.pt", expected_kind="denoiser")
+    assert denoiser.config == DenoiserConfig()     # the shipped configuration, post-training settings included
+    assert denoiser.checkpoint_extra[RECIPE_KEY] == "tiny"
+    assert denoiser.checkpoint_extra[DATA_KEY] == data_hash([sequence_dataset])
+    assert denoiser.checkpoint_extra["init"].startswith("sha1:") and str(tmp_path) not in str(denoiser.checkpoint_extra)
+    train(*data, "--stage", "error", "-o", str(tmp_path / "final"))
+    error_net = load_checkpoint(tmp_path / "final/error_predictor.pt", expected_kind="error_predictor")
+    assert error_net.config.disagreement_input and error_net.config.sample_count_input
+    assert error_net.config.output_scale == 1.0 and error_net.config.change_scale is None   # fitted afterwards
+    assert error_net.checkpoint_extra["denoiser"].startswith("sha1:")
 
 
-def test_train_command_trains_on_noisy_targets_and_validates_on_clean_references(sequence_dataset, tmp_path):
-    out = tmp_path / "n2n"
-    result = subprocess.run(
-        [sys.executable, "-m", "service.cli", "train", "--data", str(sequence_dataset), "--noisy-targets",
-         "--val-data", str(sequence_dataset), "--stage", "denoiser", "-o", str(out), "--steps", "4", "--val-every", "2",
-         "--batch", "2", "--crop", "16", "--width", "8", "--trunk", "unet", "--quiet"],
-        capture_output=True, text=True, timeout=900)
-    assert result.returncode == 0, result.stderr
-    denoiser = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser")
-    assert denoiser.config.trunk == "unet" and "--noisy-targets" in denoiser.checkpoint_extra["command"]
-    assert "best validation SMAPE" in result.stdout
-
-
-def test_a_fine_tune_with_keep_settings_writes_the_init_settings_into_its_checkpoint(sequence_dataset, tmp_path):
-    settings = {"energy_tolerance": 0.03, "gate_offset": 2.0, "coarse_gate_offset": 10.0, "candidate_cap": True,
-                "kernel_clamp": 0.5}
-    init = tmp_path / "shipped.pt"
-    save_checkpoint(init, Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True,
-                                                  **settings)))
-    out = tmp_path / "fine-tuned"
-    result = subprocess.run(
-        [sys.executable, "-m", "service.cli", "train", "--data", str(sequence_dataset), "--stage", "multiscale",
-         "--init", str(init), "--oidn-candidate", "--single-frame", "--keep-settings", "-o", str(out),
-         "--steps", "2", "--val-every", "1", "--batch", "2", "--crop", "16", "--quiet"],
-        capture_output=True, text=True, timeout=900)
-    assert result.returncode == 0, result.stderr
-    tuned = load_checkpoint(out / "stage_multiscale.pt", expected_kind="denoiser")
-    assert {name: getattr(tuned.config, name) for name in settings} == settings
-    assert tuned.checkpoint_extra["settings_from"] == str(init) and "--keep-settings" in tuned.checkpoint_extra["command"]
-
-
-def test_an_error_network_trained_with_error_disagreement_reads_it_and_loads_for_the_loop(sequence_dataset, tmp_path):
-    out = tmp_path / "with-d"
-    out.mkdir()
-    save_checkpoint(out / "denoiser.pt", Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False,
-                                                                 oidn_candidate=True)))
-    result = subprocess.run(
-        [sys.executable, "-m", "service.cli", "train", "--data", str(sequence_dataset), "--stage", "error",
-         "--error-disagreement", "-o", str(out), "--steps", "2", "--val-every", "1", "--batch", "2", "--crop", "16",
-         "--quiet"],
-        capture_output=True, text=True, timeout=900)
-    assert result.returncode == 0, result.stderr
-    network = load_checkpoint(out / "error_predictor.pt", expected_kind="error_predictor")
-    assert network.config.disagreement_input and "--error-disagreement" in network.checkpoint_extra["command"]
+def test_the_temporal_kpcn_trains_its_own_stage_from_the_multiscale_one(sequence_dataset, tmp_path):
+    data = ["--data", str(sequence_dataset), "--temporal"]
+    train(*data, "--stage", "multiscale", "-o", str(tmp_path / "ms"))
+    train(*data, "--stage", "temporal", "--init", str(tmp_path / "ms/stage_multiscale.pt"), "-o", str(tmp_path / "t"))
+    temporal = load_checkpoint(tmp_path / "t/stage_temporal.pt", expected_kind="denoiser")
+    assert temporal.config == temporal_config() and temporal.temporal is not None

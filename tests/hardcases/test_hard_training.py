@@ -6,10 +6,11 @@ import math
 
 import torch
 
-from models.denoiser import Denoiser, DenoiserConfig
+from models.denoiser import Denoiser, temporal_config
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.frames import FrameTensors
 from models.training import denoiser_loss, error_predictor_loss, sample_lambda
+from tests.models.conftest import PLAIN_ERROR_NETWORK
 
 N, H, W = 2, 12, 16  # a size the 3-level pyramid must pad
 
@@ -43,9 +44,9 @@ def grad_norm(model: torch.nn.Module) -> float:
 def test_denoiser_and_error_predictor_train_finitely_on_hdr_data():
     torch.manual_seed(0)
     gen = torch.Generator().manual_seed(1)
-    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal_blocks=1, kernel_size=3,
+    denoiser = Denoiser(temporal_config(width=8, spatial_blocks=1, temporal_blocks=1, kernel_size=3,
                                        lambda_width=4, composite_width=4))
-    predictor = ErrorPredictor(ErrorPredictorConfig(width=8, blocks=2))
+    predictor = ErrorPredictor(ErrorPredictorConfig(width=8, blocks=2, **PLAIN_ERROR_NETWORK))
     frames = [hdr_frame(gen, motion=i > 0) for i in range(3)]
     reference = frames[1].color.clamp(max=1e4) * 0.9
     reference[:, :, 5, 5] = 0.0  # the firefly is pure noise: the reference there is dark

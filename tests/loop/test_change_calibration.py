@@ -10,6 +10,7 @@ import torch
 
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.pretrained import Networks
+from tests.models.conftest import PLAIN_ERROR_NETWORK
 from service.loop.change_calibration import calibrate_by_change, calibrated_mean, image_change
 from service.loop.loop import RenderLoop, exposed_change
 from service.loop.spec import LoopSpec
@@ -59,7 +60,7 @@ def test_without_a_change_or_a_scale_or_any_error_the_map_is_left_alone():
 def calibrated_networks(tiny_networks) -> Networks:
     """The tiny networks with an error network that carries a change scale (seeded, untrained)."""
     torch.manual_seed(1)
-    error = ErrorPredictor(ErrorPredictorConfig(width=8, change_scale=SCALE)).eval()
+    error = ErrorPredictor(ErrorPredictorConfig(width=8, **{**PLAIN_ERROR_NETWORK, "change_scale": SCALE})).eval()
     return Networks(tiny_networks.denoiser, error)
 
 
@@ -122,7 +123,7 @@ def test_a_resumed_loop_reports_the_network_until_it_has_an_image_of_its_own(cal
 
 def test_the_calibration_changes_the_reported_error_never_where_samples_go(calibrated_networks):
     """Allocation is proportional to the map, so one factor on it moves no sample."""
-    plain = ErrorPredictor(ErrorPredictorConfig(width=8)).eval()
+    plain = ErrorPredictor(ErrorPredictorConfig(width=8, **PLAIN_ERROR_NETWORK)).eval()
     plain.load_state_dict(calibrated_networks.error_predictor.state_dict())
     def run(networks: Networks) -> list[tuple[np.ndarray, object]]:  # the buffers are the loop's own: copy each
         return [(r.buffers[0].spp.copy(), r) for r in make_loop(networks).run()]

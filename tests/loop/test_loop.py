@@ -8,6 +8,7 @@ import torch
 
 from models.denoiser import Denoiser, DenoiserConfig
 from models.pretrained import Networks
+from tests.models.conftest import PLAIN_DENOISER
 from service.loop.loop import IterationInterrupted, LoopSpecError, RenderLoop
 from service.loop.spec import LoopSpec
 from service.loop.state import LoopState
@@ -148,7 +149,7 @@ def test_a_single_frame_network_pools_its_neighbours_samples_in_a_sequence(tiny_
     """models.accumulation: in a 3-frame orbit, each frame is filtered with the reprojected
     samples of its neighbours wherever they show the same surface (measured: 82–93 % of the
     pixels at this size)."""
-    single = Networks(Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False)).eval(),
+    single = Networks(Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False, **PLAIN_DENOISER)).eval(),
                       tiny_networks.error_predictor)
     loop = RenderLoop(LoopSpec(scene="cornell-box-orbit", width=SIZE, height=SIZE, frames=3, max_iterations=1),
                       single)

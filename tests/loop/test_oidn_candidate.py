@@ -3,9 +3,10 @@ import numpy as np
 import pytest
 import torch
 
-from models.denoiser import Denoiser, DenoiserConfig
+from models.denoiser import Denoiser, temporal_config
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.pretrained import Networks
+from tests.models.conftest import PLAIN_ERROR_NETWORK
 from service.loop.loop import RenderLoop
 from service.loop.spec import LoopSpec
 
@@ -15,11 +16,11 @@ SIZE = 16
 @pytest.fixture
 def candidate_networks() -> Networks:
     torch.manual_seed(0)
-    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, oidn_candidate=True)).eval()
+    denoiser = Denoiser(temporal_config(width=8, spatial_blocks=1, oidn_candidate=True)).eval()
     with torch.no_grad():   # fresh λ modules ignore λ; perturb them so an edit visibly matters
         for delta in (denoiser.specialise.delta, denoiser.gate.specialise.delta):
             delta.add_(torch.randn_like(delta) * 0.5)
-    return Networks(denoiser, ErrorPredictor(ErrorPredictorConfig(width=8)).eval())
+    return Networks(denoiser, ErrorPredictor(ErrorPredictorConfig(width=8, **PLAIN_ERROR_NETWORK)).eval())
 
 
 def test_oidn_runs_once_per_frame_per_iteration_and_not_on_a_lambda_edit(candidate_networks, monkeypatch):
@@ -51,7 +52,7 @@ def test_an_error_network_reading_the_disagreement_runs_in_the_loop_and_the_exr_
     from service.exr import read_exr, result_frame, write_exr
     from service.exr_denoise import denoise_exr
 
-    reader = ErrorPredictor(ErrorPredictorConfig(width=8, sample_count_input=True, disagreement_input=True)).eval()
+    reader = ErrorPredictor(ErrorPredictorConfig(width=8, output_scale=1.0, change_scale=None)).eval()
     networks = Networks(candidate_networks.denoiser, reader)
     loop = RenderLoop(LoopSpec(scene="cornell-box", width=SIZE, height=SIZE, max_iterations=2), networks)
     last = list(loop.run())[-1]

@@ -1,10 +1,17 @@
 import pytest
 import torch
 
-from models.denoiser import DenoiserConfig
+from models.denoiser import NEUTRAL_SETTINGS, temporal_config
 from models.frames import FrameTensors
 
-TINY = DenoiserConfig(width=8, spatial_blocks=1, temporal_blocks=1, kernel_size=3, lambda_width=4, composite_width=4)
+# Test networks whose inputs are the frame alone (no OIDN candidate, no trunk guide, no
+# post-training setting): DenoiserConfig's and ErrorPredictorConfig's defaults before they became
+# the shipped networks' (issue 46). **PLAIN_DENOISER with temporal=… and a width gives such a network.
+PLAIN_DENOISER = {"oidn_candidate": False, "candidate_features": False, **NEUTRAL_SETTINGS}
+PLAIN_ERROR_NETWORK = {"sample_count_input": False, "disagreement_input": False, "output_scale": 1.0,
+                       "change_scale": None}
+# A tiny temporal KPCN (the named design); tests of the shipped shape replace its switches.
+TINY = temporal_config(width=8, spatial_blocks=1, temporal_blocks=1, kernel_size=3, lambda_width=4, composite_width=4)
 
 
 def make_frame(h: int = 12, w: int = 16, n: int = 1, motion: bool = True, seed: int = 0) -> FrameTensors:

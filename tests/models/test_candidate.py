@@ -7,11 +7,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from models.candidate import N_FIREFLY_STATS, N_STATS, box_mean, clamp_around, gate_statistics, relative_variance
+from models.candidate import N_STATS, box_mean, clamp_around, gate_statistics
 from models.checkpoint import load_checkpoint, save_checkpoint
-from models.denoiser import CANDIDATE_CHANNELS, POST_TRAINING_SETTINGS, Denoiser, DenoiserConfig, lambda_code
+from models.denoiser import CANDIDATE_CHANNELS, NEUTRAL_SETTINGS, POST_TRAINING_SETTINGS, Denoiser, DenoiserConfig, lambda_code
 from service.training.config import TrainConfig, TrainConfigError
-from service.training.trainer import _denoiser_to_train, carry_post_training_settings
+from service.training.trainer import _denoiser_to_train, write_post_training_settings
 
 from .conftest import TINY, make_frame
 
@@ -174,54 +174,12 @@ def test_gate_offsets_act_fully_at_lambda_1_and_not_at_all_at_lambda_10():
     assert (finest[:, : W // 2] > plain[10.0][0][0, 0, :, : W // 2]).all()
 
 
-def _mean_and_variance_of_mean(samples: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(n, …) samples → the per-pixel mean and its variance (sample variance / n), as the frame
-    buffer stores them."""
-    n = samples.shape[0]
-    return samples.mean(0), samples.var(0, unbiased=True) / n
-
-
 @pytest.mark.parametrize("shape", [(1, 1, 37, 29), (2, 1, 5, 3), (1, 1, 1, 1)])
 @pytest.mark.parametrize("k", [3, 7])
 def test_box_mean_equals_pooling_over_in_image_pixels(shape, k):
     x = torch.rand(shape, generator=torch.Generator().manual_seed(k)) * 100
     expected = F.avg_pool2d(x, k, stride=1, padding=k // 2, count_include_pad=False)
     torch.testing.assert_close(box_mean(x, k), expected)
-
-
-def test_relative_variance_reads_one_where_a_single_sample_dominates_the_mean():
-    n = 16
-    firefly = torch.zeros(n, 1, 3, 1, 1)
-    firefly[3] = 500.0
-    m, v = _mean_and_variance_of_mean(firefly)
-    assert relative_variance(m, v).item() == pytest.approx(1.0, rel=0.01)
-    smooth = 0.5 + 0.05 * torch.randn(n, 1, 3, 8, 8, generator=torch.Generator().manual_seed(0))
-    m, v = _mean_and_variance_of_mean(smooth)
-    assert relative_variance(m, v).max() < 0.01   # CV² / n for well-behaved samples
-    black = torch.zeros(n, 1, 3, 2, 2)
-    assert (relative_variance(*_mean_and_variance_of_mean(black)) == 0).all()   # no 0/0
-
-
-def test_firefly_statistics_mark_the_firefly_and_its_neighbours_only_when_asked_for():
-    samples = 0.5 + 0.05 * torch.randn(16, 1, 3, 15, 15, generator=torch.Generator().manual_seed(1))
-    samples[0, :, :, 7, 7] = 400.0
-    m, v = _mean_and_variance_of_mean(samples)
-    candidate = torch.full_like(m, 0.5)
-    assert gate_statistics(m, candidate, v).shape[1] == N_STATS
-    stats = gate_statistics(m, candidate, v, firefly=True)
-    assert stats.shape[1] == N_STATS + N_FIREFLY_STATS
-    at_pixel, pooled = stats[0, N_STATS], stats[0, N_STATS + 1]
-    assert at_pixel[7, 7] > 0.6 and at_pixel[0, 0] < 0.01   # log(1 + 1) ≈ 0.69 on the firefly only
-    assert pooled[5, 9] > 0.6 and pooled[0, 0] < 0.01       # its 7×7 neighbourhood, not the corner
-
-
-def test_a_firefly_gate_checkpoint_reloads_with_its_wider_gate(tmp_path):
-    model = Denoiser(dataclasses.replace(CANDIDATE, gate_firefly=True)).eval()
-    save_checkpoint(tmp_path / "d.pt", model)
-    loaded = load_checkpoint(tmp_path / "d.pt", expected_kind="denoiser")
-    assert loaded.config.gate_firefly
-    frame, candidate = make_frame(H, W), candidate_image()
-    torch.testing.assert_close(loaded([frame], 0, 2.0, candidate), model([frame], 0, 2.0, candidate))
 
 
 GUIDED = dataclasses.replace(CANDIDATE, temporal=False, candidate_features=True)
@@ -233,15 +191,13 @@ def test_candidate_features_need_a_single_frame_network_with_a_candidate(changes
         Denoiser(dataclasses.replace(GUIDED, **changes))
 
 
-@pytest.mark.parametrize("trunk", ["levels", "unet"])
 @torch.no_grad()
-def test_candidate_features_reach_the_kernels_through_the_trunk(trunk):
-    model = Denoiser(dataclasses.replace(GUIDED, trunk=trunk)).eval()
-    first_conv = model.encoder.conv1 if trunk == "levels" else model.unet.down[0].conv1
-    assert first_conv.in_channels == model.features.channels + CANDIDATE_CHANNELS
+def test_candidate_features_reach_the_kernels_through_the_trunk():
+    model = Denoiser(GUIDED).eval()
+    assert model.encoder.conv1.in_channels == model.features.channels + CANDIDATE_CHANNELS
     frame = make_frame(H, W, motion=False)
     saturate_gate(model, -40.0)             # the candidate's own share at its floor (4.5e-5): kernels alone
-    plain = Denoiser(dataclasses.replace(GUIDED, trunk=trunk, candidate_features=False)).eval()
+    plain = Denoiser(dataclasses.replace(GUIDED, candidate_features=False)).eval()
     saturate_gate(plain, -40.0)
 
     def change(net: Denoiser) -> float:   # how far the output moves when only the candidate changes
@@ -251,18 +207,6 @@ def test_candidate_features_reach_the_kernels_through_the_trunk(trunk):
     # without the features only the gate's floor lets the candidate through; with them the kernels read it
     # (at the networks' exposure, models.exposure, the random weights see this frame 3 stops darker: ~10×)
     assert change(model) > 5 * change(plain)
-
-
-@torch.no_grad()
-def test_widening_a_trained_denoiser_for_candidate_features_starts_from_exactly_that_network(tmp_path):
-    trained = Denoiser(dataclasses.replace(CANDIDATE, temporal=False)).eval()
-    save_checkpoint(tmp_path / "denoiser.pt", trained)
-    config = TrainConfig(data=tmp_path, init=tmp_path / "denoiser.pt", oidn_candidate=True, temporal=False,
-                         candidate_features=True)
-    widened = _denoiser_to_train(config, "cpu", {"temporal": False}).eval()
-    assert widened.config.candidate_features
-    frame, candidate = make_frame(H, W, motion=False), candidate_image()
-    torch.testing.assert_close(widened([frame], 0, 2.0, candidate), trained([frame], 0, 2.0, candidate))
 
 
 def test_kernel_clamp_keeps_the_kernels_within_its_band_at_lambda_1_and_lets_go_at_lambda_10():
@@ -286,34 +230,22 @@ def test_kernel_clamp_is_a_post_training_setting_that_moves_the_output_towards_t
     assert model.config.without_post_training_settings().kernel_clamp is None
 
 
-SHIPPED_SETTINGS = {"energy_tolerance": 0.03, "energy_block": 32, "gate_offset": 2.0, "coarse_gate_offset": 10.0,
-                    "candidate_cap": True, "kernel_clamp": 0.5, "albedo_floor": 0.05}
-
-
-def test_a_fine_tune_trains_without_the_post_training_settings_and_keep_settings_writes_them_back(tmp_path):
-    chosen = Denoiser(dataclasses.replace(CANDIDATE, **SHIPPED_SETTINGS))
-    save_checkpoint(tmp_path / "shipped.pt", chosen, {"command": "renderloop train … (shipped)"})
-    config = TrainConfig(data=tmp_path, init=tmp_path / "shipped.pt", stage="multiscale", oidn_candidate=True,
-                         keep_settings=True)
+def test_a_fine_tune_trains_without_the_post_training_settings_and_the_finished_file_carries_them(tmp_path):
+    chosen = Denoiser(dataclasses.replace(TINY, temporal=False, oidn_candidate=True, **{
+        name: getattr(DenoiserConfig(), name) for name in POST_TRAINING_SETTINGS}))
+    save_checkpoint(tmp_path / "shipped.pt", chosen, {"recipe": "test"})
+    config = TrainConfig(data=tmp_path, init=tmp_path / "shipped.pt", stage="lambda")
     config.validate()
     trained = _denoiser_to_train(config, "cpu", {})
-    assert all(getattr(trained.config, name) == getattr(DenoiserConfig, name) for name in POST_TRAINING_SETTINGS)
+    assert {name: getattr(trained.config, name) for name in POST_TRAINING_SETTINGS} == NEUTRAL_SETTINGS
     with torch.no_grad():
         trained.gate.hidden.weight.add_(0.25)   # the fine-tune moved the weights
-    save_checkpoint(tmp_path / "denoiser.pt", trained, {"command": "renderloop train … (fine-tune)"})
-    carry_post_training_settings(tmp_path / "shipped.pt", tmp_path / "denoiser.pt")
+    save_checkpoint(tmp_path / "denoiser.pt", trained, {"recipe": "test (fine-tune)"})
+    write_post_training_settings(tmp_path / "denoiser.pt", DenoiserConfig())
     reloaded = load_checkpoint(tmp_path / "denoiser.pt", expected_kind="denoiser")
-    assert {name: getattr(reloaded.config, name) for name in POST_TRAINING_SETTINGS} == SHIPPED_SETTINGS
+    assert all(getattr(reloaded.config, name) == getattr(DenoiserConfig(), name) for name in POST_TRAINING_SETTINGS)
     torch.testing.assert_close(reloaded.gate.hidden.weight, trained.gate.hidden.weight)   # the weights as trained
-    assert reloaded.checkpoint_extra["command"] == "renderloop train … (fine-tune)"
-    assert reloaded.checkpoint_extra["settings_from"] == str(tmp_path / "shipped.pt")
-
-
-@pytest.mark.parametrize("changes", [{"init": None}, {"stage": "error"}, {"stage": "staged"}])
-def test_keep_settings_is_refused_without_a_denoiser_to_take_them_from(tmp_path, changes):
-    config = TrainConfig(data=tmp_path, init=tmp_path / "shipped.pt", stage="multiscale", keep_settings=True)
-    with pytest.raises(TrainConfigError, match="--keep-settings"):
-        dataclasses.replace(config, **changes).validate()
+    assert reloaded.checkpoint_extra["recipe"] == "test (fine-tune)"
 
 
 def test_gate_preparation_is_relu_of_its_layer_on_features_and_statistics_with_a_ones_channel():

@@ -66,21 +66,11 @@ def test_weights_dir_follows_the_environment_unless_named(tmp_path, monkeypatch)
 
 
 
-def test_format_1_denoiser_loads_with_the_same_output_at_every_lambda(tmp_path):
-    """Format 1 had no s(1) anchor in the λ module: W(λ) = W₀ + Σ sᵣ(λ)ΔWᵣ."""
-    den = Denoiser(TINY).eval()
-    torch.nn.init.normal_(den.specialise.delta)
-    win = [make_frame(seed=i) for i in range(3)]
-    with torch.no_grad():
-        s1 = den.specialise.mix(torch.zeros(1, 1, 1, 1)).flatten()
-        old_base = den.specialise.base - torch.einsum("r,rkc->kc", s1, den.specialise.delta)
-        expected = {lam: den(win, 1, lam) for lam in (1.0, 3.0, 10.0)}
-        den.specialise.base.copy_(old_base)     # what a format-1 file stores for the same network
-    path = save_checkpoint(tmp_path / "d.pt", den)
+def test_a_format_1_checkpoint_is_refused_by_name(tmp_path):
+    """Format 1 (no s(1) anchor in the λ module) is no longer read: no shipped file has it."""
+    path = save_checkpoint(tmp_path / "d.pt", Denoiser(TINY))
     ckpt = torch.load(path, weights_only=True)
     ckpt["format_version"] = 1
     torch.save(ckpt, path)
-    back = load_checkpoint(path, expected_kind="denoiser")
-    with torch.no_grad():
-        for lam, image in expected.items():
-            torch.testing.assert_close(back(win, 1, lam), image)
+    with pytest.raises(CheckpointError, match="format 1"):
+        load_checkpoint(path, expected_kind="denoiser")

@@ -103,7 +103,7 @@ def test_the_lambda_tail_stays_in_the_scene_units():
 
 @torch.no_grad()
 def test_the_error_network_predicts_the_same_error_at_any_scale():
-    net = ErrorPredictor(ErrorPredictorConfig(width=8, blocks=2, sample_count_input=True, residual_input=True)).eval()
+    net = ErrorPredictor(ErrorPredictorConfig(width=8, blocks=2, disagreement_input=False)).eval()
     f = dataclasses.replace(hdr_frame(), spp=torch.full((1, 1, 32, 48), 16.0))
     denoised = f.color * 0.95
     base = net(f, denoised)

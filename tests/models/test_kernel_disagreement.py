@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from models.denoiser import Denoiser
-from models.error_predictor import ErrorPredictor, ErrorPredictorConfig, reads_disagreement
+from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.kernel_disagreement import apply_for_error_network, apply_with_kernels_image, kernel_disagreement
 from models.training import error_predictor_loss
 from tests.models.conftest import TINY, make_frame
@@ -50,10 +50,9 @@ def test_apply_for_error_network_computes_the_disagreement_only_when_asked_and_n
 
 
 def test_an_error_network_reading_the_disagreement_requires_it_and_responds_to_it():
-    net = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, disagreement_input=True))
+    net = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, sample_count_input=False))
     frame, denoised = make_frame(8, 8), torch.rand(1, 3, 8, 8)
-    assert reads_disagreement(net) and not reads_disagreement(ErrorPredictor(ErrorPredictorConfig(width=4)))
-    assert not reads_disagreement(torch.nn.Identity())
+    assert net.reads_disagreement and not ErrorPredictor(ErrorPredictorConfig(width=4, disagreement_input=False)).reads_disagreement
     with pytest.raises(ValueError, match="disagreement"):
         net(frame, denoised)
     agree = net(frame, denoised, torch.zeros(1, 1, 8, 8))
@@ -64,7 +63,7 @@ def test_an_error_network_reading_the_disagreement_requires_it_and_responds_to_i
 
 def test_error_predictor_loss_with_the_disagreement_input_trains_every_weight():
     denoiser = Denoiser(CANDIDATE).eval()
-    net = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, disagreement_input=True))
+    net = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, sample_count_input=False))
     frame, reference, candidate = make_frame(16, 16), torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16)
     loss = error_predictor_loss(net, denoiser, frame, reference, candidate)
     loss.backward()

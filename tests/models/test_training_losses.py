@@ -4,7 +4,7 @@ import torch
 from models.denoiser import Denoiser
 from models.pyramid import down
 from models.features import demodulate
-from models.training import coarse_levels_loss, denoiser_lambda_loss, denoiser_loss, denoiser_smape, result_loss
+from models.training import coarse_levels_loss, denoiser_lambda_loss, denoiser_loss, denoiser_smape
 from tests.models.conftest import TINY, make_frame
 
 
@@ -54,21 +54,3 @@ def test_lambda_stage_validation_ranks_lambda_modules_that_lambda_one_smape_cann
         torch.nn.init.normal_(den.specialise.delta)
     assert denoiser_smape(den, frames, 1, reference) == smape_before
     assert denoiser_lambda_loss(den, frames, 1, reference) != loss_before
-
-
-def test_noisy_targets_train_only_at_lambda_one():
-    d, t, c = torch.rand(1, 3, 4, 4), torch.rand(1, 3, 4, 4), torch.rand(1, 3, 4, 4)
-    assert torch.isfinite(result_loss(d, t, c, torch.ones(1, 1, 4, 4), noisy_target=True))
-    with pytest.raises(ValueError, match="λ = 1"):
-        result_loss(d, t, c, torch.full((1, 1, 4, 4), 2.0), noisy_target=True)
-
-
-def test_denoiser_loss_on_a_noisy_target_reaches_every_trainable_part():
-    den = Denoiser(TINY)
-    frames, target = window(), make_frame(seed=7).color
-    loss = denoiser_loss(den, frames, 1, target, torch.ones(1, 1, 12, 16), noisy_target=True)
-    loss.backward()
-    assert torch.isfinite(loss)
-    for name in ("encoder.conv1.weight", "specialise.base", "composite.alpha.0.weight"):
-        grad = dict(den.named_parameters())[name].grad
-        assert grad is not None and grad.abs().max() > 0, name
