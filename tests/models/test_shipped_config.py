@@ -52,7 +52,7 @@ def test_the_temporal_kpcn_keeps_its_path_one_kernel_per_frame():
 
 
 def _fixed_window(h: int = 40, w: int = 48, seed: int = 3):
-    """Three still 16-spp frames and a candidate, as tests/models/data/shipped_outputs.pt was made."""
+    """Three still 16-spp frames and a candidate, as tests/models/fixtures/shipped_outputs.pt was made."""
     g = torch.Generator().manual_seed(seed)
     r = lambda c: torch.rand(1, c, h, w, generator=g)
     window = [FrameTensors(color=r(3) ** 3 * 4, variance=r(3) * 0.05, albedo=r(3) * 0.9, normal=r(3) * 2 - 1,
@@ -62,9 +62,9 @@ def _fixed_window(h: int = 40, w: int = 48, seed: int = 3):
 
 @torch.no_grad()
 def test_shipped_networks_give_the_outputs_recorded_before_their_options_were_removed():
-    """tests/models/data/shipped_outputs.pt: the shipped networks' outputs on this input, written
+    """tests/models/fixtures/shipped_outputs.pt: the shipped networks' outputs on this input, written
     by the code before issue 46 removed the options they do not use (bit-identical then)."""
-    recorded = torch.load(Path(__file__).parent / "data" / "shipped_outputs.pt", weights_only=True)
+    recorded = torch.load(Path(__file__).parent / "fixtures" / "shipped_outputs.pt", weights_only=True)
     torch.set_num_threads(1)
     denoiser, error_net = load_denoiser(SHIPPED_WEIGHTS_DIR), load_error_predictor(SHIPPED_WEIGHTS_DIR)
     window, candidate = _fixed_window()
