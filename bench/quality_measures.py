@@ -3,13 +3,11 @@ along λ, temporal flicker, rank correlation of the error map, shadow contrast."
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Iterable, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from scipy.stats import spearmanr
 from torch import Tensor
 
 from bench.common import display, sanitize as clean
@@ -46,11 +44,19 @@ def pearson(a: np.ndarray, b: np.ndarray) -> float:
     return float((a * b).sum() / denom) if denom > 0 else float("nan")
 
 
+def average_ranks(x: np.ndarray) -> np.ndarray:
+    """1-based ranks of x's entries (flattened); tied values share the mean of their ranks."""
+    _, inverse, counts = np.unique(x.ravel(), return_inverse=True, return_counts=True)
+    last = np.cumsum(counts)                      # the rank of each distinct value's last copy
+    return ((last - counts + 1 + last) / 2.0)[inverse.ravel()]
+
+
 def spearman(a: np.ndarray, b: np.ndarray) -> float:
-    """Rank correlation with average ranks for ties (scipy)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # a constant input: nan is the honest answer
-        return float(spearmanr(a.ravel(), b.ravel())[0])
+    """Spearman's ρ: Pearson's r of the average ranks (Spearman 1904; ties as in
+    scipy.stats.spearmanr). nan where either input holds a nan or is constant: no ranking."""
+    if np.isnan(a).any() or np.isnan(b).any():
+        return float("nan")
+    return pearson(average_ranks(a), average_ranks(b))
 
 
 def block_means(x: np.ndarray, block: int) -> np.ndarray:

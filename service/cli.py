@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from service import client_command, denoise_command, train_command
+from service.bench_command import BenchNotInstalled, load_bench_main
 from service.api.security import (LOOPBACK_HOSTS, TOKEN_ENV, TOKEN_FILE_ENV, SecuritySettings, TokenFileError,
                                   is_loopback, read_token_file)
 from service.api.edge_settings import HEADER_TIMEOUT_SECONDS, KEEP_ALIVE_SECONDS, MAX_CONNECTIONS, EdgeSettings
@@ -350,16 +351,14 @@ LAZY_USER_ERRORS = (("models.checkpoint", "CheckpointError"), ("service.client",
 def user_errors() -> tuple[type[BaseException], ...]:
     """Exception types that describe bad input rather than a bug."""
     loaded = tuple(getattr(sys.modules[module], name) for module, name in LAZY_USER_ERRORS if module in sys.modules)
-    return (CliError, JobOptionError, FileNotFoundError, LoopSpecError, TimeoutError, *loaded)
+    return (CliError, JobOptionError, FileNotFoundError, LoopSpecError, TimeoutError, BenchNotInstalled, *loaded)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
         if argv[:1] == ["bench"]:
-            from bench.cli import main as bench_main  # heavy: report code, plots, every network
-
-            return bench_main(argv[1:])
+            return load_bench_main()(argv[1:])   # bench/: heavy (imported only now), and only in a checkout
         args = build_parser().parse_args(argv)
         return args.handler(args)
     except KeyboardInterrupt:

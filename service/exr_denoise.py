@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.ndimage import uniform_filter
 
 from models.error_predictor import reads_disagreement
 from models.frames import FrameTensors
@@ -53,7 +52,22 @@ def estimate_variance(radiance: np.ndarray) -> np.ndarray:
     padded = np.pad(radiance.astype(np.float64), ((1, 1), (1, 1), (0, 0)), mode="edge")
     neighbours = (padded[:-2, 1:-1] + padded[2:, 1:-1] + padded[1:-1, :-2] + padded[1:-1, 2:]) / 4.0
     squared = (radiance - neighbours) ** 2 / NEIGHBOUR_RESIDUAL_GAIN
-    return uniform_filter(squared, size=(NOISE_WINDOW, NOISE_WINDOW, 1), mode="nearest").astype(np.float32)
+    return box_mean_edge(squared, NOISE_WINDOW).astype(np.float32)
+
+
+def box_mean_edge(x: np.ndarray, size: int) -> np.ndarray:
+    """Mean over the size×size window (size odd) around each pixel of (H, W, C), the border
+    pixels repeated outwards (scipy.ndimage.uniform_filter's mode "nearest", without scipy: the
+    product does not depend on it): running sums along each axis, as a summed-area table."""
+    r = size // 2
+    padded = np.pad(x.astype(np.float64), ((r, r), (r, r), (0, 0)), mode="edge")
+    for axis in (0, 1):
+        sums = np.cumsum(padded, axis=axis)
+        zero = np.zeros_like(np.take(sums, [0], axis=axis))
+        sums = np.concatenate([zero, sums], axis=axis)
+        n = sums.shape[axis]
+        padded = np.take(sums, range(size, n), axis=axis) - np.take(sums, range(0, n - size), axis=axis)
+    return padded / (size * size)
 
 
 def frame_from_exr(path: Path, frame: ExrFrame, spp: int | None = None) -> FrameTensors:
