@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from models.denoiser import Denoiser, DenoiserCache
-from models.error_predictor import ErrorPredictor, reads_disagreement
+from models.error_predictor import ErrorMap
 from models.frames import FrameTensors
 from models.kernel_disagreement import apply_for_error_network
 from models.losses import SMAPE_EPS, smape, smape_map
@@ -247,7 +247,7 @@ def true_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 
 @torch.no_grad()
-def denoise_and_predict(denoiser: Denoiser, error_network: ErrorPredictor, window: list[FrameTensors],
+def denoise_and_predict(denoiser: Denoiser, error_network: ErrorMap, window: list[FrameTensors],
                         centre: int) -> tuple[DenoiserCache, torch.Tensor, torch.Tensor]:
     """One prepare of the window's centre frame, as the loop runs it: the cache (for further λ
     tails), the denoised image at λ = 1, and the error network's map of it, with the
@@ -255,7 +255,7 @@ def denoise_and_predict(denoiser: Denoiser, error_network: ErrorPredictor, windo
     candidate = candidate_for(denoiser, window[centre])
     cache = denoiser.prepare(window, centre, candidate)
     denoised, disagreement = apply_for_error_network(denoiser, cache, candidate, 1.0,
-                                                     reads_disagreement(error_network))
+                                                     error_network.reads_disagreement)
     return cache, denoised, error_network(window[centre], denoised, disagreement)
 
 

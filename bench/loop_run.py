@@ -168,6 +168,9 @@ class NoErrorPrediction(torch.nn.Module):
     """Stand-in error network for (b) and (c): they allocate without it, so they must not pay for
     it. The loop still stores an error map per iteration; zeros cost nothing."""
 
+    change_scale: float | None = None   # models.error_predictor.ErrorMap: no calibration,
+    reads_disagreement = False          # no disagreement input
+
     def forward(self, frame: FrameTensors, denoised: torch.Tensor) -> torch.Tensor:
         return torch.zeros_like(denoised[:, :1])
 
@@ -236,6 +239,9 @@ def _loop_spec(scene: BenchScene, method: LoopMethod, settings: BenchSettings, i
 class TrueErrorMap(torch.nn.Module):
     """Stand-in error network for (o): the denoised image's true per-pixel SMAPE against the
     reference, what a perfect error network would predict."""
+
+    change_scale: float | None = None   # models.error_predictor.ErrorMap: the true error needs no
+    reads_disagreement = False          # calibration and reads no disagreement
 
     def __init__(self, reference: np.ndarray):
         super().__init__()

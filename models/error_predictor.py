@@ -16,7 +16,7 @@ Trained with L1 against models.losses.smape_map(denoised, reference).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Protocol
 
 import torch
 import torch.nn as nn
@@ -90,14 +90,35 @@ class ErrorPredictor(nn.Module):
         error = F.softplus(raw)
         return (error * self.config.output_scale).contiguous()
 
+    @property
+    def change_scale(self) -> float | None:
+        """ErrorMap: the change calibration's factor (the config's)."""
+        return self.config.change_scale
 
-def change_scale_of(error_network: object) -> float | None:
-    """The network's change calibration (ErrorPredictorConfig.change_scale); None for stand-ins
-    such as the benchmark's true-error map, which need none."""
-    return error_network.config.change_scale if isinstance(error_network, ErrorPredictor) else None
+    @property
+    def reads_disagreement(self) -> bool:
+        """ErrorMap: the kernels/candidate disagreement is one of its inputs."""
+        return self.config.disagreement_input
 
 
-def reads_disagreement(error_network: object) -> bool:
-    """Whether the loop must hand this error map the kernels/candidate disagreement (stand-ins
-    such as the benchmark's true-error map read only the frame and the denoised image)."""
-    return isinstance(error_network, ErrorPredictor) and error_network.config.disagreement_input
+class ErrorMap(Protocol):
+    """What the loop asks of an error map: ErrorPredictor, or anything with the same surface (a
+    benchmark's allocator without a network, a test's planted map), which then says for itself
+    what it reads and how it is calibrated."""
+
+    @property
+    def change_scale(self) -> float | None:
+        """Calibration by the image's change from the second iteration on
+        (service.loop.change_calibration); None: the map's own mean."""
+
+    @property
+    def reads_disagreement(self) -> bool:
+        """Whether the loop must hand it the kernels/candidate disagreement."""
+
+    def __call__(self, frame: FrameTensors, denoised: Tensor, disagreement: Tensor | None = None) -> Tensor:
+        """(N,1,H,W) predicted SMAPE of `denoised` ≥ 0."""
+
+
+def change_scale_of(error_map: ErrorMap) -> float | None:
+    """error_map.change_scale: kept only until service/loop/loop.py reads the attribute itself."""
+    return error_map.change_scale

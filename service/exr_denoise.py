@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from models.error_predictor import reads_disagreement
 from models.frames import FrameTensors
 from models.kernel_disagreement import apply_for_error_network
 from models.pretrained import Networks
@@ -126,7 +125,7 @@ def denoise_exr(source: Path, output: Path, networks: Networks, *, lam: float = 
         window, centre = networks.denoiser.filtered_window(window, centre)  # a single-frame network pools it
         filtered = window[centre]
         candidate = candidate_for(networks.denoiser, filtered)
-        with_disagreement = reads_disagreement(networks.error_predictor)
+        with_disagreement = networks.error_predictor.reads_disagreement
         denoised, disagreement = apply_for_error_network(networks.denoiser,
                                                          networks.denoiser.prepare(window, centre, candidate),
                                                          candidate, lam_tensor(lam_map), with_disagreement)

@@ -12,7 +12,6 @@ import threading
 import numpy as np
 import torch
 
-from models.error_predictor import reads_disagreement
 from models.frames import FrameTensors
 from models.kernel_disagreement import apply_for_error_network
 from models.pretrained import Networks
@@ -59,7 +58,7 @@ class DenoiseSession:
         lam = lam_tensor(lam_map)
         caches, images, inputs, disagreement = {}, {}, {}, {}
         denoiser = self.networks.denoiser
-        with_disagreement = reads_disagreement(self.networks.error_predictor)
+        with_disagreement = self.networks.error_predictor.reads_disagreement
         for f in self.owned:
             indices, centre = temporal_window(f, len(buffers), self.temporal_radius)
             # what the network filters (a single-frame one: the window's samples pooled); the
@@ -79,7 +78,7 @@ class DenoiseSession:
         """Per-pixel predicted SMAPE of each denoised (owned) frame, (H, W) each, read from the
         inputs the denoiser filtered (those of the last `denoise`, which made `images`)."""
         network = self.networks.error_predictor
-        if not reads_disagreement(network):
+        if not network.reads_disagreement:
             return {f: to_image(network(self._inputs[f], image)) for f, image in images.items()}
         return {f: to_image(network(self._inputs[f], image, self._disagreement[f])) for f, image in images.items()}
 

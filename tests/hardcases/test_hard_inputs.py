@@ -99,6 +99,9 @@ def test_allocations_below_one_sample_per_pixel_are_exact(kind, budget):
 class OnePixelError(torch.nn.Module):
     """An error "prediction" with all its mass in one pixel."""
 
+    change_scale: float | None = None   # models.error_predictor.ErrorMap
+    reads_disagreement = False
+
     def __init__(self, y: int, x: int, value: float) -> None:
         super().__init__()
         self.y, self.x, self.value = y, x, value
