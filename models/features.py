@@ -93,8 +93,9 @@ def demodulation_albedo(albedo: Tensor, floor: float) -> Tensor:
     return albedo.clamp_min(floor) if floor > 0 else albedo
 
 
-def relative_variance(variance: Tensor, mean: Tensor) -> Tensor:
-    """var / (mean² + ε): noise level independent of exposure."""
+def relative_variance(mean: Tensor, variance: Tensor) -> Tensor:
+    """var / (mean² + ε): noise level independent of exposure (the one definition: the encoder's
+    feature, and through service.loop.allocate.exposed_relative_variance the variance allocator's)."""
     return variance / (mean * mean + REL_VAR_EPS)
 
 
@@ -118,7 +119,7 @@ def path_features(f: FrameTensors) -> list[Tensor]:
     normalised depth."""
     return [
         log_transform(demodulate(f.color, f.albedo)),
-        log_transform(relative_variance(f.variance, f.color)),
+        log_transform(relative_variance(f.color, f.variance)),
         log_transform(f.albedo),
         f.normal,
         normalize_depth(f.depth),
@@ -130,7 +131,7 @@ def radiance_features(f: FrameTensors) -> list[Tensor]:
     the caller passes albedo = 1 so demodulation is a no-op."""
     return [
         log_transform(demodulate(f.color, f.albedo)),
-        log_transform(relative_variance(f.variance, f.color)),
+        log_transform(relative_variance(f.color, f.variance)),
     ]
 
 

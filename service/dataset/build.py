@@ -32,7 +32,7 @@ from service.atomic import atomic_write, atomic_write_text
 from service.dataset.procedural import DATASET_LAYOUTS, SceneSpec, sample_spec, scene_dict, sensor_dict
 from service.dataset.splits import SPLITS, scene_seeds
 from service.exr import ExrError, ExrFrame, read_exr, write_exr
-from service.loop.allocate import allocate_samples, iteration_budget, variance_weights
+from service.loop.allocate import allocate_samples, exposed_relative_variance, iteration_budget, variance_weights
 from service.loop.denoise_session import DenoiseSession
 from service.loop.loop import converged_error, next_counts
 from service.render.framebuffer import FrameBuffer
@@ -184,7 +184,7 @@ def _adaptive_branch(job: _FrameJob, start: FrameBuffer) -> None:
     buffer = start.copy()
     for iteration, item in enumerate(ADAPTIVE_ITEMS, start=1):
         budget = int(buffer.spp.sum())  # doubling: this iteration adds what is there already
-        weights = variance_weights(buffer.relative_variance())
+        weights = variance_weights(exposed_relative_variance(buffer.mean, buffer.variance))
         counts = allocate_samples(weights, budget, seed=render_seed(job.scene_seed, job.frame, iteration))
         _render(job, buffer, counts, _STREAM_ADAPTIVE)
         _save(job, item, _exr_frame(buffer, job.scene_seed, iteration))

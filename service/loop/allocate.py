@@ -84,11 +84,11 @@ def exposed_relative_variance(mean: np.ndarray, variance: np.ndarray) -> np.ndar
     """(H, W, 3) sample mean and variance of the mean → Var/(mean² + ε) per channel, taken at the
     networks' exposure (models.exposure): ε is absolute, so without it a scene at 10⁻⁶ had every
     pixel's weight ∝ its raw variance and one at 10¹² ∝ 1/mean² in the dark. Inside the trained
-    range the exposure is 1 and this is FrameBuffer.relative_variance."""
+    range the exposure is 1 and this is models.features.relative_variance of the buffer."""
     m = torch.from_numpy(np.asarray(mean, dtype=np.float64)).permute(2, 0, 1)[None]
     v = torch.from_numpy(np.asarray(variance, dtype=np.float64)).permute(2, 0, 1)[None]
     exposure = Exposure.of(m)
-    rv = relative_variance(exposure.forward_variance(v), exposure.forward(m))
+    rv = relative_variance(exposure.forward(m), exposure.forward_variance(v))
     return rv[0].permute(1, 2, 0).numpy().astype(np.float32)
 
 

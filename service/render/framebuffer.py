@@ -182,11 +182,6 @@ class FrameBuffer:
         level = (high - low <= CONVERGED_REL_TOLERANCE * np.abs(high)).all(axis=-1)
         return _window(agreed, self.footprint, np.logical_and) & level
 
-    def relative_variance(self, eps: float = 1e-2) -> np.ndarray:
-        """Variance of the mean over squared luminance-ish magnitude (Rousselle et al. style)."""
-        mean = self.mean.astype(np.float64)
-        return (self.variance / (mean**2 + eps)).astype(np.float32)
-
     @property
     def albedo(self) -> np.ndarray:
         return self._per_sample(self.albedo_sum).astype(np.float32)
