@@ -36,7 +36,7 @@ GOAL_SPEEDUP_VS_A, GOAL_SPEEDUP_VS_B, GOAL_SMAPE_RATIO_D_B = 10.0, 1.3, 0.85
 # whichever of THREAD_PROBE_COUNTS a probe at the start of the run finds faster. OIDN's own pool
 # always takes every core, so one pinned torch thread handicaps (b)–(d) against (e) wherever two
 # are faster (a quiet host); on a busy one two threads can measure the neighbours instead
-# (docs/oidn-candidate.md: 1.46× against 1.84× OIDN's time at load 5). The probe decides per run,
+# (measured for the first OIDN-candidate network: 1.46× against 1.84× OIDN's time at load 5). The probe decides per run,
 # and the report says what it measured.
 THREAD_PROBE_COUNTS = (1, 2)
 THREAD_PROBE_SIZE = 256  # the probe's image side where the suite runs at each scene's own size

@@ -2,8 +2,8 @@
 
 A denoiser with an OIDN candidate (models/candidate.py) blends two images of the same inputs:
 its kernels' own image k and the candidate c. Where they disagree, at least one of them is
-wrong, like the spread of an ensemble (docs/error-network.md, "the kernels' disagreement with
-OIDN"): on the validation scenes the error network ranks no better than chance, this ranks
+wrong, like the spread of an ensemble (docs/decisions.md, "The kernels' disagreement
+with OIDN"): on the validation scenes the error network ranks no better than chance, this ranks
 their error better than the network does. As an input channel the network can learn where to
 trust it.
 

@@ -1,5 +1,5 @@
-"""Which neighbour pixels should a single-frame denoiser pool from its window? (docs/models.md,
-"Sequences with a single-frame network"; models/accumulation.py)
+"""Which neighbour pixels should a single-frame denoiser pool from its window? (models/accumulation.py;
+docs/decisions.md, "`accumulate=False`, removed")
 
 Chosen on validation material only, never the development suite:
 - the eight validation scenes (scenes/val) as static sequences: FRAMES renders of the same view

@@ -1,5 +1,5 @@
-"""How much should the denoised image's mean be pulled towards the samples'? (docs/models.md,
-"Energy"; models/energy.py)
+"""How much should the denoised image's mean be pulled towards the samples'? (models/energy.py;
+docs/decisions.md, "The energy factor")
 
 models.energy trusts the samples' mean with weight 1 / (1 + (rse/τ)²): an inverse-variance blend
 of an unbiased estimate (relative standard error rse) with the denoiser's own total, whose error

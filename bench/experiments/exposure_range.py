@@ -1,4 +1,5 @@
-"""Which exposures did the networks learn on? (models/exposure.py, docs/models.md "Exposure")
+"""Which exposures did the networks learn on? (models/exposure.py; docs/decisions.md,
+"Exposure normalisation, kept")
 
 Renders the noisy 16-spp input of procedural training scenes (the data set's own scene
 generator and renderer, training seeds) and prints the distribution of the exposure statistic

@@ -1,5 +1,5 @@
-"""How far should the candidate gate lean to OIDN on hand-written scenes? (docs/oidn-candidate.md,
-"The gate's offset")
+"""How far should the candidate gate lean to OIDN on hand-written scenes? (docs/decisions.md,
+"The gate's offsets and the compositor's caps")
 
 The gate was trained on procedural scenes, where the kernels hold their own against OIDN; on
 hand-written scenes they are 1.1–5× worse at 16 spp (docs/decisions.md, "The candidate gate"), so a gate

@@ -1,6 +1,5 @@
 """`renderloop denoise` on the EXRs Mitsuba writes itself, and what the estimated variance costs
-(docs/fidelity.md, "Mitsuba's own checks, the scene's sample count, Mitsuba's EXRs"; README,
-"Denoising Mitsuba's renders").
+(docs/fidelity.md, "Mitsuba's own checks, the scene's sample count, Mitsuba's EXRs").
 
 1. `mi.render` of `mi.cornell_box()` at SIZE², SPP spp, with an `aov` integrator
    (albedo, sh_normal, depth) around `path`, for a box and a Gaussian film, SEEDS seeds, each

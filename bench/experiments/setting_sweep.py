@@ -1,4 +1,5 @@
-"""One post-training setting of the denoiser, swept on a suite against OIDN (docs/models.md).
+"""One post-training setting of the denoiser, swept on a suite against OIDN (docs/decisions.md: the
+energy blocks, the kernel clamp, the gate offset at 16 spp).
 
 A post-training setting (models.denoiser.POST_TRAINING_SETTINGS) is applied by `prepare`/`apply`
 without retraining, so each value is tried on the same inputs. Per scene, sample count and seed:

@@ -1,5 +1,5 @@
-"""Can a single-frame setting make ours steadier than OIDN on a static sequence? (README,
-"Temporal flicker"; docs/models.md, "Energy")
+"""Can a single-frame setting make ours steadier than OIDN on a static sequence? (the static
+flicker of `renderloop bench --denoiser`, docs/suite-quality.md; the post-training settings)
 
 Issue 13 asks for temporal flicker on a static sequence at most OIDN's. Per still scene, FRAMES
 renders of the same view at 16 spp, each with its own seed (as `renderloop bench --denoiser`

@@ -7,7 +7,8 @@ fireflies — camera paths that happened to find the bulb — over dim, noisy wa
 rooms are lit by lights the camera paths find easily (a 20 % chance adds one unshaded tiny
 sphere), and the validation scenes of this kind (scenes/val: shaded_bulb_study, misty_lantern)
 and the suite's lamp_room are where the U-Net ensemble's kernels kept fireflies and the error
-network ranked pixels no better than chance (docs/unet-trunk.md, docs/error-network.md).
+network ranked pixels no better than chance (docs/decisions.md: "The U-Net trunk, removed", "Rooms lit by a
+tiny shaded bulb").
 
 The room is closed on all four sides like the window layout's (the camera stays inside); a drum
 shade — an open cylinder, opaque and two-sided, open at top and bottom — hangs or stands in it

@@ -41,7 +41,7 @@ DEFAULT_CAP_MULTIPLE = 8.0
 
 # Clip the weights at this percentile of the positive ones: one firefly in an error map must not
 # take the budget, yet the hardest pixels must keep their lead. Chosen on the validation scenes
-# (docs/error-network.md, "Allocation"): at 95 the hardest 5 % of a map were flattened to one
+# (docs/decisions.md, "Clamp the error map at its 99th percentile"): at 95 the hardest 5 % of a map were flattened to one
 # level, and with the error network (d)/(b) at 128 spp averaged 0.979; at 99 0.965 (99.5 and no
 # clamp the same within noise); with the true error map 0.945 → 0.920.
 DEFAULT_CLAMP_PERCENTILE = 99.0

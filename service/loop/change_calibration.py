@@ -6,7 +6,7 @@ data (docs/calibration.md), and that mean is what `--target-error` stops on. The
 more thing the network does not: each iteration doubles the samples, and the denoised image
 moves between iterations by C = mean SMAPE(Dₖ, Dₖ₋₁) — a measure of the error still present
 that needs no network and no reference. C alone mixes in how fast the error falls with samples,
-which varies from scene to scene, so it is no better on its own; the geometric mean √(P · s·C) of the two is (docs/error-network.md, "The
+which varies from scene to scene, so it is no better on its own; the geometric mean √(P · s·C) of the two is (docs/decisions.md, "The
 change between iterations calibrates the mean": on the development suite 9–10 of 12 scenes within
 20 % of the true mean at every iteration, against 4–6 for P). s is fitted on the validation scenes
 with the network's own output scale (`renderloop bench --calibration --suite val --fit-scale DIR`)
