@@ -2,10 +2,14 @@
 where it is measured, or it would leak into the next measurement (and into the product)."""
 from __future__ import annotations
 
+import importlib
+import pkgutil
+
 import numpy as np
 import pytest
 import torch
 
+import bench.experiments
 from bench.common import denoise_and_predict, denoiser_settings, image_metrics
 from bench.experiments.energy_tolerance import UNTOUCHED, outputs_per_tolerance
 from bench.experiments.gate_offset import offset_ratios
@@ -154,3 +158,18 @@ def test_setting_sweep_images_follow_the_setting_and_restore_the_config():
     assert denoiser.config == config
     np.testing.assert_array_equal(plain, plain_again)
     assert np.abs(plain - floored).max() > 1e-3
+
+
+KEPT_EXPERIMENTS = ("accumulation_rules", "energy_tolerance", "exposure_range", "gate_offset", "mitsuba_exr_denoise",
+                    "seed_spread", "setting_sweep", "static_flicker")
+
+
+def test_the_kept_experiments_import_against_the_current_product_and_no_others_crept_in():
+    """Each kept experiment re-decides a shipped setting, so a product change that breaks its imports
+    (a renamed function, a removed option) must fail here, not at the next re-run; a new one-off
+    script needs a decision behind it (docs/decisions.md) and a place in this list."""
+    found = sorted(m.name for m in pkgutil.iter_modules(bench.experiments.__path__))
+    assert found == sorted(KEPT_EXPERIMENTS)
+    for name in found:
+        module = importlib.import_module(f"bench.experiments.{name}")
+        assert callable(module.main), name
