@@ -14,7 +14,7 @@ import torch
 
 from models.checkpoint import CheckpointError, load_checkpoint
 from models.denoiser import Denoiser
-from models.error_predictor import ErrorPredictor
+from models.error_predictor import ErrorMap, ErrorPredictor
 
 SHIPPED_WEIGHTS_DIR = Path(__file__).parent / "weights"
 WEIGHTS_DIR_ENV = "RENDERLOOP_WEIGHTS_DIR"
@@ -27,7 +27,7 @@ class Networks:
     """The two networks one render loop needs: the denoiser and its error predictor."""
 
     denoiser: Denoiser
-    error_predictor: ErrorPredictor
+    error_predictor: ErrorMap   # the network, or a stand-in with its surface (models.error_predictor.ErrorMap)
 
 
 def weights_dir(explicit: str | Path | None = None) -> Path:
