@@ -21,7 +21,7 @@ from pathlib import Path
 
 from bench.versus_mitsuba_run import LoopRun
 from service.jobs.artifacts import JobFiles, Preview
-from service.jobs.worker import preview_layers
+from service.jobs.previews import preview_layers
 from service.loop.allocate import iteration_budget
 from service.loop.loop import next_counts
 from service.loop.oidn import candidate_for

@@ -31,7 +31,7 @@ from service.jobs import bundle
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.record import job_spec
 from service.jobs.store import CANCELED, FAILED, STATES, JobRecord, JobStore
-from service.jobs.worker import JobWorker
+from service.jobs.runner import JobRunner
 from service.render.effects import inspect_scene
 from service.render.scenes import describe_builtin_scenes, film_size
 
@@ -79,7 +79,7 @@ def get_store(request: Request) -> JobStore:
     return request.app.state.store
 
 
-def get_worker(request: Request) -> JobWorker:
+def get_worker(request: Request) -> JobRunner:
     return request.app.state.worker
 
 
@@ -88,7 +88,7 @@ def get_metrics(request: Request) -> ServiceMetrics:
 
 
 Store = Annotated[JobStore, Depends(get_store)]
-Worker = Annotated[JobWorker, Depends(get_worker)]
+Worker = Annotated[JobRunner, Depends(get_worker)]
 
 
 def require_job(store: JobStore, job_id: str) -> JobRecord:
@@ -216,13 +216,13 @@ def get_result(record: Job, worker: Worker, frame: int = Query(0, ge=0)) -> File
 
 # -- change -------------------------------------------------------------------------------------
 
-def lambda_from_json(worker: JobWorker, job_id: str, update: LambdaUpdate, shape: tuple[int, int]) -> np.ndarray:
+def lambda_from_json(worker: JobRunner, job_id: str, update: LambdaUpdate, shape: tuple[int, int]) -> np.ndarray:
     if update.value is not None:
         return constant(shape, update.value)
     return paint_rects(worker.current_lambda(job_id, shape), update.rects or [])
 
 
-def apply_lambda(store: JobStore, worker: JobWorker, job_id: str, update: LambdaUpdate | None,
+def apply_lambda(store: JobStore, worker: JobRunner, job_id: str, update: LambdaUpdate | None,
                  upload: bytes | None, sequence: int | None = None) -> LambdaResult:
     record = require_job(store, job_id)
     if record.state in (FAILED, CANCELED):

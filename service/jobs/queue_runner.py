@@ -1,17 +1,19 @@
-"""How a worker's threads find work and keep it (a mixin of service.jobs.worker.JobWorker): each
+"""How a backend's threads find work and keep it (held by both JobRunner implementations): each
 of `concurrency` pool threads takes the store's next queued job (highest priority, then oldest)
-until none is left; a lease thread renews this server's leases, stops live jobs whose lease
-another server took over, and requeues (then runs) jobs whose lease lapsed because their server
-died (service/jobs/leases.py).
-
-It uses the worker's `store`, `_lock`, `_stopping`, `_pool`, `_concurrency`, `_draining`,
-`_live`, `_lost` and `_run_guarded`, set up in JobWorker.__init__.
+until none is left and hands it to the backend's `run`; a job whose run raised fails with the
+message. A lease thread renews this server's leases, marks live jobs whose lease another server
+took over as lost, and requeues (then runs) jobs whose lease lapsed because their server died
+(service/jobs/leases.py).
 """
 from __future__ import annotations
 
 import logging
+import threading
 import time
-from typing import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Iterable
+
+from service.jobs.record import FAILED
 
 log = logging.getLogger("service.jobs.worker")  # one logger for the worker's messages
 
@@ -20,8 +22,43 @@ class LeaseLost(RuntimeError):
     """Another server took this job over (this one stalled past its lease): stop, write nothing."""
 
 
+def failure_message(exc: BaseException) -> str:
+    """What a failed job's record says."""
+    text = str(exc).strip() or exc.__class__.__name__
+    return f"{exc.__class__.__name__}: {text}" if not isinstance(exc, ValueError) else text
+
+
 class QueueRunner:
-    def _kick(self) -> None:
+    """`run(job_id)` runs one job to its end (claiming it first); `ended(job_id)` is told once
+    it returned or raised; `live()` names the jobs rendering here (the lease thread stops those
+    another server took over)."""
+
+    def __init__(self, store, concurrency: int, run: Callable[[str], None], ended: Callable[[str], None],
+                 live: Callable[[], Iterable[str]], stopping: threading.Event) -> None:
+        if concurrency < 1:
+            raise ValueError("concurrency must be >= 1")
+        self.store = store
+        self._run, self._ended, self._live = run, ended, live
+        self._stopping = stopping
+        self._concurrency = concurrency
+        self._pool = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="render")
+        self._lock = threading.Lock()
+        self._draining = 0  # pool tasks taking queued jobs (at most `concurrency`)
+        self._lost: set[str] = set()  # live jobs whose lease another server took over
+        self._leases = threading.Thread(target=self._keep_leases, name="leases", daemon=True)
+
+    def start(self) -> None:
+        """Jobs whose server died (this one's last life, or another whose lease lapsed) resume;
+        queued ones run. A live other server's running jobs stay its own."""
+        for job_id in self.store.requeue_abandoned():
+            log.info("job %s was running on a server that is gone: resuming from its checkpoint", job_id)
+        self._leases.start()
+        self.kick()
+
+    def stop(self) -> None:
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+    def kick(self) -> None:
         """Bring the threads taking queued jobs up to `concurrency`; busy ones take the next job
         themselves when theirs ends."""
         with self._lock:
@@ -36,9 +73,21 @@ class QueueRunner:
                 with self._lock:
                     self._draining -= 1
 
+    def lease_lost(self, job_id: str) -> bool:
+        with self._lock:
+            return job_id in self._lost
+
+    def hold_lease(self, job_id: str) -> None:
+        """Before a checkpoint: the job must still be this server's; else another server resumed
+        it, and nothing here may write its files or record any more (LeaseLost)."""
+        if not self.store.renew_lease(job_id):
+            with self._lock:
+                self._lost.add(job_id)
+            raise LeaseLost(job_id)
+
     def _drain(self) -> None:
         """Run the store's next queued job until none is left. A job another server claimed
-        first is skipped (the claim in _run fails) and the next one tried."""
+        first is skipped (the claim in `run` fails) and the next one tried."""
         try:
             while not self._stopping.is_set():
                 job_id = self.store.next_queued()
@@ -52,7 +101,19 @@ class QueueRunner:
                 self._draining -= 1
         # A job queued between the empty look-up and the count above found every thread busy.
         if not self._stopping.is_set() and self._safe(self.store.next_queued) is not None:
-            self._kick()
+            self.kick()
+
+    def _run_guarded(self, job_id: str) -> None:
+        # Whatever goes wrong inside a job ends that job, never the worker thread or server.
+        try:
+            self._run(job_id)
+        except Exception as exc:
+            log.exception("job %s failed", job_id)
+            self.store.finish(job_id, FAILED, error=failure_message(exc))
+        finally:
+            with self._lock:
+                self._lost.discard(job_id)
+            self._ended(job_id)
 
     # -- leases -------------------------------------------------------------------------------
 
@@ -71,21 +132,18 @@ class QueueRunner:
                 log.warning("job %s: its server's lease lapsed (the server is gone); requeued to resume "
                             "from its checkpoint", job_id)
             if self._safe(self.store.next_queued) is not None:
-                self._kick()  # lapsed jobs, or ones a failed look-up left waiting
+                self.kick()  # lapsed jobs, or ones a failed look-up left waiting
 
     def _mark_lost(self, held: set[str]) -> None:
         """A job rendering here whose lease is no longer ours (this server stalled past its
         lease and another resumed the job) stops at the next chunk and writes nothing more."""
+        live = set(self._live())
         with self._lock:
-            lost = [job_id for job_id in self._live if job_id not in held and job_id not in self._lost]
+            lost = [job_id for job_id in live if job_id not in held and job_id not in self._lost]
             self._lost.update(lost)
         for job_id in lost:
             log.error("job %s: this server lost its lease (stalled longer than a lease?); another server runs "
                       "it now, stopping here", job_id)
-
-    def _lease_lost(self, job_id: str) -> bool:
-        with self._lock:
-            return job_id in self._lost
 
     @staticmethod
     def _safe(call: Callable):

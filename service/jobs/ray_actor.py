@@ -32,9 +32,9 @@ from models.pretrained import Networks
 from service.atomic import atomic_write_bytes
 from service.jobs.artifacts import JobFiles
 from service.jobs.record import JobRecord, bundle_scene, job_spec
-from service.jobs.worker import preview_layers, total_samples
+from service.jobs.previews import preview_layers
+from service.jobs.runner import total_samples
 from service.loop.loop import RenderLoop
-from service.render.framebuffer import FrameBuffer
 from service.render.runtime import VARIANT_ENV, mitsuba
 
 GPU_VARIANT = "cuda_ad_rgb"

@@ -19,7 +19,7 @@ import ray
 from service.jobs.artifacts import JobFiles
 from service.jobs.ray_actor import ActorPlan, JobActor
 from service.jobs.record import JobRecord, job_spec
-from service.jobs.worker import Relambda
+from service.jobs.lambda_edits import Relambda
 from service.loop.spec import estimated_memory
 
 IDLE_ACTORS_KEPT = 2  # as the thread backend keeps IDLE_LOOPS_KEPT finished loops

@@ -32,13 +32,16 @@ from ray.exceptions import RayActorError, RayTaskError
 from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles
 from service.jobs.checkpoint_writer import CheckpointWriter
-from service.jobs.queue_runner import LeaseLost
+from service.jobs.lambda_edits import LambdaApplied, LambdaEdits, Relambda, require
+from service.jobs.previews import PreviewPublisher
+from service.jobs.queue_runner import LeaseLost, QueueRunner
 from service.jobs.ray_lambda import LambdaActors
 from service.jobs.ray_runtime import LocalRay, chain_sigterm, join_cluster
 from service.jobs.ray_actor import ACTOR_THREADS, FAILURE_FILE, ActorPlan, IterationReport, JobActor
 from service.jobs.record import CANCELED, COMPLETED, FAILED, JobRecord, bundle_scene, job_spec
 from service.jobs.store import JobStore
-from service.jobs.worker import JobWorker, NoObserver, Relambda, WorkerObserver, add_timings
+from service.jobs.runner import (DELETE_WAIT_SECONDS, CancelFlags, NoObserver, WorkerObserver, add_timings,
+                                 cancel_job, stop_before_delete)
 from service.loop.eta import EtaTracker
 from service.loop.loop import IterationInterrupted
 from service.loop.spec import estimated_memory
@@ -101,12 +104,23 @@ class WorkerDied(RuntimeError):
     """A job's worker process ended without finishing its call."""
 
 
-class RayJobWorker(JobWorker):
+class RayJobWorker:
+    """The Ray backend: a JobRunner (service/jobs/runner.py) whose jobs run in Ray actors; its
+    queue's threads only drive them (one thread per job)."""
+
     def __init__(self, store: JobStore, networks: Networks, settings: RaySettings = RaySettings(),
                  observer: WorkerObserver = NoObserver()) -> None:
-        # The thread pool now only drives jobs (one thread each); the work runs in the actors.
-        super().__init__(store, networks, concurrency=settings.workers, observer=observer)
+        self.store = store
+        self.networks = networks
+        self.observer = observer
         self.settings = settings
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._cancel = CancelFlags()
+        self.queue = QueueRunner(store, settings.workers, run=self._run, ended=self._cancel.forget,
+                                 live=lambda: (), stopping=self._stopping)  # leases: checked before each checkpoint
+        self.previews = PreviewPublisher(store)
+        self.lambdas = LambdaEdits(store, self.previews, self._relambda, observer.lambda_applied)
         self._groups: dict[str, list] = {}  # job id → its actors, leader first
         self._runtime: LocalRay | None = None  # the local runtime this worker started, if it did
         self._joined = False
@@ -129,12 +143,13 @@ class RayJobWorker(JobWorker):
             threading.Thread(target=self._watch_runtime, name="ray-watch", daemon=True).start()
         self._gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0  # asked once: the GCS may be gone later
         self._networks_ref = ray.put(self.networks)  # shipped once; every actor gets it from the store
-        super().start()
+        self.queue.start()
 
     def stop(self) -> None:
         """Running jobs stop (cooperatively, then killed) and are requeued to resume next start."""
         started = time.monotonic()
-        super().stop()
+        self._stopping.set()
+        self.queue.stop()
         with self._lock:
             groups = list(self._groups.values())
         for group in groups:
@@ -158,7 +173,7 @@ class RayJobWorker(JobWorker):
 
     def _is_live(self, job_id: str) -> bool:
         with self._lock:
-            return job_id in self._groups or job_id in self._live
+            return job_id in self._groups
 
     def worker_pids(self, job_id: str) -> list[int]:
         """The process ids of a running job's actors (leader first); empty when none runs."""
@@ -172,9 +187,11 @@ class RayJobWorker(JobWorker):
     # -- cancel ---------------------------------------------------------------------------------
 
     def cancel(self, job_id: str) -> JobRecord:
-        record = super().cancel(job_id)  # queued: done; running: the flag the driver checks
+        """Queued: canceled at once; running: the flag the driver checks, the actors' own flag,
+        then `ray.kill` after CANCEL_GRACE_SECONDS."""
+        record, running = cancel_job(self.store, self._cancel, job_id)
         with self._lock:
-            group = list(self._groups.get(job_id, []))
+            group = list(self._groups.get(job_id, [])) if running else []
         if group:
             self._signal_cancel(group)
             timer = threading.Timer(CANCEL_GRACE_SECONDS, self._kill, args=(group,))
@@ -200,7 +217,7 @@ class RayJobWorker(JobWorker):
         with self._lock:
             self._groups[job_id] = []  # live from the claim on: a delete waits until it ends
         try:
-            self._run_attempts(job_id, self._cancel_event(job_id))
+            self._run_attempts(job_id, self._cancel.flag(job_id))
         finally:
             with self._lock:
                 self._groups.pop(job_id, None)
@@ -273,22 +290,13 @@ class RayJobWorker(JobWorker):
             return "not connected to Ray"
         return self._runtime.failure() if self._runtime is not None else None
 
-    def _hold_lease(self, job_id: str) -> None:
-        """Before the leader checkpoints: the job must still be this server's (as the thread
-        backend renews before each checkpoint); else another server resumed it, and nothing
-        here may write its files or record any more."""
-        if not self.store.renew_lease(job_id):
-            with self._lock:
-                self._lost.add(job_id)
-            raise LeaseLost(job_id)
-
     def _interrupted(self, job_id: str, cancel: threading.Event) -> None:
         """Stopped inside an iteration: a user cancel keeps what the checkpoint holds; a
         shutdown requeues the job to resume next start."""
         if not cancel.is_set():
             self.store.requeue(job_id)
             return
-        record, files, size = self._require(job_id), self.files(job_id), self.image_size(job_id)
+        record, files, size = require(self.store, job_id), self.files(job_id), self.image_size(job_id)
         iterations, spp = 0, 0.0
         if files.checkpoint.exists() and size is not None:
             # the checkpoint's results are written in a worker: this process never loads a scene
@@ -304,7 +312,7 @@ class RayJobWorker(JobWorker):
         return path.read_text() if path.is_file() else None
 
     def _attempt(self, job_id: str, cancel: threading.Event) -> None:
-        record, files = self._require(job_id), self.files(job_id)
+        record, files = require(self.store, job_id), self.files(job_id)
         (files.root / FAILURE_FILE).unlink(missing_ok=True)
         group = self._start_group(job_id, record, files)
         try:
@@ -328,7 +336,7 @@ class RayJobWorker(JobWorker):
         publisher = CheckpointWriter(f"publish-{job_id[:8]}")
         try:
             while not cancel.is_set() and not self._stopping.is_set():
-                report = run_iteration(group, before_finish=lambda: self._hold_lease(job_id))
+                report = run_iteration(group, before_finish=lambda: self.queue.hold_lease(job_id))
                 started = time.perf_counter()
                 publisher.wait()  # one iteration behind at most; a failed checkpoint fails the job here
                 io_seconds = {"io": report.timings.get("io", 0.0) + time.perf_counter() - started}
@@ -354,7 +362,7 @@ class RayJobWorker(JobWorker):
         the previews, then the record (the record never claims an iteration a restart could not
         resume from)."""
         _call(leader.checkpointed_through.remote(report.iteration + 1))
-        self._publish(job_id, files, report.layers)
+        self.previews.publish(job_id, files, report.layers)
         self.store.record_iteration(job_id, report.iteration + 1, report.spp_mean, report.predicted_error,
                                     timings, report.stop_reason, progress)
 
@@ -366,7 +374,7 @@ class RayJobWorker(JobWorker):
         _call(group[0].save_results.remote())  # the leader holds every frame
         canceled = (cancel.is_set() and not finished) or (last is not None and last.stop_reason == "canceled")
         if canceled:
-            record = self._require(job_id)
+            record = require(self.store, job_id)
             self.store.finish(job_id, CANCELED, stop_reason="canceled",
                               stop_message=canceled_message(record.iteration, record.spp))
         else:
@@ -400,7 +408,7 @@ class RayJobWorker(JobWorker):
         try:
             answers = _call(*[actor.set_lambda.remote(lam) for actor in group])
         except WorkerDied:
-            return self._relambda_finished(job_id, self._require(job_id), lam)  # it just ended
+            return self._relambda_finished(job_id, require(self.store, job_id), lam)  # it just ended
         images: dict[int, np.ndarray] = {}
         for owned, _, _ in answers:
             images.update(owned)
@@ -416,9 +424,31 @@ class RayJobWorker(JobWorker):
             return None
         return self._lambda_actors.relambda(job_id, record, files, size, lam)
 
-    def delete(self, job_id: str, *args, **kwargs) -> None:
-        super().delete(job_id, *args, **kwargs)
+    # -- the rest of the JobRunner interface ----------------------------------------------------
+
+    def submit(self, job_id: str) -> None:
+        self.queue.kick()
+
+    def files(self, job_id: str) -> JobFiles:
+        return JobFiles(self.store.job_dir(job_id))
+
+    def delete(self, job_id: str, wait_seconds: float = DELETE_WAIT_SECONDS) -> None:
+        """Forget a job, its files and its λ actor; a queued or running job is canceled first."""
+        stop_before_delete(self, self.store, job_id, self._is_live, wait_seconds)
         self._lambda_actors.drop(job_id)
+        self.previews.forget(job_id)
+        self.store.delete(job_id)
+
+    def image_size(self, job_id: str) -> tuple[int, int] | None:
+        return self.lambdas.image_size(job_id)
+
+    def current_lambda(self, job_id: str, shape: tuple[int, int]) -> np.ndarray:
+        return self.lambdas.current_lambda(job_id, shape)
+
+    def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None,
+                   sequence: int | None = None) -> LambdaApplied:
+        """Re-denoised in the job's actors while it runs, in its λ actor after the run."""
+        return self.lambdas.set_lambda(job_id, lam, value, sequence)
 
 
 def _call(*refs) -> list:

@@ -1,0 +1,129 @@
+"""λ edits of a job, whichever backend runs it: the saved map, a per-job latest-wins mailbox
+(under a burst only the newest request is applied, and every caller gets the version that
+shows it), the re-denoise (the backend's `relambda`: wherever the job's loop lives) and the
+preview it publishes."""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from service.exr import ExrFrame
+from service.jobs.artifacts import JobFiles
+from service.jobs.errors import JobConflict, JobNotFound
+from service.jobs.latest import LatestWins
+from service.jobs.previews import PreviewPublisher
+from service.jobs.record import CANCELED, COMPLETED, FAILED, JobRecord, job_spec
+
+LAMBDA_WAIT_SECONDS = 300.0
+
+
+@dataclass(frozen=True)
+class LambdaApplied:
+    """What one λ application did: the preview version showing it, and the denoiser work it
+    took (full forward passes vs. λ-only tail passes from cached features)."""
+
+    version: int
+    full_passes: int = 0
+    tail_passes: int = 0
+
+
+@dataclass(frozen=True)
+class Relambda:
+    """A λ re-denoise: the new image per frame, the denoiser work it took, and how to build the
+    result frames from it (None where the loop lives elsewhere and keeps them itself)."""
+
+    images: list[np.ndarray]
+    full_passes: int = 0
+    tail_passes: int = 0
+    results: Callable[[], list[ExrFrame]] | None = None
+
+
+# The backend's re-denoise of a job with a λ map: None when nothing was rendered yet.
+Relambdas = Callable[[str, JobRecord, np.ndarray], "Relambda | None"]
+
+
+def require(store, job_id: str) -> JobRecord:
+    """The job's record, or JobNotFound (404)."""
+    record = store.get(job_id)
+    if record is None:
+        raise JobNotFound(f"no job with id {job_id!r}")
+    return record
+
+
+class LambdaEdits:
+    def __init__(self, store, previews: PreviewPublisher, relambda: Relambdas,
+                 observed: Callable[[float], None]) -> None:
+        self.store = store
+        self.previews = previews
+        self._relambda = relambda
+        self._observed = observed  # seconds from a request to the version that shows it
+        self._lock = threading.Lock()
+        self._mailboxes: dict[str, LatestWins[tuple[np.ndarray, float | None], LambdaApplied]] = {}
+
+    def files(self, job_id: str) -> JobFiles:
+        return JobFiles(self.store.job_dir(job_id))
+
+    def image_size(self, job_id: str) -> tuple[int, int] | None:
+        """(H, W) of the job's images, once known (spec, or the first preview)."""
+        spec = job_spec(require(self.store, job_id))
+        if spec.width and spec.height:
+            return spec.height, spec.width
+        preview = self.files(job_id).load_preview(0)
+        if preview is not None and preview.layers.get("noisy") is not None:
+            return preview.layers["noisy"].shape[:2]
+        return None
+
+    def current_lambda(self, job_id: str, shape: tuple[int, int]) -> np.ndarray:
+        record = require(self.store, job_id)
+        lam = self.files(job_id).load_lambda()
+        if lam is not None and lam.shape == shape:
+            return lam
+        return np.full(shape, job_spec(record).lam, dtype=np.float32)
+
+    def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None,
+                   sequence: int | None = None) -> LambdaApplied:
+        """Keep `lam` with the job and re-denoise from cached features. Under a burst only the
+        newest request is applied (newest by the client's `sequence` when it sends one, else
+        by arrival); every caller gets the version that shows it."""
+        started = time.perf_counter()
+        record = require(self.store, job_id)
+        if record.state in (FAILED, CANCELED):
+            raise JobConflict(f"job {job_id} is {record.state}: there is nothing left to re-denoise")
+        mailbox = self._mailbox(job_id)
+        applied = mailbox.wait(mailbox.submit((lam, value), order=sequence), timeout=LAMBDA_WAIT_SECONDS)
+        self._observed(time.perf_counter() - started)
+        return applied
+
+    def _mailbox(self, job_id: str) -> LatestWins[tuple[np.ndarray, float | None], LambdaApplied]:
+        with self._lock:
+            if job_id not in self._mailboxes:
+                self._mailboxes[job_id] = LatestWins(
+                    lambda request: self._apply(job_id, *request), name=f"lambda-{job_id[:8]}"
+                )
+            return self._mailboxes[job_id]
+
+    def _apply(self, job_id: str, lam: np.ndarray, value: float | None) -> LambdaApplied:
+        # Persisted here, on the one thread that applies this job's λ, so the saved map is
+        # always the newest request's; later iterations and restarts read it.
+        files = self.files(job_id)
+        files.save_lambda(lam)
+        self.store.set_lambda_value(job_id, value)
+        record = require(self.store, job_id)
+        done = self._relambda(job_id, record, lam)
+        if done is None:
+            return LambdaApplied(record.preview_version)  # nothing rendered yet: used from iteration 1
+        if not done.images:
+            return LambdaApplied(record.preview_version, done.full_passes, done.tail_passes)
+        frames = []
+        for f, image in enumerate(done.images):
+            previous = files.load_preview(f)
+            layers = dict(previous.layers) if previous else {"noisy": None, "error": None, "spp": None}
+            frames.append({**layers, "denoised": image, "lambda": lam})
+        version = self.previews.publish(job_id, files, frames)
+        if done.results is not None and require(self.store, job_id).state == COMPLETED:
+            files.save_results(done.results())  # the result follows λ after the run too
+        return LambdaApplied(version, done.full_passes, done.tail_passes)
