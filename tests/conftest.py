@@ -11,6 +11,7 @@ import torch
 from models.denoiser import Denoiser, temporal_config
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.pretrained import Networks
+from required_components import require_component
 from tests.models.conftest import PLAIN_ERROR_NETWORK
 
 # The suite runs on shared 2-core machines, where torch's one-thread-per-core default makes
@@ -59,3 +60,14 @@ def tiny_networks() -> Networks:
         for parameter in denoiser.specialise.parameters():
             parameter.add_(torch.randn_like(parameter) * 0.5)
     return Networks(denoiser, ErrorPredictor(ErrorPredictorConfig(width=8, **PLAIN_ERROR_NETWORK)).eval())
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "requires(*names): the test drives these components for real; a missing one "
+                                       "fails it, or skips it under ALLOW_SKIP=1 (tests/required_components.py)")
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    for mark in item.iter_markers("requires"):
+        for name in mark.args:
+            require_component(name)

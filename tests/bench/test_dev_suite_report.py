@@ -10,6 +10,7 @@ import pytest
 
 from bench.dev_references import DEFAULT_REFERENCE_DIR, StaleReference, dev_scenes, load_reference
 from bench.dev_suite_report import run_dev_suite_report
+from required_components import require_component
 
 
 def test_every_development_scene_has_a_committed_reference_of_its_current_version():
@@ -31,7 +32,7 @@ def test_a_reference_of_an_edited_scene_is_refused(tmp_path: Path):
 
 
 def test_dev_suite_report_scores_every_method_against_the_reference(tmp_path: Path):
-    pytest.importorskip("pyoidn")
+    require_component("pyoidn")
     report = run_dev_suite_report(tmp_path, only=["point_object"])
     text = report.read_text()
     row = next(line for line in text.splitlines() if line.startswith("| point_object |"))

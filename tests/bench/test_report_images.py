@@ -4,12 +4,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
 from PIL import Image
 
 from bench.report_images import save_figure
+from required_components import import_component
 
-plt = pytest.importorskip("matplotlib.pyplot")
+plt = import_component("matplotlib", "matplotlib.pyplot")
 
 
 def draw(image: np.ndarray, path: Path) -> bytes:

@@ -7,6 +7,7 @@ from scipy.ndimage import uniform_filter
 
 from bench.quality_measures import shadow_contrast_ratio
 from bench.suite_quality_report import run_suite_quality_report
+from required_components import require_component
 
 WHOLE = (0.0, 1.0, 0.0, 1.0)
 
@@ -37,7 +38,7 @@ def test_shadow_contrast_falls_as_the_shadows_are_blurred_and_is_zero_when_erase
 
 
 def test_suite_report_measures_the_shadow_contrast_of_every_method_on_hard_shadows(tmp_path):
-    pytest.importorskip("pyoidn")
+    require_component("pyoidn")
     text = run_suite_quality_report(tmp_path, only=["hard_shadows"], spp_levels=(16,)).read_text()
     row = next(line for line in text.splitlines() if line.startswith("| hard_shadows | 16 |"))
     noisy, ours, oidn = (float(c) for c in row.strip("|").split("|")[2:])

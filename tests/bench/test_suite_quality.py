@@ -13,6 +13,7 @@ from bench.dev_references import DEFAULT_REFERENCE_DIR, dev_scenes, load_referen
 from bench.quality_measures import mean_abs_change
 from bench.suite_quality import CROP, STATIC_FRAMES, _hardest_crop, temporal_flicker
 from bench.suite_quality_report import run_suite_quality_report
+from required_components import require_component
 
 
 def test_hardest_crop_is_the_window_with_the_most_error():
@@ -24,7 +25,7 @@ def test_hardest_crop_is_the_window_with_the_most_error():
 
 
 def test_suite_quality_report_scores_noisy_ours_and_oidn_at_every_sample_count(tmp_path: Path):
-    pytest.importorskip("pyoidn")
+    require_component("pyoidn")
     text = run_suite_quality_report(tmp_path, only=["point_object"]).read_text()
     assert "$" not in text and "Command:" in text
     assert text.startswith("# The denoiser on the development suite:")
@@ -45,7 +46,7 @@ def test_a_static_sequence_is_denoised_over_its_window_and_flickers_less_than_oi
     """Issue 13: flicker on a static sequence ≤ OIDN's. Denoised frame by frame, the shipped
     network flickered 1 % more than OIDN on hard_shadows (0.00448 vs 0.00444); over its window
     (models.accumulation) it must flicker less, with no more error."""
-    pytest.importorskip("pyoidn")
+    require_component("pyoidn")
     scene = dev_scenes(["hard_shadows"])[0]
     reference, _ = load_reference(DEFAULT_REFERENCE_DIR, scene)
     networks, (oidn, _) = load_bench_networks(None).networks, oidn_denoiser()

@@ -10,6 +10,7 @@ import pytest
 from bench.dev_references import VAL_REFERENCE_DIR, VAL_SCENES, VAL_SPP, dev_scenes, load_reference
 from bench.calibration_report import run_calibration_report
 from bench.suite_quality_report import run_suite_quality_report
+from required_components import require_component
 
 
 def test_validation_scenes_are_disjoint_from_the_suite_and_have_current_references():
@@ -24,7 +25,7 @@ def test_validation_scenes_are_disjoint_from_the_suite_and_have_current_referenc
 
 
 def test_validation_report_scores_noisy_ours_and_oidn(tmp_path: Path):
-    pytest.importorskip("pyoidn")
+    require_component("pyoidn")
     report = run_suite_quality_report(tmp_path, suite="val", only=["kitchen_counter"], spp_levels=(16,))
     assert report.name == "val-quality.md"
     text = report.read_text()

@@ -12,10 +12,9 @@ from PIL import Image
 
 from service.render import scenes
 from service.render.runtime import mitsuba
-from service.render.sandbox import run_walled, wall_support
+from service.render.sandbox import run_walled
 
-pytestmark = pytest.mark.skipif(not wall_support().available,
-                                reason=f"no Landlock on this kernel: {wall_support().reason}")
+pytestmark = pytest.mark.requires("landlock")
 
 TEXTURED_SQUARE = """
   <integrator type="direct"/>

@@ -1,6 +1,7 @@
 """A real headless Chromium (Debian's `chromium` + `chromium-driver`, driven by Selenium) for
 the page's tests, and helpers that act as a person would: type, click, drag on the preview.
-scripts/ensure-chromium.sh installs the browser; without it the tests skip and say so."""
+scripts/ensure-chromium.sh installs the browser; without it the tests fail and say so (skip under
+ALLOW_SKIP=1: tests/required_components.py)."""
 from __future__ import annotations
 
 import shutil
@@ -8,7 +9,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-import pytest
+from required_components import require_component
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")
@@ -23,24 +24,12 @@ try:
     from selenium.common.exceptions import StaleElementReferenceException
     from selenium.webdriver.remote.webdriver import WebDriver
     from selenium.webdriver.remote.webelement import WebElement
-except ImportError:  # the dev extra is not installed: the tests skip (see missing_browser)
+except ImportError:  # the dev extra is not installed: require_component("chromium") says so
     webdriver = None
 
 
-def missing_browser() -> str | None:
-    """Why no browser test can run here, or None."""
-    if webdriver is None:
-        return "selenium is not installed (pip install -e '.[dev]')"
-    for path in (CHROMIUM, CHROMEDRIVER):
-        if not path.exists() and not shutil.which(path.name):
-            return f"{path} is missing: run scripts/ensure-chromium.sh (apt-get install chromium chromium-driver)"
-    return None
-
-
 def start_browser(download_dir: Path) -> "WebDriver":
-    reason = missing_browser()
-    if reason:
-        pytest.skip(reason)
+    require_component("chromium")
     options = webdriver.ChromeOptions()
     options.binary_location = str(CHROMIUM if CHROMIUM.exists() else shutil.which("chromium"))
     # --no-sandbox: CI runs as root, where Chromium's sandbox refuses to start.

@@ -10,6 +10,7 @@ import pytest
 
 from postgres_server import PostgresServer, find_bin_dir
 from service_harness import Server
+from required_components import require_component
 
 
 @pytest.fixture
@@ -52,10 +53,8 @@ def client(server) -> Iterator[httpx.Client]:
 @pytest.fixture(scope="session")
 def postgres_server() -> Iterator[PostgresServer]:
     """One PostgreSQL server for the whole session (starting one costs seconds)."""
+    require_component("postgresql")
     bin_dir = find_bin_dir()
-    if bin_dir is None:
-        pytest.skip("PostgreSQL server binaries (initdb, pg_ctl) not found: install Debian's 'postgresql' "
-                    "package (scripts/ensure-postgres.sh does it as root)")
     server = PostgresServer(bin_dir).start()
     yield server
     server.stop()

@@ -11,7 +11,8 @@ import pytest
 from service.jobs.blobs import MIN_SHARED_BYTES, BlobStore, file_digest, freed_bytes, unique_bytes
 from service.jobs.retention import Retention, folder_bytes, sweep
 from service.jobs.store import JobStore
-from service.render.sandbox import run_walled, wall_support
+from service.render.sandbox import run_walled
+from required_components import require_component
 
 MIB = 2**20
 
@@ -87,9 +88,7 @@ def test_the_disk_cap_counts_shared_files_once_and_the_sweep_releases_their_blob
 
 
 def test_the_scene_sandbox_reads_a_job_s_links_but_not_the_blobs_they_share(tmp_path):
-    support = wall_support()
-    if not support.available:
-        pytest.skip(f"no Landlock here: {support.reason}")
+    require_component("landlock")
     store = JobStore(tmp_path / "data")
     job_id = bundle_job(store, make_bundle(tmp_path / "upload"))
     bundle = store.job_dir(job_id) / "bundle"

@@ -10,11 +10,11 @@ import httpx
 import numpy as np
 import pytest
 
-from browser_harness import Page, missing_browser, start_browser, wait_until
+from browser_harness import Page, start_browser, wait_until
 from service.exr import exr_channels_from_bytes
 from service_harness import REPO, Server, wait_for
 
-pytestmark = pytest.mark.skipif(missing_browser() is not None, reason=f"no browser: {missing_browser()}")
+pytestmark = pytest.mark.requires("chromium")
 
 SMALL = {"scene": "cornell-box", "width": 32, "height": 32}
 TOKEN = "page-token"

@@ -7,11 +7,10 @@ import httpx
 import pytest
 from PIL import Image
 
-from browser_harness import Page, missing_browser, start_browser, wait_until
+from browser_harness import Page, start_browser, wait_until
 from service_harness import REPO, wait_for
 
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(missing_browser() is not None, reason=f"no browser: {missing_browser()}")]
+pytestmark = [pytest.mark.slow, pytest.mark.requires("chromium")]
 
 SCREENSHOT = REPO / "docs" / "page.png"
 

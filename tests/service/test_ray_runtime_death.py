@@ -16,7 +16,7 @@ from process_sockets import process_tree
 from serve_process import BACKENDS, ServeProcess
 from service_harness import finished, wait_for
 
-pytest.importorskip("ray", reason="the Ray backend's tests need Ray installed")
+pytestmark = pytest.mark.requires("ray")
 
 RUNTIME_DIED_EXIT_CODE = 75  # service.jobs.ray_worker: EX_TEMPFAIL
 EXIT_SECONDS = 30

@@ -14,7 +14,7 @@ import pytest
 from process_sockets import listeners, process_tree
 from service_harness import Server, finished, renderloop_cli, wait_for
 
-pytest.importorskip("ray", reason="the Ray wall needs Ray installed")
+pytestmark = pytest.mark.requires("ray")
 
 SECRET = "s3cret-token-for-the-ray-wall"
 DB_SECRET = "postgresql://renderloop:hunter2@db.invalid:5432/jobs"

@@ -16,9 +16,10 @@ import pytest
 import torch
 from PIL import Image
 
-ray = pytest.importorskip("ray", reason="Ray cannot be imported here: the Ray backend's tests need it (pip install ray)")
+from required_components import import_component
+ray = import_component("ray")
 
-from service.exr import read_exr  # noqa: E402  (after the skip: these import Ray's backend)
+from service.exr import read_exr  # noqa: E402  (after the check: these import Ray's backend)
 from service.jobs.ray_worker import RayJobWorker, RaySettings, shares, start_local_ray  # noqa: E402
 from service.jobs.store import CANCELED, COMPLETED, FAILED, RUNNING, JobRecord, JobStore  # noqa: E402
 from service.loop.loop import RenderLoop  # noqa: E402

@@ -13,6 +13,7 @@ from service.client import RenderloopClient
 from service.jobs.blobs import BlobStore, file_digest, unique_bytes
 from service.scene_upload import SceneUploadError, plan_upload
 from service_harness import REPO, Server, free_port, renderloop_cli as renderloop
+from required_components import require_component
 
 TEXTURE = REPO / "scenes" / "dev" / "fine_texture" / "newspaper.png"
 UNRELATED_BYTES = 40 * 2**20
@@ -178,7 +179,7 @@ def test_twelve_jobs_of_one_upload_keep_one_copy_until_the_last_is_deleted(serve
 
 @pytest.mark.slow  # a local Ray runtime: ~10 s to start, a minute on a loaded machine
 def test_a_ray_worker_renders_an_upload_from_its_links_behind_the_sandbox(tutorials, tmp_path):
-    pytest.importorskip("ray", reason="the Ray backend needs Ray")
+    require_component("ray")
     server = Server(tmp_path / "data", tmp_path / "server.log", startup_seconds=300,
                     env={"RENDERLOOP_CONCURRENCY": "", "RENDERLOOP_WORKERS": "1"}).start()
     try:
