@@ -7,33 +7,13 @@ import time
 
 import pytest
 
-from service.jobs.store import COMPLETED, FAILED, JobStore
+from service.jobs.store import COMPLETED, FAILED
 from service.jobs.worker import JobWorker
 from service.loop.loop import RenderLoop
-from service.loop.spec import LoopSpec
 from service.loop.state import LoopState
+from worker_jobs import run_tiny_job, store  # noqa: F401  (store: a fixture)
 
 SLOW_SAVE_SECONDS = 2.0  # far longer than a 16² iteration takes, even on a loaded host
-
-
-@pytest.fixture
-def store(tmp_path):
-    s = JobStore(tmp_path)
-    yield s
-    s.close()
-
-
-def run_job(store: JobStore, worker: JobWorker, iterations: int, timeout: float = 180.0):
-    spec = LoopSpec(scene="cornell-box", width=16, height=16, spp_first=4, max_iterations=iterations)
-    record = store.create(spec.to_stored(), spec.lam)
-    worker.submit(record.id)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        record = store.get(record.id)
-        if record.finished:
-            return record
-        time.sleep(0.05)
-    raise AssertionError(f"job did not finish within {timeout} s: {store.get(record.id)}")
 
 
 class Events:
@@ -81,7 +61,7 @@ def events(monkeypatch, store) -> Events:
 def test_the_next_iteration_renders_while_the_checkpoint_is_written(store, tiny_networks, events):
     worker = JobWorker(store, tiny_networks)
     try:
-        done = run_job(store, worker, iterations=3)
+        done = run_tiny_job(store, worker, iterations=3)
     finally:
         worker.stop()
     assert (done.state, done.iteration) == (COMPLETED, 3)
@@ -106,7 +86,7 @@ def test_a_failed_checkpoint_write_fails_the_job_with_the_writes_message(monkeyp
     monkeypatch.setattr(LoopState, "save", full_disk)
     worker = JobWorker(store, tiny_networks)
     try:
-        done = run_job(store, worker, iterations=iterations)
+        done = run_tiny_job(store, worker, iterations=iterations)
     finally:
         worker.stop()
     assert done.state == FAILED, done

@@ -4,31 +4,15 @@ limit given alone iterates until the time is spent (up to the service's cap), no
 default four iterations."""
 from __future__ import annotations
 
-import json
-
-import httpx
 import pytest
 
+from job_events import status_events
 from service_harness import wait_for
 
 
 @pytest.fixture(scope="module")
 def server(module_server):
     return module_server
-
-
-def status_events(client: httpx.Client, job_id: str) -> list[dict]:
-    """Every `status` event of the job's stream, until its `end`."""
-    events, kind = [], None
-    with client.stream("GET", f"/jobs/{job_id}/events", timeout=300) as stream:
-        for line in stream.iter_lines():
-            if line.startswith("event: "):
-                kind = line.removeprefix("event: ")
-            elif line.startswith("data: ") and kind == "status":
-                events.append(json.loads(line.removeprefix("data: ")))
-            elif line.startswith("data: ") and kind == "end":
-                break
-    return events
 
 
 def test_a_running_job_streams_its_eta_and_the_finished_job_says_why_it_stopped(client):

@@ -3,10 +3,9 @@
 Slow: a local Ray runtime takes seconds to a minute to start on a loaded 2-core machine."""
 from __future__ import annotations
 
-import json
-
 import pytest
 
+from job_events import status_events
 from service_harness import wait_for
 
 pytestmark = pytest.mark.slow
@@ -22,16 +21,7 @@ def test_a_ray_job_streams_its_eta_and_ends_with_its_stop_message(client):
     assert client.get("/info").json()["backend"] == "ray"
     job = client.post("/jobs", json={"scene": "cornell-box", "width": 32, "height": 32, "max_iterations": 3,
                                      "time_limit": 600}, timeout=120).json()
-    statuses = []
-    with client.stream("GET", f"/jobs/{job['id']}/events", timeout=600) as stream:
-        kind = None
-        for line in stream.iter_lines():
-            if line.startswith("event: "):
-                kind = line.removeprefix("event: ")
-            elif line.startswith("data: ") and kind == "status":
-                statuses.append(json.loads(line.removeprefix("data: ")))
-            elif line.startswith("data: ") and kind == "end":
-                break
+    statuses = status_events(client, job["id"], timeout=600)
     running = [s for s in statuses if s["state"] == "running" and 1 <= s["iteration"] < 3]
     assert running and all(s["eta_seconds"] is not None for s in running), statuses
     final = wait_for(client, job["id"], lambda j: j["state"] in ("completed", "failed"))

@@ -3,13 +3,11 @@ cancel delivered at an exact point (right after an iteration is published), so t
 not depend on timing."""
 from __future__ import annotations
 
-import time
-
 import pytest
 
-from service.jobs.store import CANCELED, COMPLETED, JobStore
+from service.jobs.store import CANCELED, COMPLETED
 from service.jobs.worker import JobWorker
-from service.loop.spec import LoopSpec
+from worker_jobs import run_tiny_job, store  # noqa: F401  (store: a fixture)
 
 
 class CancelAfterEachIteration(JobWorker):
@@ -22,26 +20,6 @@ class CancelAfterEachIteration(JobWorker):
         return timings
 
 
-@pytest.fixture
-def store(tmp_path):
-    s = JobStore(tmp_path)
-    yield s
-    s.close()
-
-
-def run_job(store: JobStore, worker: JobWorker, iterations: int, timeout: float = 120.0):
-    spec = LoopSpec(scene="cornell-box", width=16, height=16, spp_first=4, max_iterations=iterations)
-    record = store.create(spec.to_stored(), spec.lam)
-    worker.submit(record.id)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        record = store.get(record.id)
-        if record.finished:
-            return record
-        time.sleep(0.05)
-    raise AssertionError(f"job did not finish within {timeout} s: {store.get(record.id)}")
-
-
 @pytest.mark.parametrize("iterations, state, stop_reason", [
     (1, COMPLETED, "max_iterations"),  # the cancel came after the last iteration: too late to matter
     (3, CANCELED, "canceled"),  # after the first of three: the job stops there
@@ -50,7 +28,7 @@ def test_a_cancel_after_an_iteration_cancels_only_a_job_with_iterations_left(sto
                                                                                state, stop_reason):
     worker = CancelAfterEachIteration(store, tiny_networks)
     try:
-        done = run_job(store, worker, iterations=iterations)
+        done = run_tiny_job(store, worker, iterations=iterations)
     finally:
         worker.stop()
     assert (done.state, done.stop_reason, done.iteration) == (state, stop_reason, 1)
