@@ -46,11 +46,13 @@ def test_calibration_report_scores_every_iteration_against_the_reference(tmp_pat
     for cell in cells:
         predicted, rest = cell.split("/")
         true, rho = rest.split("(")
-        assert float(predicted) > 0 and float(true) > 0 and -1 <= float(rho.rstrip(") ")) <= 1
+        # the shipped error network ranks point_object's pixels at Spearman 0.88–0.90 from 16 to 256
+        # spp (a map ranked against the wrong image, or the per-image ρ of a shuffled map, breaks it)
+        assert float(predicted) > 0 and float(true) > 0 and float(rho.rstrip(") ")) > 0.6, cell
     assert "Command:" in text and math.isfinite(float(cells[-1].split("/")[0]))
     median_row = next(line for line in text.splitlines() if line.startswith("| 256 |"))
     tiles = float(median_row.strip("|").split("|")[-1])
-    assert -1 <= tiles <= 1
+    assert tiles > 0.6, tiles   # measured 0.93 (8×8 tiles at 256 spp)
 
 
 def test_fitted_output_scale_makes_the_networks_median_ratio_one_and_skips_empty_iterations():

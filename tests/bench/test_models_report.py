@@ -6,7 +6,9 @@ def test_benchmark_reports_time_and_memory_per_case():
     # one spawned process at 8×8: pins the row format the docs table is built from
     (row,) = benchmark_models(sizes=(8,), repeats=1, threads=1, cases=("lambda-tail",))
     assert row["model"] == "lambda-tail" and row["size"] == 8
-    assert row["ms_median"] > 0 and row["cpu_ms_median"] >= 0 and row["peak_rss_growth_mb"] >= 0
+    assert row["ms_min"] == row["ms_median"] > 0   # one repeat
+    # ru_maxrss is KiB on Linux: a torch process holds a few hundred MB (a unit slip gives 0.3 or 3e5)
+    assert 50 < row["peak_rss_mb"] < 20_000 and 0 <= row["peak_rss_growth_mb"] <= row["peak_rss_mb"]
 
 
 def test_the_window_case_times_a_single_frame_network_pooling_three_frames():

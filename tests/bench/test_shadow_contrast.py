@@ -43,4 +43,5 @@ def test_suite_report_measures_the_shadow_contrast_of_every_method_on_hard_shado
     row = next(line for line in text.splitlines() if line.startswith("| hard_shadows | 16 |"))
     noisy, ours, oidn = (float(c) for c in row.strip("|").split("|")[2:])
     assert noisy == pytest.approx(1.0, abs=0.05)          # noise keeps the class means
-    assert 0.5 < ours <= 1.05 and 0.5 < oidn <= 1.05
+    # issue 13: ≥ 0.9 of the reference's contrast at λ = 1 (measured: ours 0.950, OIDN 0.963)
+    assert 0.9 <= ours <= 1.05 and 0.9 <= oidn <= 1.05, (ours, oidn)

@@ -9,6 +9,7 @@ import pytest
 
 from bench.dev_references import VAL_REFERENCE_DIR, VAL_SCENES, VAL_SPP, dev_scenes, load_reference
 from bench.calibration_report import run_calibration_report
+from bench.suite_quality import ENERGY_TOLERANCE
 from bench.suite_quality_report import run_suite_quality_report
 from required_components import require_component
 
@@ -35,7 +36,8 @@ def test_validation_report_scores_noisy_ours_and_oidn(tmp_path: Path):
     assert len(rows) == 3
     for row in rows:
         smape, relmse, psnr, energy = (float(c) for c in row.strip("|").split("|")[2:])
-        assert all(math.isfinite(v) for v in (smape, relmse, psnr, energy)) and 0.5 < energy < 1.5
+        # issue 13's energy bar (measured 0.997–0.998 for all three at 16 spp)
+        assert all(math.isfinite(v) for v in (smape, relmse, psnr)) and abs(energy - 1) <= ENERGY_TOLERANCE, row
 
 
 def test_calibration_report_runs_on_the_validation_scenes(tmp_path: Path):
