@@ -28,6 +28,8 @@ from service.render.runtime import active_variant
 REPORT_NAME = "as-written.md"
 DEFAULT_SIZE, DEFAULT_SPP, DEFAULT_REFERENCE_SPP = 128, 128, 4096
 METHODS = ("mitsuba_raw", "mitsuba_oidn", "loop")
+# The loop's final image is composed of these two (service.loop.final_image): reported beside it.
+PARTS = ("loop_denoised", "loop_raw")
 METRICS = ("smape", "relmse")
 # The tutorials scenes as published (mitsuba-tutorials/scenes), by the file each one is.
 TUTORIAL_FILES = {"cbox": "cbox.xml", "lego": "lego/scene.xml", "simple": "simple.xml"}
@@ -73,7 +75,7 @@ def score_scene(scene: DevScene, source: str, *, size: int, spp: int, reference_
     """Every method on one scene, one run per seed, against its cached `mi.render` reference."""
     film = scaled_film(scene, size * size / 1e6)
     result = SceneResult(scene, source, scene_filter(scene), str(film), reference_spp,
-                         {m: {k: [] for k in METRICS} for m in METHODS})
+                         {m: {k: [] for k in METRICS} for m in METHODS + PARTS})
     truth = reference(scene, film, reference_spp, cache_dir).mean
     competitor = competitor_scene(scene, film)
     integrator = aov_integrator(competitor)
@@ -81,7 +83,7 @@ def score_scene(scene: DevScene, source: str, *, size: int, spp: int, reference_
         rendered = render_with_aovs(competitor, integrator, spp, MITSUBA_SEED + SEED_STRIDE * seed)
         images = {"mitsuba_raw": rendered.color,
                   "mitsuba_oidn": oidn(rendered.color, rendered.albedo, rendered.normal),
-                  "loop": final_loop_image(scene, film, networks, spp, seed)}
+                  **loop_images(scene, film, networks, spp, seed)}
         for method, image in images.items():
             scores = image_metrics(image, truth)
             for metric in METRICS:
@@ -89,12 +91,14 @@ def score_scene(scene: DevScene, source: str, *, size: int, spp: int, reference_
     return result
 
 
-def final_loop_image(scene: DevScene, film, networks: Networks, spp: int, seed: int):
-    """The loop's final image after 16 → `spp` mean samples per pixel (error allocator)."""
+def loop_images(scene: DevScene, film, networks: Networks, spp: int, seed: int) -> dict:
+    """The loop's final image after 16 → `spp` mean samples per pixel (error allocator), and the
+    two it is composed of: its denoised image and the raw image of its samples."""
+    loop = make_loop(scene, film, networks, "error", len(spp_levels(spp)), seed=seed)
     last = None
-    for last in make_loop(scene, film, networks, "error", len(spp_levels(spp)), seed=seed).run():
+    for last in loop.run():
         pass
-    return last.denoised[0]
+    return {"loop": last.denoised[0], "loop_denoised": loop.denoised_only()[0], "loop_raw": last.buffers[0].raw}
 
 
 # --- the report -----------------------------------------------------------------------------------
@@ -104,6 +108,16 @@ def _cell(result: SceneResult, method: str, metric: str) -> str:
     text = fmt(result.mean(method, metric), ".4g")  # significant digits: relMSE goes down to 1e-5
     best = min(result.mean(m, metric) for m in METHODS)
     return f"**{text}**" if result.mean(method, metric) == best else text
+
+
+def parts_table(results: list[SceneResult]) -> str:
+    """The loop's final image beside the two it is composed of (SMAPE, relMSE)."""
+    rows = ["| scene (filter) | denoised | raw (splatted) | final | denoised relMSE | raw relMSE | final relMSE |",
+            "|---|---:|---:|---:|---:|---:|---:|"]
+    for r in results:
+        rows.append(f"| {r.source} {r.scene.name} ({r.rfilter}) | " + " | ".join(
+            fmt(r.mean(m, metric), ".4g") for metric in METRICS for m in (*PARTS, "loop")) + " |")
+    return "\n".join(rows)
 
 
 def table(results: list[SceneResult], metric: str) -> str:
@@ -122,6 +136,7 @@ def report_text(results: list[SceneResult], *, size: int, spp: int, reference_sp
     return fill("as_written.md", provenance=provenance(command or command_line(), active_variant()),
                 size=size, spp=spp, reference_spp=reference_spp, seeds=", ".join(map(str, seeds)),
                 weights=weights, oidn=oidn, smape_table=table(results, "smape"), relmse_table=table(results, "relmse"),
+                parts_table=parts_table(results),
                 wins=len(wins), total=len(results), behind=behind)
 
 
@@ -138,17 +153,18 @@ def run_as_written(out_dir: Path, *, tutorials: Path | None = None, size: int = 
         scenes = [(s, source) for s, source in scenes if s.name in only]
     nets = load_bench_networks(weights_dir)
     oidn, oidn_status = oidn_denoiser()
+    out = Path(out_dir) / REPORT_NAME
+    out.parent.mkdir(parents=True, exist_ok=True)
     results = []
     for scene, source in scenes:
         result = score_scene(scene, source, size=size, spp=spp, reference_spp=reference_spp, seeds=seeds,
                              networks=nets.networks, oidn=oidn, cache_dir=cache_dir)
         print(f"bench --as-written: {source} {scene.name} ({result.rfilter}, {result.film}): SMAPE " +
-              ", ".join(f"{m} {result.mean(m, 'smape'):.4f}" for m in METHODS), flush=True)
+              ", ".join(f"{m} {result.mean(m, 'smape'):.4f}" for m in METHODS + PARTS), flush=True)
         results.append(result)
-    out = Path(out_dir) / REPORT_NAME
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(report_text(results, size=size, spp=spp, reference_spp=reference_spp, seeds=seeds,
-                               weights=nets.description, oidn=oidn_status, command=command))
+        # after every scene: a long run that is cut short still leaves the scenes it finished
+        out.write_text(report_text(results, size=size, spp=spp, reference_spp=reference_spp, seeds=seeds,
+                                   weights=nets.description, oidn=oidn_status, command=command))
     return out
 
 

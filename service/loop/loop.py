@@ -14,13 +14,13 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from models.error_predictor import change_scale_of
 from models.exposure import Exposure
 from models.pretrained import Networks
 from service.exr import ExrFrame, result_frame
 from service.loop.allocate import allocate_samples, allocation_weights, exposed_relative_variance, iteration_budget
 from service.loop.change_calibration import calibrate_by_change, image_change
 from service.loop.denoise_session import DenoiseSession
+from service.loop.final_image import compose_final
 from service.loop.tensors import nchw, to_image as to_hwc
 from service.loop.spec import IterationRecord, LoopSpec, LoopSpecError, lambda_problem, validate_spec
 from service.loop.state import LoopState
@@ -110,6 +110,8 @@ class RenderLoop:
         self.session = DenoiseSession(networks, spec.frames, radius, self.owned) if spec.denoise else None
         self.lock = self.session.lock if self.session else threading.RLock()
         self._denoised: list[np.ndarray | None] = [None] * spec.frames
+        # the final images (`final_image`): `_denoised` falling back towards the raw image; None: not composed yet
+        self._final: list[np.ndarray] | None = None
         self._denoised_lam: np.ndarray | None = None  # the λ map `_denoised` was made with
         self._denoised_samples: list[int | None] = [None] * spec.frames  # the frame's sample total behind it
         # per frame, how far its denoised image moved since the previous iteration (None: unknown),
@@ -165,12 +167,14 @@ class RenderLoop:
         with self.lock:
             for f, buffer in buffers.items():
                 self.state.buffers[f] = buffer
+            self._final = None
 
     def adopt_denoised(self, frames: dict[int, tuple[np.ndarray, np.ndarray | None, np.ndarray]]) -> None:
         """Frames denoised elsewhere this iteration: (denoised image, predicted error, converged mask)."""
         with self.lock:
             for f, (image, error, converged) in frames.items():
                 self._denoised[f], self.state.error_maps[f], self._converged[f] = image, error, converged
+            self._final = None
 
     def owned_outputs(self) -> dict[int, tuple[np.ndarray, np.ndarray | None, np.ndarray]]:
         """This loop's frames as `adopt_denoised` takes them."""
@@ -236,7 +240,7 @@ class RenderLoop:
                 prev = self.scenes[f - 1].sensors()[0] if (f > 0 and self.effects.motion_vectors) else None
                 render_samples(self.scenes[f], frame_counts, self.state.buffers[f], integrator=self.integrator,
                                seed=self.spec.seed * 7919 + f, prev_sensor=prev, prev_shapes=self.shape_motions[f],
-                               progress=check, splat=not self.spec.denoise)
+                               progress=check)
         timings["render"] = time.perf_counter() - t0
 
     def _splits_first_iteration(self) -> bool:
@@ -246,13 +250,14 @@ class RenderLoop:
         nothing), with an error network that carries a change scale, an even `spp_first` and
         every frame owned by this loop (the halves' temporal windows must all be here)."""
         return (self.state.iteration == 0 and self.spec.target_error is not None and self.session is not None
-                and change_scale_of(self.session.networks.error_predictor) is not None
+                and self.session.networks.error_predictor.change_scale is not None
                 and self.spec.spp_first % 2 == 0 and len(self.owned) == self.spec.frames)
 
     def denoise_step(self, timings: dict) -> None:
         """Denoise the owned frames and predict their error (their temporal windows read the
         neighbours' buffers of this iteration, adopted beforehand when not owned)."""
         timings["denoise"] = timings["error"] = 0.0
+        self._final = None
         if self.session is None:
             with self.lock:
                 for f in self.owned:
@@ -287,7 +292,7 @@ class RenderLoop:
         one before (service.loop.change_calibration). `previous`: per frame, that image and the
         sample total behind it; only an image of half the samples, made with the same λ map, counts."""
         same_lam = previous_lam is not None and np.array_equal(previous_lam, self.state.lam_map)
-        scale = change_scale_of(self.session.networks.error_predictor)
+        scale = self.session.networks.error_predictor.change_scale
         for f, (image, samples) in previous.items():
             now = self._denoised_samples[f] = int(self.state.buffers[f].spp.sum())
             if samples is not None and 2 * samples == now:        # the previous iteration's image
@@ -297,6 +302,7 @@ class RenderLoop:
                 self._change[f] = None
             # (the same samples again: a repeated pass keeps the change it measured first)
             self.state.error_maps[f] = calibrate_by_change(self.state.error_maps[f], self._change[f], scale)
+        self._final = None
 
     def _denoise_first_half(self, buffers: list[FrameBuffer], lam_map: np.ndarray) -> None:
         """Denoise the first half of a split iteration 0 and keep it as the image the full one's
@@ -328,7 +334,7 @@ class RenderLoop:
             if not self.session.has_features:
                 self.denoise_step({})  # after a restart the features are rebuilt once
             self._keep_converged(self.session.relambda(lam_map))
-            return list(self._denoised)
+            return self.denoised()
 
     def _keep_converged(self, images: dict[int, np.ndarray]) -> None:
         """Store the owned frames' denoised images. Pixels whose samples all agreed
@@ -338,14 +344,33 @@ class RenderLoop:
             mask, buf = self._converged[f], self.state.buffers[f]
             self._denoised[f] = np.where(mask[..., None], buf.mean, image).astype(np.float32)
         self._denoised_lam = self.state.lam_map.copy()
+        self._final = None
 
     # -- outputs ----------------------------------------------------------------------------
 
     def denoised(self) -> list[np.ndarray]:
+        """The final images: denoised, each pixel falling back towards the raw image where the
+        samples alone are expected to be closer (service.loop.final_image)."""
         with self.lock:
             if self.state.iteration > 0 and any(d is None for d in self._denoised):
                 self.denoise_step({})
+            if self._final is None:
+                self._final = [self._compose_final(f) for f in range(len(self._denoised))]
+            return list(self._final)
+
+    def denoised_only(self) -> list[np.ndarray | None]:
+        """The denoised images before the final composition falls back towards the raw image."""
+        with self.lock:
             return list(self._denoised)
+
+    def _compose_final(self, f: int) -> np.ndarray | None:
+        """Frame f's final image; the denoised one as it is without an error map (or without
+        denoising: then `_denoised` is the raw image already)."""
+        image, error, buffer = self._denoised[f], self.state.error_maps[f], self.state.buffers[f]
+        if self.session is None or image is None or error is None:
+            return image
+        exposure = float(Exposure.of(nchw(buffer.mean)).scale.flatten()[0])
+        return compose_final(image, buffer.raw, buffer.raw_variance, error, exposure)
 
     def _record(self, timings: dict, images: bool = True) -> IterationRecord:
         state = self.state
