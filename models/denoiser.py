@@ -226,7 +226,11 @@ class ScaleCompositor(nn.Module):
 
     def blend_weight(self, fine_low: Tensor, coarse: Tensor) -> Tensor:
         """α ∈ (0, 1) at the coarse resolution (N,1,h,w)."""
-        return torch.sigmoid(self.alpha(torch.cat([log_transform(fine_low), log_transform(coarse)], 1)))
+        # channels-last with the ReLU inside the convolution (models.layers.Conv3x3): at 2 MP the
+        # NCHW Sequential was a quarter of the finest merge step
+        x = cat_channels_last([log_transform(fine_low), log_transform(coarse)])
+        first, _, second = self.alpha
+        return torch.sigmoid(second(first.relu(x)))
 
     def forward(self, fine: Tensor, coarse: Tensor, alphas: list[Tensor] | None = None,
                 candidate: Tensor | None = None) -> Tensor:
@@ -477,16 +481,20 @@ class Denoiser(nn.Module):
         n = ref.shape[0]
         if not isinstance(lam, Tensor):
             lam = torch.tensor(float(lam))
-        lam = lam.to(device=ref.device, dtype=ref.dtype)
+        lam = torch.nan_to_num(lam.to(device=ref.device, dtype=ref.dtype), nan=LAMBDA_MIN)
         if lam.numel() == 1:
-            return lambda_code(torch.nan_to_num(lam, nan=LAMBDA_MIN).reshape(1, 1, 1, 1).expand(n, 1, 1, 1))
+            return lambda_code(lam.reshape(1, 1, 1, 1).expand(n, 1, 1, 1))
         h, w = cache.size
         if lam.dim() == 2 and lam.shape == (h, w):
             lam = lam.view(1, 1, h, w)
         if lam.dim() != 4 or lam.shape[1] != 1 or lam.shape[-2:] != (h, w) or lam.shape[0] not in (1, n):
             raise ValueError(f"λ map must be a float or broadcastable to ({n},1,{h},{w}); got {tuple(lam.shape)}")
-        lam = torch.nan_to_num(lam, nan=LAMBDA_MIN).expand(n, 1, h, w)
-        return lambda_code(pad_to(lam, self.config.alignment))
+        # A map of one value (the service sends every λ edit as a map) is a global λ: the kernel
+        # head folds into one GEMM per level instead of 1 + rank (LambdaModule), the same logits
+        # up to float rounding. Not under autograd, where λ's gradient must reach every pixel.
+        if not lam.requires_grad and bool((lam == lam[0, 0, 0, 0]).all()):
+            return lambda_code(lam[:1, :1, :1, :1].expand(n, 1, 1, 1))
+        return lambda_code(pad_to(lam.expand(n, 1, h, w), self.config.alignment))
 
     def forward(self, window: list[FrameTensors], center: int, lam: float | Tensor = 1.0,
                 candidate: Tensor | None = None) -> Tensor:

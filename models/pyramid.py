@@ -17,8 +17,11 @@ def down(x: Tensor) -> Tensor:
 
 
 def up(x: Tensor) -> Tensor:
-    """U: bilinear 2× upsampling (eq. 5); smoother than nearest, no block seams."""
-    return F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+    """U: bilinear 2× upsampling (eq. 5); smoother than nearest, no block seams. Each channel as
+    its own image: torch's CPU kernel ran 3-channel NCHW planes ~2.5× slower than three 1-channel
+    ones (19 vs 7 ms at 540×962, one thread), same values up to float rounding."""
+    n, c, h, w = x.shape
+    return F.interpolate(x.reshape(n * c, 1, h, w), scale_factor=2, mode="bilinear", align_corners=False).view(n, c, 2 * h, 2 * w)
 
 
 def up_nearest(x: Tensor) -> Tensor:

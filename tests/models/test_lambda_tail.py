@@ -1,0 +1,81 @@
+"""The λ tail's fast paths (issue 43: a λ edit at 2 MP) against their plain definitions."""
+import pytest
+import torch
+import torch.nn.functional as F
+
+from models.denoiser import Denoiser, DenoiserConfig
+from models.features import log_transform
+from models.pyramid import up
+from tests.models.conftest import make_frame
+
+H, W = 12, 16
+
+
+def shipped_shape_with_random_weights() -> Denoiser:
+    """The shipped architecture (candidate, gate, clamp, cap, energy) with a λ module that does
+    something: a fresh one has ΔW = 0 and ignores λ."""
+    den = Denoiser(DenoiserConfig()).eval()
+    with torch.no_grad():
+        for module in (den.specialise, den.gate.specialise):
+            module.delta.normal_()
+    return den
+
+
+def relative_difference(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float(((a - b).abs() / b.abs().clamp_min(1e-6)).max())
+
+
+def test_a_uniform_lambda_map_gives_the_global_lambdas_image():
+    den = shipped_shape_with_random_weights()
+    with torch.no_grad():
+        cache = den.prepare([make_frame(H, W)], 0, torch.rand(1, 3, H, W))
+        global_lambda = den.apply(cache, 4.0)
+        uniform_map = den.apply(cache, torch.full((1, 1, H, W), 4.0))
+        assert not torch.equal(global_lambda, den.apply(cache, 1.0))   # λ matters here
+    assert relative_difference(uniform_map, global_lambda) <= 1e-5
+
+
+def test_a_uniform_map_takes_the_folded_path_and_a_varying_one_the_per_pixel_path():
+    den = shipped_shape_with_random_weights()
+    with torch.no_grad():
+        cache = den.prepare([make_frame(H, W)], 0, torch.rand(1, 3, H, W))
+        assert den._lambda_code(cache, torch.full((1, 1, H, W), 4.0)).shape == (1, 1, 1, 1)
+        varying = torch.full((1, 1, H, W), 4.0)
+        varying[..., 0, 0] = 5.0
+        assert den._lambda_code(cache, varying).shape[-2:] == (H, W)
+
+
+def test_the_folded_per_pixel_tail_equals_the_plain_per_pixel_definition():
+    """A map with one odd pixel runs the per-pixel path; away from that pixel's reach (the
+    pyramid spreads it over ≤ 20 px) it agrees with the global λ to float rounding."""
+    den = shipped_shape_with_random_weights()
+    with torch.no_grad():
+        cache = den.prepare([make_frame(32, 40)], 0, torch.rand(1, 3, 32, 40))
+        lam = torch.full((1, 1, 32, 40), 4.0)
+        lam[..., 0, 0] = 5.0
+        mapped, folded = den.apply(cache, lam), den.apply(cache, 4.0)
+    assert relative_difference(mapped[..., 24:, 28:], folded[..., 24:, 28:]) <= 1e-5
+    assert not torch.equal(mapped[..., :2, :2], folded[..., :2, :2])
+
+
+def test_a_uniform_map_of_the_wrong_size_is_still_refused():
+    den = shipped_shape_with_random_weights()
+    with torch.no_grad():
+        cache = den.prepare([make_frame(H, W)], 0, torch.rand(1, 3, H, W))
+        with pytest.raises(ValueError, match="λ map"):
+            den.apply(cache, torch.full((1, 1, H, W + 1), 4.0))
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 7, 9), (2, 1, 4, 5), (1, 8, 3, 3)])
+def test_upsampling_each_channel_alone_is_torchs_bilinear_upsampling(shape):
+    x = torch.rand(shape)
+    expected = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+    torch.testing.assert_close(up(x), expected, rtol=1e-6, atol=1e-7)
+
+
+def test_the_compositors_channels_last_alpha_is_the_plain_alpha_cnn():
+    den = shipped_shape_with_random_weights()
+    fine_low, coarse = torch.rand(1, 3, 10, 14) * 3, torch.rand(1, 3, 10, 14) * 3
+    plain = torch.sigmoid(den.composite.alpha(torch.cat([log_transform(fine_low), log_transform(coarse)], 1)))
+    with torch.no_grad():
+        torch.testing.assert_close(den.composite.blend_weight(fine_low, coarse), plain.detach(), rtol=1e-5, atol=1e-6)
