@@ -117,8 +117,3 @@ class ErrorMap(Protocol):
 
     def __call__(self, frame: FrameTensors, denoised: Tensor, disagreement: Tensor | None = None) -> Tensor:
         """(N,1,H,W) predicted SMAPE of `denoised` ≥ 0."""
-
-
-def change_scale_of(error_map: ErrorMap) -> float | None:
-    """error_map.change_scale: kept only until service/loop/loop.py reads the attribute itself."""
-    return error_map.change_scale
