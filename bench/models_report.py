@@ -23,7 +23,8 @@ from pathlib import Path
 import torch
 
 from bench.common import fill, pinned_torch_threads, provenance
-from models.checkpoint import read_checkpoint
+from bench.lambda_edit import LAMBDA_EDIT_SIZE, LambdaEditTiming, lambda_edit_section, measure_lambda_edit
+from models.checkpoint import load_checkpoint, read_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
 from service.loop.oidn import oidn_tensor
@@ -103,14 +104,16 @@ def benchmark_models(sizes=(256, 512), repeats: int = 3, threads: int = 2, cases
     return rows
 
 
-def write_models_report(rows: list[dict], config: DenoiserConfig, out: Path) -> Path:
-    """docs/models-speed.md: this run's table, with the command, machine and date."""
+def write_models_report(rows: list[dict], config: DenoiserConfig, out: Path,
+                        lambda_edit: LambdaEditTiming | None = None) -> Path:
+    """docs/models-speed.md: this run's table (and the λ edit at 2 MP), with the command, machine and date."""
     table = "\n".join(
         f"| {r['model']} | {r['size']}² | {r['threads']} | {r['ms_median']:.0f} | {r['ms_min']:.0f} | "
         f"{r['cpu_ms_median']:.0f} | {r['peak_rss_growth_mb']:.0f} | {r['load_avg_1min']:.1f} |" for r in rows)
     path = out / "models-speed.md"
     out.mkdir(parents=True, exist_ok=True)
-    path.write_text(fill("models.md", provenance=provenance(), config=config, table=table))
+    path.write_text(fill("models.md", provenance=provenance(), config=config, table=table,
+                         lambda_edit=lambda_edit_section(lambda_edit)))
     return path
 
 
@@ -184,6 +187,11 @@ def main(argv: list[str] | None = None, out: Path | None = None) -> Path | None:
                         help="time the architecture a checkpoint holds (e.g. models/weights/denoiser.pt)")
     parser.add_argument("--versus-oidn", action="store_true",
                         help="one frame through the denoiser beside OIDN, interleaved in one process (prints only)")
+    parser.add_argument("--lambda-edit-size", type=int, nargs=2, default=LAMBDA_EDIT_SIZE, metavar=("W", "H"),
+                        help="the λ edit's image size (default 1920 1080): the tail on the --config-from "
+                             "checkpoint's weights, and PUT /jobs/{id}/lambda against a real server on its folder's")
+    parser.add_argument("--no-lambda-edit", action="store_true", help="skip the λ edit measurement")
+    parser.add_argument("--no-http", action="store_true", help="the λ edit's tail only, no server")
     parser.add_argument("-o", "--out", type=Path, default=out, help="write DIR/models-speed.md")
     args = parser.parse_args(argv)
     config = DenoiserConfig(width=args.width, spatial_blocks=args.spatial_blocks)
@@ -198,7 +206,19 @@ def main(argv: list[str] | None = None, out: Path | None = None) -> Path | None:
     for r in rows:
         print(f"{r['model']} {r['size']}² {r['threads']} thread(s): {r['ms_median']:.0f} ms median, "
               f"{r['peak_rss_growth_mb']:.0f} MB peak RSS growth")
-    return write_models_report(rows, config, args.out) if args.out is not None else None
+    edit = None if args.no_lambda_edit else _lambda_edit(args, config)
+    return write_models_report(rows, config, args.out, edit) if args.out is not None else None
+
+
+def _lambda_edit(args: argparse.Namespace, config: DenoiserConfig) -> LambdaEditTiming:
+    """The λ edit on the checkpoint's own weights when --config-from names one (and the server on
+    its folder), else on an untrained network of `config` without the server."""
+    checkpoint = args.config_from
+    denoiser = load_checkpoint(checkpoint, expected_kind=Denoiser.kind) if checkpoint else Denoiser(config)
+    folder = None if args.no_http or checkpoint is None else checkpoint.parent
+    edit = measure_lambda_edit(denoiser, folder, tuple(args.lambda_edit_size), max(args.repeats, 3), args.threads)
+    print(lambda_edit_section(edit))
+    return edit
 
 
 if __name__ == "__main__":

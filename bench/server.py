@@ -88,12 +88,14 @@ def wait_for_job(client, job_id: str, timeout: float = 600.0) -> dict:
     raise TimeoutError(f"job {job_id} did not finish in {timeout:.0f} s")
 
 
-def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, torch_threads: int) -> dict:
+def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, torch_threads: int,
+                      height: int | None = None) -> dict:
     """p50/p95 of PUT /jobs/{id}/lambda round trips on a finished job (the cached λ tail path),
-    alternating a global value and a painted rectangle so every request changes the image."""
+    alternating a global value and a painted rectangle so every request changes the image.
+    The job is size² (size wide and `height` high when given), one 16-spp iteration."""
     with tempfile.TemporaryDirectory(prefix="renderloop-bench-") as tmp:
         with running_server(Path(tmp) / "data", weights_dir, torch_threads) as url, httpx.Client(base_url=url, timeout=120) as client:
-            created = client.post("/jobs", json={"scene": "cornell-box", "width": size, "height": size,
+            created = client.post("/jobs", json={"scene": "cornell-box", "width": size, "height": height or size,
                                                  "max_iterations": 1, "seed": seed})
             created.raise_for_status()
             job_id = created.json()["id"]
@@ -101,7 +103,7 @@ def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, to
             if job["state"] != "completed":
                 raise RuntimeError(f"benchmark job ended {job['state']}: {job.get('error')}")
             bodies = [{"value": 2.0 + (i % 7)} if i % 2 == 0 else
-                      {"rects": [{"x": 0, "y": 0, "w": max(1, size // 2), "h": size, "value": 10.0 - (i % 5)}]}
+                      {"rects": [{"x": 0, "y": 0, "w": max(1, size // 2), "h": height or size, "value": 10.0 - (i % 5)}]}
                       for i in range(requests + 1)]
             seconds, tail, full = [], 0, 0
             for i, body in enumerate(bodies):
@@ -115,6 +117,6 @@ def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, to
                 tail += response.json().get("tail_passes", 0)
                 full += response.json().get("full_passes", 0)
     ms = np.array(seconds) * 1e3
-    return {"size": size, "requests": len(seconds), "p50_ms": float(np.percentile(ms, 50)),
+    return {"size": size, "height": height or size, "requests": len(seconds), "p50_ms": float(np.percentile(ms, 50)),
             "p95_ms": float(np.percentile(ms, 95)), "max_ms": float(ms.max()), "tail_passes": tail, "full_passes": full}
 

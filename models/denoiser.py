@@ -131,6 +131,14 @@ def lambda_code(lam: Tensor) -> Tensor:
     return torch.log(lam.clamp(LAMBDA_MIN, LAMBDA_MAX)) / math.log(LAMBDA_MAX)
 
 
+def folded_if_uniform(code: Tensor) -> Tensor:
+    """A λ code map (N,1,h,w) of one value per image as (N,1,1,1): there the kernel head folds into
+    one GEMM (LambdaModule), the same logits up to float rounding. A painted rectangle leaves most
+    bands of rows outside it uniform, so a λ edit pays the per-pixel path only where it painted."""
+    first = code[:, :, :1, :1]
+    return first if bool((code == first).all()) else code
+
+
 # --- modules ------------------------------------------------------------------------------
 
 class Encoder(ConvPair):
@@ -440,7 +448,7 @@ class Denoiser(nn.Module):
         out = level.padded[0].new_empty(level.padded[0].shape[:2] + (h, w))
         for y0 in range(0, h, rows):
             y1 = min(h, y0 + rows)
-            band = code if code.shape[-2:] == (1, 1) else code[..., y0:y1, :]
+            band = code if code.shape[-2:] == (1, 1) else folded_if_uniform(code[..., y0:y1, :])
             weights = unnormalised_weights(self.specialise(level.hidden[..., y0:y1, :], band))
             out[:, :, y0:y1] = filter_padded([p[:, :, y0:y1 + k - 1] for p in level.padded], weights, k)
         return out

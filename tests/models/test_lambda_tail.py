@@ -3,6 +3,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+import models.denoiser
 from models.denoiser import Denoiser, DenoiserConfig
 from models.features import log_transform
 from models.pyramid import up
@@ -79,3 +80,23 @@ def test_the_compositors_channels_last_alpha_is_the_plain_alpha_cnn():
     plain = torch.sigmoid(den.composite.alpha(torch.cat([log_transform(fine_low), log_transform(coarse)], 1)))
     with torch.no_grad():
         torch.testing.assert_close(den.composite.blend_weight(fine_low, coarse), plain.detach(), rtol=1e-5, atol=1e-6)
+
+
+def test_bands_outside_a_painted_rectangle_fold_and_keep_the_per_pixel_image(monkeypatch):
+    """Rows of one λ take the folded GEMM band by band; the image is the one the whole level
+    gets on the per-pixel path (autograd: one band per level, no folding) to float rounding."""
+    den = shipped_shape_with_random_weights()
+    lam = torch.ones(1, 1, 32, 40)
+    lam[..., 8:14, 10:30] = 6.0
+    with torch.no_grad():
+        cache = den.prepare([make_frame(32, 40)], 0, torch.rand(1, 3, 32, 40))
+    with torch.enable_grad():
+        whole = den.apply(cache, lam).detach()
+    folds = []
+    monkeypatch.setattr("models.denoiser.TILE_PIXELS", 4 * 40)   # 4-row bands at the finest level
+    real = models.denoiser.folded_if_uniform
+    monkeypatch.setattr("models.denoiser.folded_if_uniform", lambda code: folds.append(real(code).shape[-1] == 1) or real(code))
+    with torch.no_grad():
+        banded = den.apply(cache, lam)
+    assert any(folds) and not all(folds)
+    assert relative_difference(banded, whole) <= 1e-5

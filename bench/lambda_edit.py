@@ -1,0 +1,123 @@
+"""A λ edit at the size users render (issue 43: ~2 MP, 1920×1080): the λ tail from cached
+features on the CPU, and the round trip of `PUT /jobs/{id}/lambda` against a real server.
+
+The tail is what `DenoiseSession.relambda` runs per frame, `to_image(Denoiser.apply(cache, λ))`,
+on the shipped network with random inputs (speed does not depend on the image) and the candidate
+OIDN made for them. Three λ inputs, timed round by round so the machine's load hits each alike:
+
+- a uniform map: a global λ as the service sends it (every edit arrives as a map), which the
+  denoiser folds into one GEMM per level (Denoiser._lambda_code);
+- the same map with one pixel nudged by 1e-3: the per-pixel path, what every edit cost before
+  the fold (1 + rank GEMMs per level, LambdaModule);
+- a rectangle over the left half at λ = 8: a painted region (the per-pixel path).
+
+The HTTP figure is `bench.server.bench_http_lambda`: a `renderloop serve` app (uvicorn, the thread
+backend) in a subprocess, one finished 16-spp iteration of cornell-box at the same size, then PUTs
+alternating a global value and a rectangle; it includes routing, the job store, the λ tail and
+writing the new preview.
+"""
+from __future__ import annotations
+
+import os
+import statistics
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from bench.common import pinned_torch_threads
+from bench.server import bench_http_lambda
+from models.denoiser import Denoiser
+from models.frames import FrameTensors
+from service.loop.oidn import candidate_for
+from service.loop.tensors import to_image
+
+LAMBDA_EDIT_SIZE = (1920, 1080)   # width, height: 1080p, the issue's ~2 MP
+HTTP_SEED = 0
+NUDGE = 1e-3                      # keeps a uniform map on the per-pixel path
+
+
+@dataclass
+class LambdaEditTiming:
+    width: int
+    height: int
+    threads: int
+    ms: dict[str, list[float]]                 # case → wall ms of each repeat
+    http: dict | str | None = None             # bench_http_lambda's row, or why it failed
+    load_avg: list[float] = field(default_factory=list)
+
+    @property
+    def megapixels(self) -> float:
+        return self.width * self.height / 1e6
+
+
+def _random_frame(width: int, height: int, gen: torch.Generator) -> FrameTensors:
+    r = lambda c: torch.rand(1, c, height, width, generator=gen)
+    return FrameTensors(color=r(3) * 4, variance=r(3), albedo=r(3), normal=r(3) * 2 - 1, depth=r(1))
+
+
+def lambda_maps(width: int, height: int) -> dict[str, torch.Tensor]:
+    """The three λ inputs of the module docstring, (1, 1, H, W) each."""
+    uniform = torch.full((1, 1, height, width), 4.0)
+    nudged = uniform.clone()
+    nudged[..., 0, 0] += NUDGE
+    rectangle = torch.ones(1, 1, height, width)
+    rectangle[..., :, : max(1, width // 2)] = 8.0
+    return {"uniform map (global λ)": uniform, "per-pixel path, same λ (before the fold)": nudged,
+            "rectangle map": rectangle}
+
+
+def time_lambda_tail(denoiser: Denoiser, width: int, height: int, repeats: int, threads: int) -> dict[str, list[float]]:
+    """Wall ms of each repeat of each λ input's tail, interleaved round by round after one warm-up each."""
+    frame = _random_frame(width, height, torch.Generator().manual_seed(0))
+    maps = lambda_maps(width, height)
+    times: dict[str, list[float]] = {name: [] for name in maps}
+    with torch.inference_mode(), pinned_torch_threads(threads):
+        cache = denoiser.prepare([frame], 0, candidate_for(denoiser, frame))
+        for lam in maps.values():
+            to_image(denoiser.apply(cache, lam))
+        for _ in range(repeats):
+            for name, lam in maps.items():
+                started = time.perf_counter()
+                to_image(denoiser.apply(cache, lam))
+                times[name].append(1e3 * (time.perf_counter() - started))
+    return times
+
+
+def measure_lambda_edit(denoiser: Denoiser, weights_dir: Path | None, size: tuple[int, int] = LAMBDA_EDIT_SIZE,
+                        repeats: int = 7, threads: int = 2, http_requests: int = 6) -> LambdaEditTiming:
+    """The tail in this process; then, when `weights_dir` is given, the HTTP round trip."""
+    width, height = size
+    timing = LambdaEditTiming(width, height, threads, time_lambda_tail(denoiser.eval(), width, height, repeats, threads))
+    timing.load_avg.append(os.getloadavg()[0])
+    if weights_dir is not None:
+        try:
+            timing.http = bench_http_lambda(width, http_requests, weights_dir, HTTP_SEED, threads, height=height)
+        except Exception as exc:  # the report says what failed instead of losing the table
+            timing.http = f"{type(exc).__name__}: {exc}"
+        timing.load_avg.append(os.getloadavg()[0])
+    return timing
+
+
+def lambda_edit_section(timing: LambdaEditTiming | None) -> str:
+    """The report's markdown for one measurement (empty when none was taken)."""
+    if timing is None:
+        return ""
+    rows = "\n".join(
+        f"| {name} | {statistics.median(ms):.0f} | {min(ms):.0f} | {max(ms):.0f} | {len(ms)} |" for name, ms in timing.ms.items())
+    lines = [f"## A λ edit at {timing.width}×{timing.height} ({timing.megapixels:.1f} MP), {timing.threads} torch threads", "",
+             "The λ tail from cached features, `to_image(Denoiser.apply(cache, λ))` as `DenoiseSession.relambda` runs it, "
+             "shipped network, random inputs (bench/lambda_edit.py says how), the cases interleaved round by round. "
+             f"Load average when it finished: {', '.join(f'{x:.1f}' for x in timing.load_avg)}.", "",
+             "| λ input | median wall ms | min | max | repeats |", "|---|---|---|---|---|", rows, ""]
+    http = timing.http
+    if isinstance(http, dict):
+        lines.append(f"`PUT /jobs/{{id}}/lambda` over HTTP on a finished {http['size']}×{http['height']} cornell-box job "
+                     f"(one 16-spp iteration, a real `renderloop serve` app): p50 {http['p50_ms']:.0f} ms, "
+                     f"p95 {http['p95_ms']:.0f} ms, max {http['max_ms']:.0f} ms over {http['requests']} requests "
+                     f"(global value and rectangle alternating; {http['tail_passes']} tail passes, "
+                     f"{http['full_passes']} full passes).")
+    elif http is not None:
+        lines.append(f"`PUT /jobs/{{id}}/lambda` over HTTP: not measured ({http}).")
+    return "\n".join(lines) + "\n"
