@@ -8,7 +8,7 @@ Per pyramid level, every frame of the window goes through
     λ-module: kernel head with λ-dependent weights → k² logits/frame ── apply() starts here
     joint softmax over all frames' logits, filter demodulated radiance (eqs. 3–4)
 
-and the levels are merged coarse → fine by the scale compositor (eq. 5), then the albedo is multiplied
+and the levels are merged coarse → fine by the scale compositor (eq. 5, models.compositor), then the albedo is multiplied
 back in. `prepare` computes everything λ-independent once; `apply` is the tail a λ edit re-runs.
 """
 from __future__ import annotations
@@ -31,8 +31,9 @@ from models.features import (HDR_MAX, demodulate, demodulation_albedo, feature_s
                              sanitize_frame)
 from models.frames import FrameTensors
 from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
-from models.layers import ConvPair, Pointwise, cat_channels_last, conv3x3, res_blocks, trunk_in_bfloat16
-from models.pyramid import down, down_frame, pad_to, up, up_nearest
+from models.layers import ConvPair, Pointwise, cat_channels_last, res_blocks, trunk_in_bfloat16
+from models.compositor import ScaleCompositor  # noqa: F401  (re-exported: eq. 5)
+from models.pyramid import down, down_frame, pad_to
 from models.warp import flow_to_center, warp
 
 from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN  # noqa: F401  (re-exported: eq. 6 range)
@@ -198,61 +199,6 @@ class LambdaModule(nn.Module):
         gives the same W(λ) for every λ under the anchored formula."""
         s1 = self.mix(self.base.new_zeros(1, 1, 1, 1)).flatten()
         self.base.add_(torch.einsum("r,rkc->kc", s1, self.delta))
-
-
-class ScaleCompositor(nn.Module):
-    """Eq. 5: o = i_f − α·U(D(i_f)) + α·U(i_c) = i_f + α·U(i_c − D(i_f)): swap the fine
-    result's low band for the coarse result's where α says so. α comes from a small CNN on
-    both results, evaluated at the coarse resolution and upsampled: which band to trust
-    is a low-frequency decision, and this keeps the λ tail 4× cheaper.
-
-    The swap is floored at min(i_f, U(i_c)) per pixel. Next to a firefly the fine level keeps
-    energy the coarse level removed, so i_c − D(i_f) is strongly negative over the firefly's
-    2×2 block and, upsampled, it is subtracted from every neighbour alike: a dark ring (down to
-    0.43× of the firefly-free result for a 2000× firefly on hard_shadows, then clipped at 0).
-    A pixel pushed below both its own fine estimate and the coarse estimate is one losing energy
-    it never had; with the floor the firefly pixel still gives up its excess. The floor also
-    keeps radiance ≥ 0 (both levels are), which the next level's log transform needs.
-
-    The swap is capped at max(i_f, N(i_c)), N the nearest upsampling: the mirror case. Along the
-    edge of a small very bright emitter next to a dark surface, i_c − D(i_f) is strongly
-    positive over the emitter's blocks and the bilinear U spreads it onto the dark neighbours
-    (0.09 → 0.75 beside a 800× lamp on night_street at 256 spp, 80 % of the image's relMSE). A
-    pixel pushed above both its own fine estimate and its own coarse block's is one receiving
-    energy that belongs to another block; N, not U, because U(i_c) there already carries the
-    emitter.
-
-    Inside the emitter's own 2×2 block N(i_c) carries the emitter too, so a dark pixel sharing
-    that block still takes its light (0.42 → 3.07 on night_street at 256 spp with the U-Net
-    trunk, whose coarse levels are OIDN's). Given a full-resolution estimate of each pixel — the
-    candidate at this level (DenoiserConfig.candidate_cap) — the swap is also capped at
-    max(i_f, candidate): light neither the fine result nor the candidate put on the pixel."""
-
-    def __init__(self, width: int):
-        super().__init__()
-        self.alpha = nn.Sequential(conv3x3(6, width), nn.ReLU(), conv3x3(width, 1))
-
-    def blend_weight(self, fine_low: Tensor, coarse: Tensor) -> Tensor:
-        """α ∈ (0, 1) at the coarse resolution (N,1,h,w)."""
-        # channels-last with the ReLU inside the convolution (models.layers.Conv3x3): at 2 MP the
-        # NCHW Sequential was a quarter of the finest merge step
-        x = cat_channels_last([log_transform(fine_low), log_transform(coarse)])
-        first, _, second = self.alpha
-        return torch.sigmoid(second(first.relu(x)))
-
-    def forward(self, fine: Tensor, coarse: Tensor, alphas: list[Tensor] | None = None,
-                candidate: Tensor | None = None) -> Tensor:
-        """candidate: the candidate at the fine level's resolution, for the per-pixel cap."""
-        fine_low = down(fine)
-        a = self.blend_weight(fine_low, coarse)
-        if alphas is not None:
-            alphas.append(a)
-        swapped = torch.addcmul(fine, up(a), up(coarse - fine_low))
-        # One clamp for the floor and both caps: min(max(f, N), max(f, c)) = max(f, min(N, c)),
-        # and floor ≤ fine ≤ cap, so clamping in either order gives the same pixel.
-        near = up_nearest(coarse)
-        ceiling = torch.maximum(fine, near if candidate is None else torch.minimum(near, candidate))
-        return torch.clamp(swapped, min=torch.minimum(fine, up(coarse)), max=ceiling)
 
 
 # --- the λ-independent state ---------------------------------------------------------------
@@ -428,12 +374,24 @@ class Denoiser(nn.Module):
             if kernel_only is not None:
                 kernel_only.append(result)
             if level.candidate is not None:                                       # eq. 4 + one candidate
-                if self.config.kernel_clamp is not None:
-                    result = clamp_around(result, level.candidate, self.config.kernel_clamp, code)
-                result = blend(result, level.candidate,
-                               self.gate.weight(level.gate_hidden, code, self.config.level_gate_offset(i)))
+                weight = self.gate.weight(level.gate_hidden, code, self.config.level_gate_offset(i))
+                if kernel_only is None and not torch.is_grad_enabled():
+                    result = self._join_candidate_in_place(result, level.candidate, code, weight)
+                else:
+                    if self.config.kernel_clamp is not None:
+                        result = clamp_around(result, level.candidate, self.config.kernel_clamp, code)
+                    result = blend(result, level.candidate, weight)
             results.append(result)
         return results
+
+    def _join_candidate_in_place(self, result: Tensor, candidate: Tensor, code: Tensor, weight: Tensor) -> Tensor:
+        """clamp_around then blend (models.candidate) written over the fresh kernel result:
+        min(max(r, lo), hi) is clamp(r, lo, hi) element for element, lerp_ is lerp."""
+        t = self.config.kernel_clamp
+        if t is not None:
+            band = 1.0 + t / (1.0 - code).clamp_min(1e-6)     # clamp_around's band
+            result.clamp_(min=candidate / band, max=candidate * band)
+        return result.lerp_(candidate, weight)
 
     def _kernel_result(self, level: LevelCache, code: Tensor) -> Tensor:
         """λ-specialised logits → joint softmax (eq. 4) → filtered radiance (eq. 3) of one level.

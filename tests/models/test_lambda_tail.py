@@ -100,3 +100,18 @@ def test_bands_outside_a_painted_rectangle_fold_and_keep_the_per_pixel_image(mon
         banded = den.apply(cache, lam)
     assert any(folds) and not all(folds)
     assert relative_difference(banded, whole) <= 1e-5
+
+
+@pytest.mark.parametrize("lam", [4.0, "map"])
+def test_the_in_place_inference_tail_is_the_autograd_tail(lam):
+    """Candidate clamp and blend, and the compositor's swap, run in place without autograd
+    (Denoiser._join_candidate_in_place, ScaleCompositor._swap_in_place); with autograd they run
+    as written in models.candidate and the compositor's forward."""
+    den = shipped_shape_with_random_weights()
+    lam = torch.rand(1, 1, 32, 40) * 9 + 1 if lam == "map" else lam
+    with torch.no_grad():
+        cache = den.prepare([make_frame(32, 40)], 0, torch.rand(1, 3, 32, 40) * 2)
+        in_place = den.apply(cache, lam)
+    with torch.enable_grad():
+        as_written = den.apply(cache, lam).detach()
+    assert relative_difference(in_place, as_written) <= 1e-5
