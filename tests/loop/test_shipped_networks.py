@@ -33,17 +33,20 @@ UNTRAINED_SEEDS = (0, 1, 2)
 # denoiser of that architecture, trained or not, lands near OIDN on the whole image: a bar on the
 # noisy ÷ denoised SMAPE cut that the shipped network clears is cleared by OIDN alone too (hard_shadows
 # 5.90 vs OIDN 5.89). The guard asks for the difference, on the same render (the loop's first
-# iteration, 16 spp): SMAPE against OIDN's over the four scenes' 216 whole 32² crops, and per scene.
+# iteration, 16 spp; its final image, which falls back towards the raw samples where they are
+# expected to be closer, service/loop/final_image.py): SMAPE against OIDN's over the four scenes'
+# 216 whole 32² crops, and per scene.
 # Measured by `python tests/loop/test_shipped_networks.py` (main, below) on a 2-core AVX2 EPYC
 # (float32 trunk), shipped / untrained of the shipped architecture (seeds 0–2, through the loop) /
 # OIDN alone:
-#   geometric mean of the crops' SMAPE ÷ OIDN's   0.962 / 0.9747–0.9770 / 1
-#   share of the crops where ours beats OIDN      0.662 / 0.537–0.551 / 0
-#   per scene: hard_shadows 0.998 / 1.008–1.010, metals 0.974 / 0.985–1.001,
-#              glass_box 0.931 / 0.934–0.939, env_object 0.997 / 1.002
-# The crop bars sit halfway (≥ 0.6 % and ≥ 0.06 from either side); no scene may end up worse than OIDN.
-MAX_CROP_SMAPE_RATIO_TO_OIDN = 0.968
-MIN_SHARE_OF_CROPS_BEATING_OIDN = 0.60
+#   geometric mean of the crops' SMAPE ÷ OIDN's   0.842 / 0.869–0.871 / 1
+#   share of the crops where ours beats OIDN      0.713 / 0.542–0.556 / 0
+#   per scene: hard_shadows 0.998 / 1.008–1.009, metals 0.966 / 1.012–1.014,
+#              glass_box 0.937 / 1.036–1.050, env_object 0.955 / 0.942–0.943
+# (before the final image's fallback, 60abd4b: 0.962 / 0.975–0.977 and 0.662 / 0.537–0.551.)
+# The crop bars sit halfway (≥ 1.4 % and ≥ 0.07 from either side); no scene may end up worse than OIDN.
+MAX_CROP_SMAPE_RATIO_TO_OIDN = 0.855
+MIN_SHARE_OF_CROPS_BEATING_OIDN = 0.63
 MAX_SCENE_SMAPE_RATIO_TO_OIDN = 1.005
 CROP = 32
 
@@ -59,9 +62,9 @@ class Guard:
 # architecture: kernels seed 0 / an untrained error network, the latter from an earlier run)
 # [best √variance ÷ denoised map over five ways of forming it, see sqrt_variance_maps]:
 #   hard_shadows 4.13 / 0.529  (2.49 / 0.05)   [0.089]
-#   metals       4.31 / 0.581  (2.22 / 0.29)   [0.167]
-#   glass_box    3.25 / 0.612  (1.06 / 0.33)   [0.549]
-#   env_object   4.17 / 0.832  (1.96 / −0.57)  [0.624]
+#   metals       4.31 / 0.562  (2.22 / 0.29)   [0.207]
+#   glass_box    3.25 / 0.612  (1.06 / 0.33)   [0.554]
+#   env_object   4.17 / 0.836  (1.96 / −0.57)  [0.698]
 # Rank bars sit between the shipped network and the √variance map (glass_box: 0.03 either side).
 GUARDS = {
     "hard_shadows": Guard(kernel_smape_cut=3.8, error_rank=0.45),
