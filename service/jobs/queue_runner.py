@@ -29,11 +29,14 @@ def failure_message(exc: BaseException) -> str:
 
 
 class QueueRunner:
-    """`run(job_id)` runs one job to its end (claiming it first); `ended(job_id)` is told once
-    it returned or raised; `live()` names the jobs rendering here (the lease thread stops those
-    another server took over)."""
+    """`run(job_id)` claims one job and runs it to its end; it returns False when it did not
+    claim it (another thread or server did first, or the server is stopping). `ended(job_id)`
+    is told once a run that claimed its job returned or raised — never for one that did not:
+    two threads can pick the same queued job, and the one that lost the claim must not clear
+    the winner's cancel flag. `live()` names the jobs rendering here (the lease thread stops
+    those another server took over)."""
 
-    def __init__(self, store, concurrency: int, run: Callable[[str], None], ended: Callable[[str], None],
+    def __init__(self, store, concurrency: int, run: Callable[[str], bool], ended: Callable[[str], None],
                  live: Callable[[], Iterable[str]], stopping: threading.Event) -> None:
         if concurrency < 1:
             raise ValueError("concurrency must be >= 1")
@@ -105,15 +108,18 @@ class QueueRunner:
 
     def _run_guarded(self, job_id: str) -> None:
         # Whatever goes wrong inside a job ends that job, never the worker thread or server.
+        claimed = False
         try:
-            self._run(job_id)
+            claimed = self._run(job_id)
         except Exception as exc:
+            claimed = True  # runs raise after their claim (claim first, then work)
             log.exception("job %s failed", job_id)
             self.store.finish(job_id, FAILED, error=failure_message(exc))
         finally:
-            with self._lock:
-                self._lost.discard(job_id)
-            self._ended(job_id)
+            if claimed:
+                with self._lock:
+                    self._lost.discard(job_id)
+                self._ended(job_id)
 
     # -- leases -------------------------------------------------------------------------------
 

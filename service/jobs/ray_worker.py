@@ -211,9 +211,10 @@ class RayJobWorker:
 
     # -- running a job --------------------------------------------------------------------------
 
-    def _run(self, job_id: str) -> None:
+    def _run(self, job_id: str) -> bool:
+        """Claim the job and drive it; False if it was not ours to run (see QueueRunner)."""
         if self._stopping.is_set() or not self.store.claim(job_id):
-            return
+            return False
         with self._lock:
             self._groups[job_id] = []  # live from the claim on: a delete waits until it ends
         try:
@@ -221,6 +222,7 @@ class RayJobWorker:
         finally:
             with self._lock:
                 self._groups.pop(job_id, None)
+        return True
 
     def _run_attempts(self, job_id: str, cancel: threading.Event) -> None:
         restarts = 0

@@ -126,9 +126,10 @@ class JobWorker:
 
     # -- running a job ------------------------------------------------------------------------
 
-    def _run(self, job_id: str) -> None:
+    def _run(self, job_id: str) -> bool:
+        """Claim the job and run it; False if it was not ours to run (see QueueRunner)."""
         if self._stopping.is_set() or not self.store.claim(job_id):
-            return  # canceled while queued, or the server is going down
+            return False  # canceled while queued, claimed by another thread, or the server is going down
         record = require(self.store, job_id)
         files = self.files(job_id)
         checkpoint = files.checkpoint  # this job's one instance: its background writes go through it
@@ -142,6 +143,7 @@ class JobWorker:
             checkpoint.close()  # a write still running (the render failed) lands before the job is marked
             with self._lock:
                 self._checkpoints.pop(job_id, None)
+        return True
 
     def _render(self, job_id: str, record: JobRecord, loop: RenderLoop, files: JobFiles,
                 checkpoint: JobCheckpoint) -> None:
