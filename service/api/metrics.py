@@ -2,7 +2,7 @@
 
 Each app owns its CollectorRegistry (never prometheus-client's global one), so two apps in one
 process — tests, a benchmark beside a server — count separately. The worker reports
-iterations and λ edits through its observer hook (service.jobs.worker.WorkerObserver); the
+iterations and λ edits through its observer hook (service.jobs.runner.WorkerObserver); the
 job-state gauge is read from the store at scrape time, so it is right after a restart too.
 """
 from __future__ import annotations
