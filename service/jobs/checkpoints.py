@@ -58,11 +58,6 @@ class JobCheckpoint:
 
     # -- writing --------------------------------------------------------------------------------
 
-    def save(self, state: LoopState) -> None:
-        """Save now, on the caller's thread."""
-        state.save(self.directory)
-        self._landed(state.iteration)
-
     def snapshot(self, state: LoopState) -> LoopState:
         """A copy of `state` for `write_in_background`, made after the previous write landed
         (one copy in memory at a time, into that write's arrays). A failed earlier write is
