@@ -75,8 +75,10 @@ def raw_weight(denoised_error: np.ndarray, raw_error: np.ndarray, raw_variance: 
 
 def compose_final(denoised: np.ndarray, raw: np.ndarray, raw_variance: np.ndarray, predicted_error: np.ndarray,
                   exposure: float) -> np.ndarray:
-    """(H, W, 3) final image from the denoised image, the raw image, its variance of the mean and
-    the error network's (H, W) map of the denoised image; `exposure`: the networks' scale of the
-    frame's samples (models.exposure.Exposure.scale)."""
+    """(H, W, 3) final image (≥ 0) from the denoised image, the raw image, its variance of the mean
+    and the error network's (H, W) map of the denoised image; `exposure`: the networks' scale of
+    the frame's samples (models.exposure.Exposure.scale)."""
     alpha = raw_weight(predicted_error, raw_expected_error(raw, raw_variance, exposure), raw_variance)[..., None]
-    return ((1.0 - alpha) * denoised + alpha * raw).astype(np.float32)
+    alpha = np.where(np.isfinite(alpha), alpha, 0.0)  # an unreadable error estimate keeps the denoised pixel
+    # ≥ 0 as the denoised image is: a Mitchell film's negative lobes can make a raw pixel negative
+    return np.maximum((1.0 - alpha) * denoised + alpha * raw, 0.0).astype(np.float32)

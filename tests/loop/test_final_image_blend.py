@@ -43,6 +43,13 @@ def test_a_pixel_without_raw_variance_keeps_the_denoised_image() -> None:
     np.testing.assert_array_equal(out, denoised)
 
 
+def test_a_negative_raw_pixel_never_makes_the_final_image_negative() -> None:
+    # a Mitchell film's negative lobes can make a splatted pixel negative; the product stays ≥ 0
+    denoised, raw = np.full((H, W, 3), 0.01, np.float32), np.full((H, W, 3), -0.02, np.float32)
+    out = compose_final(denoised, raw, np.full((H, W, 3), 1e-10), np.full((H, W), 0.5), exposure=1.0)
+    assert out.min() >= 0 and np.isfinite(out).all()
+
+
 def test_the_raw_error_is_smapes_expected_value_for_normal_noise_at_the_networks_exposure() -> None:
     rng = np.random.default_rng(0)
     truth, sigma, exposure = 0.3, 0.02, 4.0
