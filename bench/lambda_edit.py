@@ -11,8 +11,8 @@ OIDN made for them. Three λ inputs, timed round by round so the machine's load 
   the fold (1 + rank GEMMs per level, LambdaModule);
 - a rectangle over the left half at λ = 8: a painted region (the per-pixel path).
 
-The HTTP figure is `bench.server.bench_http_lambda`: a `renderloop serve` app (uvicorn, the thread
-backend) in a subprocess, one finished 16-spp iteration of cornell-box at the same size, then PUTs
+The HTTP figure is `bench.server.bench_http_lambda`: a `renderloop serve` app (uvicorn) in a
+subprocess, on each of HTTP_BACKENDS, one finished 16-spp iteration of cornell-box at the same size, then PUTs
 alternating a global value and a rectangle; it includes routing, the job store, the λ tail and
 writing the new preview.
 """
@@ -30,11 +30,16 @@ from bench.common import pinned_torch_threads
 from bench.server import bench_http_lambda
 from models.denoiser import Denoiser
 from models.frames import FrameTensors
+from service.api.serve import CONCURRENCY_ENV
 from service.loop.oidn import candidate_for
 from service.loop.tensors import to_image
 
 LAMBDA_EDIT_SIZE = (1920, 1080)   # width, height: 1080p, the issue's ~2 MP
 HTTP_SEED = 0
+# The server's job backends: the default (a local Ray runtime, one worker per core) and the
+# thread backend (`renderloop serve --concurrency 1`), where the λ edit skips the actor hop.
+HTTP_BACKENDS = ("ray", "thread")
+BACKEND_LABELS = {"ray": "its default Ray backend", "thread": "the thread backend (`--concurrency 1`)"}
 NUDGE = 1e-3                      # keeps a uniform map on the per-pixel path
 
 
@@ -44,7 +49,7 @@ class LambdaEditTiming:
     height: int
     threads: int
     ms: dict[str, list[float]]                 # case → wall ms of each repeat
-    http: dict | str | None = None             # bench_http_lambda's row, or why it failed
+    http: dict[str, dict | str] = field(default_factory=dict)  # backend → bench_http_lambda's row, or why it failed
     load_avg: list[float] = field(default_factory=list)
 
     @property
@@ -91,13 +96,26 @@ def measure_lambda_edit(denoiser: Denoiser, weights_dir: Path | None, size: tupl
     width, height = size
     timing = LambdaEditTiming(width, height, threads, time_lambda_tail(denoiser.eval(), width, height, repeats, threads))
     timing.load_avg.append(os.getloadavg()[0])
-    if weights_dir is not None:
-        try:
-            timing.http = bench_http_lambda(width, http_requests, weights_dir, HTTP_SEED, threads, height=height)
-        except Exception as exc:  # the report says what failed instead of losing the table
-            timing.http = f"{type(exc).__name__}: {exc}"
+    for backend in HTTP_BACKENDS if weights_dir is not None else ():
+        timing.http[backend] = _http_round_trip(backend, width, height, http_requests, weights_dir, threads)
         timing.load_avg.append(os.getloadavg()[0])
     return timing
+
+
+def _http_round_trip(backend: str, width: int, height: int, requests: int, weights_dir: Path, threads: int) -> dict | str:
+    """bench_http_lambda on `backend`: the server subprocess inherits this process's environment,
+    where CONCURRENCY_ENV picks the thread backend (`renderloop serve --concurrency 1`)."""
+    previous = os.environ.pop(CONCURRENCY_ENV, None)
+    if backend == "thread":
+        os.environ[CONCURRENCY_ENV] = "1"
+    try:
+        return bench_http_lambda(width, requests, weights_dir, HTTP_SEED, threads, height=height)
+    except Exception as exc:  # the report says what failed instead of losing the table
+        return f"{type(exc).__name__}: {exc}"
+    finally:
+        os.environ.pop(CONCURRENCY_ENV, None)
+        if previous is not None:
+            os.environ[CONCURRENCY_ENV] = previous
 
 
 def lambda_edit_section(timing: LambdaEditTiming | None) -> str:
@@ -111,13 +129,13 @@ def lambda_edit_section(timing: LambdaEditTiming | None) -> str:
              "shipped network, random inputs (bench/lambda_edit.py says how), the cases interleaved round by round. "
              f"Load average when it finished: {', '.join(f'{x:.1f}' for x in timing.load_avg)}.", "",
              "| λ input | median wall ms | min | max | repeats |", "|---|---|---|---|---|", rows, ""]
-    http = timing.http
-    if isinstance(http, dict):
-        lines.append(f"`PUT /jobs/{{id}}/lambda` over HTTP on a finished {http['size']}×{http['height']} cornell-box job "
-                     f"(one 16-spp iteration, a real `renderloop serve` app): p50 {http['p50_ms']:.0f} ms, "
-                     f"p95 {http['p95_ms']:.0f} ms, max {http['max_ms']:.0f} ms over {http['requests']} requests "
-                     f"(global value and rectangle alternating; {http['tail_passes']} tail passes, "
-                     f"{http['full_passes']} full passes).")
-    elif http is not None:
-        lines.append(f"`PUT /jobs/{{id}}/lambda` over HTTP: not measured ({http}).")
+    for backend, http in timing.http.items():
+        server = f"a real `renderloop serve` app, {BACKEND_LABELS[backend]}"
+        if isinstance(http, dict):
+            lines.append(f"- `PUT /jobs/{{id}}/lambda` over HTTP on a finished {http['size']}×{http['height']} cornell-box "
+                         f"job (one 16-spp iteration; {server}): p50 {http['p50_ms']:.0f} ms, p95 {http['p95_ms']:.0f} ms, "
+                         f"max {http['max_ms']:.0f} ms over {http['requests']} requests (global value and rectangle "
+                         f"alternating; {http['tail_passes']} tail passes, {http['full_passes']} full passes).")
+        else:
+            lines.append(f"- `PUT /jobs/{{id}}/lambda` over HTTP ({server}): not measured: {http}")
     return "\n".join(lines) + "\n"

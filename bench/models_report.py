@@ -216,7 +216,7 @@ def _lambda_edit(args: argparse.Namespace, config: DenoiserConfig) -> LambdaEdit
     checkpoint = args.config_from
     denoiser = load_checkpoint(checkpoint, expected_kind=Denoiser.kind) if checkpoint else Denoiser(config)
     folder = None if args.no_http or checkpoint is None else checkpoint.parent
-    edit = measure_lambda_edit(denoiser, folder, tuple(args.lambda_edit_size), max(args.repeats, 3), args.threads)
+    edit = measure_lambda_edit(denoiser, folder, tuple(args.lambda_edit_size), max(args.repeats, 7), args.threads)
     print(lambda_edit_section(edit))
     return edit
 
