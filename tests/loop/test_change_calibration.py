@@ -70,13 +70,15 @@ def make_loop(networks: Networks, **overrides) -> RenderLoop:
 
 
 def test_the_first_iteration_reports_the_network_and_later_ones_the_change_calibrated_mean(calibrated_networks):
-    # the change is measured at the exposure of the samples then (models.exposure): keep each mean
-    runs = [(r, r.buffers[0].mean.copy()) for r in make_loop(calibrated_networks).run()]
-    records = [r for r, _ in runs]
+    # the change is measured at the exposure of the samples then (models.exposure): keep each mean,
+    # and between the denoiser's own images (the records carry the final ones, service.loop.final_image)
+    loop = make_loop(calibrated_networks)
+    runs = [(r, r.buffers[0].mean.copy(), loop.denoised_only()[0].copy()) for r in loop.run()]
+    records = [r for r, _, _ in runs]
     first, *later = records
     assert first.predicted_error == pytest.approx(first.network_error)  # nothing to compare with yet
-    for before, (record, samples) in zip(records, runs[1:]):
-        change = exposed_change(before.denoised[0], record.denoised[0], samples)
+    for (_, _, before), (record, samples, denoised) in zip(runs, runs[1:]):
+        change = exposed_change(before, denoised, samples)
         assert change > 0
         assert record.predicted_error == pytest.approx(calibrated_mean(record.network_error, change, SCALE), rel=1e-4)
         assert record.predicted_error != pytest.approx(record.network_error, rel=1e-3)
@@ -102,9 +104,10 @@ def test_a_lambda_edit_between_iterations_still_compares_images_made_with_one_la
     run = loop.run()
     next(run)
     lam = np.full((SIZE, SIZE), 4.0, np.float32)
-    before = loop.set_lambda(lam)[0].copy()  # the first iteration's image, now at λ = 4
+    loop.set_lambda(lam)
+    before = loop.denoised_only()[0].copy()  # the first iteration's denoised image, now at λ = 4
     second = next(run)
-    change = exposed_change(before, second.denoised[0], second.buffers[0].mean)
+    change = exposed_change(before, loop.denoised_only()[0], second.buffers[0].mean)
     assert second.predicted_error == pytest.approx(calibrated_mean(second.network_error, change, SCALE), rel=1e-4)
 
 
@@ -114,11 +117,13 @@ def test_a_resumed_loop_reports_the_network_until_it_has_an_image_of_its_own(cal
     next(run)
     first.state.save(tmp_path / "state")
     resumed = RenderLoop(first.spec, calibrated_networks, state=LoopState.load(tmp_path / "state"))
-    second, third = list(resumed.run())
+    resumed_run = resumed.run()
+    second = next(resumed_run)
+    second_denoised = resumed.denoised_only()[0].copy()  # the denoiser's own images are what the change compares
+    third = next(resumed_run)
     assert second.predicted_error == pytest.approx(second.network_error)
-    assert third.predicted_error == pytest.approx(
-        calibrated_mean(third.network_error, exposed_change(second.denoised[0], third.denoised[0], third.buffers[0].mean),
-                        SCALE), rel=1e-4)
+    change = exposed_change(second_denoised, resumed.denoised_only()[0], third.buffers[0].mean)
+    assert third.predicted_error == pytest.approx(calibrated_mean(third.network_error, change, SCALE), rel=1e-4)
 
 
 def test_the_calibration_changes_the_reported_error_never_where_samples_go(calibrated_networks):
@@ -139,12 +144,14 @@ def test_the_calibration_changes_the_reported_error_never_where_samples_go(calib
 def test_a_job_with_a_target_error_splits_its_first_iteration_and_calibrates_that_mean_too(calibrated_networks):
     """Iteration 0 renders spp_first/2 twice (the first half is pass 0, as a loop of spp_first/2
     renders it) and measures the change between the halves' denoised images."""
-    half = next(make_loop(calibrated_networks, spp_first=8, max_iterations=1).run())
+    half_loop = make_loop(calibrated_networks, spp_first=8, max_iterations=1)
+    next(half_loop.run())
+    half = half_loop.denoised_only()[0]  # the denoiser's own images are what the change compares
     loop = make_loop(calibrated_networks, spp_first=16, max_iterations=1, target_error=1e-9)
     first = next(loop.run())
     assert first.spp_mean == 16 and loop.state.buffers[0].passes == 2
     assert loop.session.full_calls == 2  # the half, then the whole
-    change = exposed_change(half.denoised[0], first.denoised[0], first.buffers[0].mean)
+    change = exposed_change(half, loop.denoised_only()[0], first.buffers[0].mean)
     assert first.predicted_error == pytest.approx(calibrated_mean(first.network_error, change, SCALE), rel=1e-4)
 
 
