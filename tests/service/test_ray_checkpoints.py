@@ -19,8 +19,8 @@ import_component("ray")
 
 from service.jobs.artifacts import JobFiles  # noqa: E402  (after the check: these import Ray's backend)
 from service.jobs.ray_worker import RayJobWorker, RaySettings, start_local_ray  # noqa: E402
-from service.jobs.store import COMPLETED, FAILED, JobRecord, JobStore  # noqa: E402
-from service.loop.spec import LoopSpec  # noqa: E402
+from service.jobs.store import COMPLETED, FAILED  # noqa: E402
+from worker_jobs import run_tiny_job, store  # noqa: E402, F401  (store: a fixture)
 
 PROBE = Path(__file__).parent / "ray_probe"
 SLOW_SAVE_SECONDS = 2.0  # far longer than a 16² iteration takes, even on a loaded host
@@ -51,13 +51,6 @@ def probe(probe_dir):
 
 
 @pytest.fixture
-def store(tmp_path):
-    s = JobStore(tmp_path / "data")
-    yield s
-    s.close()
-
-
-@pytest.fixture
 def worker(probe_dir, store, tiny_networks):
     w = RayJobWorker(store, tiny_networks, RaySettings(workers=1))
     w.start()
@@ -76,19 +69,6 @@ def events(probe: Path, what: str) -> dict[int, float]:
     return times
 
 
-def run_job(store: JobStore, worker: RayJobWorker, iterations: int, timeout: float = 180.0) -> JobRecord:
-    spec = LoopSpec(scene="cornell-box", width=16, height=16, spp_first=4, max_iterations=iterations)
-    job_id = store.create(spec.to_stored(), spec.lam).id
-    worker.submit(job_id)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        record = store.get(job_id)
-        if record.finished:
-            return record
-        time.sleep(0.05)
-    raise AssertionError(f"job did not finish within {timeout} s: {store.get(job_id)}")
-
-
 def test_the_leader_renders_the_next_iteration_while_its_checkpoint_is_written_and_the_record_follows_it(
         monkeypatch, probe, store, worker):
     (probe / "save_mode").write_text(f"slow {SLOW_SAVE_SECONDS}")
@@ -101,7 +81,7 @@ def test_the_leader_renders_the_next_iteration_while_its_checkpoint_is_written_a
         return record_iteration(job_id, iteration, *args, **kwargs)
 
     monkeypatch.setattr(store, "record_iteration", checked_record)
-    done = run_job(store, worker, iterations=3)
+    done = run_tiny_job(store, worker, iterations=3)
     assert (done.state, done.iteration) == (COMPLETED, 3), done
     save_end, render_start = events(probe, "save_end"), events(probe, "render_start")
     assert sorted(save_end) == [1, 2, 3]
@@ -118,7 +98,7 @@ def test_the_leader_renders_the_next_iteration_while_its_checkpoint_is_written_a
 def test_a_failed_checkpoint_save_in_the_leader_fails_the_job_with_the_saves_message(probe, store, worker,
                                                                                      iterations):
     (probe / "save_mode").write_text("fail")
-    done = run_job(store, worker, iterations=iterations)
+    done = run_tiny_job(store, worker, iterations=iterations)
     assert done.state == FAILED, done
     assert "No space left on device" in (done.error or ""), done.error
     assert done.iteration == 0  # no record claims an iteration whose checkpoint was never written
