@@ -73,12 +73,22 @@ def raw_weight(denoised_error: np.ndarray, raw_error: np.ndarray, raw_variance: 
     return np.where((raw_variance.sum(axis=-1) > 0) & (d > 0), alpha, 0.0)
 
 
+def raw_share(raw: np.ndarray, raw_variance: np.ndarray, predicted_error: np.ndarray, exposure: float) -> np.ndarray:
+    """(H, W, 1) α, the raw image's share of the final image, from the raw image, its variance of
+    the mean and the error network's (H, W) map of the denoised image; `exposure`: the networks'
+    scale of the frame's samples (models.exposure.Exposure.scale). It does not depend on λ (the
+    error map is predicted once per iteration), so a λ edit reuses it and pays only `blend`."""
+    alpha = raw_weight(predicted_error, raw_expected_error(raw, raw_variance, exposure), raw_variance)[..., None]
+    return np.where(np.isfinite(alpha), alpha, 0.0).astype(np.float32)  # an unreadable estimate keeps the denoised pixel
+
+
+def blend(denoised: np.ndarray, raw: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """(H, W, 3) final image (≥ 0): (1 − α)·d + α·r."""
+    # ≥ 0 as the denoised image is: a Mitchell film's negative lobes can make a raw pixel negative
+    return np.maximum(denoised + alpha * (raw - denoised), 0.0).astype(np.float32)
+
+
 def compose_final(denoised: np.ndarray, raw: np.ndarray, raw_variance: np.ndarray, predicted_error: np.ndarray,
                   exposure: float) -> np.ndarray:
-    """(H, W, 3) final image (≥ 0) from the denoised image, the raw image, its variance of the mean
-    and the error network's (H, W) map of the denoised image; `exposure`: the networks' scale of
-    the frame's samples (models.exposure.Exposure.scale)."""
-    alpha = raw_weight(predicted_error, raw_expected_error(raw, raw_variance, exposure), raw_variance)[..., None]
-    alpha = np.where(np.isfinite(alpha), alpha, 0.0)  # an unreadable error estimate keeps the denoised pixel
-    # ≥ 0 as the denoised image is: a Mitchell film's negative lobes can make a raw pixel negative
-    return np.maximum((1.0 - alpha) * denoised + alpha * raw, 0.0).astype(np.float32)
+    """(H, W, 3) final image from the denoised image and the raw image (`raw_share`, `blend`)."""
+    return blend(denoised, raw, raw_share(raw, raw_variance, predicted_error, exposure))

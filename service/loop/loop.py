@@ -20,7 +20,7 @@ from service.exr import ExrFrame, result_frame
 from service.loop.allocate import allocate_samples, allocation_weights, exposed_relative_variance, iteration_budget
 from service.loop.change_calibration import calibrate_by_change, image_change
 from service.loop.denoise_session import DenoiseSession
-from service.loop.final_image import compose_final
+from service.loop.final_image import blend, raw_share
 from service.loop.tensors import nchw, to_image as to_hwc
 from service.loop.spec import IterationRecord, LoopSpec, LoopSpecError, lambda_problem, validate_spec
 from service.loop.state import LoopState
@@ -112,6 +112,9 @@ class RenderLoop:
         self._denoised: list[np.ndarray | None] = [None] * spec.frames
         # the final images (`final_image`): `_denoised` falling back towards the raw image; None: not composed yet
         self._final: list[np.ndarray] | None = None
+        # per frame, the raw image's share of the final image (final_image.raw_share); it depends on
+        # the samples and the error map, not on λ, so a λ edit keeps it. None: not computed yet
+        self._raw_share: list[np.ndarray | None] = [None] * spec.frames
         self._denoised_lam: np.ndarray | None = None  # the λ map `_denoised` was made with
         self._denoised_samples: list[int | None] = [None] * spec.frames  # the frame's sample total behind it
         # per frame, how far its denoised image moved since the previous iteration (None: unknown),
@@ -167,14 +170,14 @@ class RenderLoop:
         with self.lock:
             for f, buffer in buffers.items():
                 self.state.buffers[f] = buffer
-            self._final = None
+            self._forget_final()
 
     def adopt_denoised(self, frames: dict[int, tuple[np.ndarray, np.ndarray | None, np.ndarray]]) -> None:
         """Frames denoised elsewhere this iteration: (denoised image, predicted error, converged mask)."""
         with self.lock:
             for f, (image, error, converged) in frames.items():
                 self._denoised[f], self.state.error_maps[f], self._converged[f] = image, error, converged
-            self._final = None
+            self._forget_final()
 
     def owned_outputs(self) -> dict[int, tuple[np.ndarray, np.ndarray | None, np.ndarray]]:
         """This loop's frames as `adopt_denoised` takes them."""
@@ -257,7 +260,7 @@ class RenderLoop:
         """Denoise the owned frames and predict their error (their temporal windows read the
         neighbours' buffers of this iteration, adopted beforehand when not owned)."""
         timings["denoise"] = timings["error"] = 0.0
-        self._final = None
+        self._forget_final()
         if self.session is None:
             with self.lock:
                 for f in self.owned:
@@ -302,7 +305,7 @@ class RenderLoop:
                 self._change[f] = None
             # (the same samples again: a repeated pass keeps the change it measured first)
             self.state.error_maps[f] = calibrate_by_change(self.state.error_maps[f], self._change[f], scale)
-        self._final = None
+        self._forget_final()
 
     def _denoise_first_half(self, buffers: list[FrameBuffer], lam_map: np.ndarray) -> None:
         """Denoise the first half of a split iteration 0 and keep it as the image the full one's
@@ -363,14 +366,21 @@ class RenderLoop:
         with self.lock:
             return list(self._denoised)
 
+    def _forget_final(self) -> None:
+        """The samples or the error maps changed: the final images and the raw image's shares go."""
+        self._final = None
+        self._raw_share = [None] * len(self._raw_share)
+
     def _compose_final(self, f: int) -> np.ndarray | None:
         """Frame f's final image; the denoised one as it is without an error map (or without
         denoising: then `_denoised` is the raw image already)."""
         image, error, buffer = self._denoised[f], self.state.error_maps[f], self.state.buffers[f]
         if self.session is None or image is None or error is None:
             return image
-        exposure = float(Exposure.of(nchw(buffer.mean)).scale.flatten()[0])
-        return compose_final(image, buffer.raw, buffer.raw_variance, error, exposure)
+        if self._raw_share[f] is None:
+            exposure = float(Exposure.of(nchw(buffer.mean)).scale.flatten()[0])
+            self._raw_share[f] = raw_share(buffer.raw, buffer.raw_variance, error, exposure)
+        return blend(image, buffer.raw, self._raw_share[f])
 
     def _record(self, timings: dict, images: bool = True) -> IterationRecord:
         state = self.state

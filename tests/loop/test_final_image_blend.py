@@ -119,3 +119,26 @@ def test_on_low_noise_detail_the_final_image_falls_back_towards_the_better_raw_i
     assert smape(raw, reference) < smape(denoised, reference)  # the case under test
     assert smape(final, reference) < smape(denoised, reference)
     assert smape(final, reference) < 1.25 * smape(raw, reference)
+
+
+def test_a_lambda_edit_reuses_the_raw_share_and_blends_the_new_denoised_image(detail_run, monkeypatch) -> None:
+    # The raw image's share depends on the samples and the error map, not on λ: a λ edit at 2 MP
+    # must not pay the share's window means again (≈ 0.8 s), only the blend.
+    import service.loop.loop as loop_module
+
+    loop, _, _ = detail_run
+    buffer = loop.state.buffers[0]
+    loop.denoised()  # the share is computed here, with the current λ
+    calls = []
+    monkeypatch.setattr(loop_module, "raw_share", lambda *a, **k: calls.append(a) or pytest.fail("share recomputed"))
+    original = loop.state.lam_map.copy()
+    try:
+        final = loop.set_lambda(np.full_like(original, 4.0))[0]
+        exposure = float(Exposure.of(nchw(buffer.mean)).scale.flatten()[0])
+        expected = compose_final(loop.denoised_only()[0], buffer.raw, buffer.raw_variance, loop.state.error_maps[0],
+                                 exposure)
+        np.testing.assert_allclose(final, expected, rtol=1e-6, atol=1e-7)
+        assert not calls
+    finally:
+        monkeypatch.undo()
+        loop.set_lambda(original)
