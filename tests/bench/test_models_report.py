@@ -2,6 +2,7 @@ import pytest
 import torch
 
 from bench.lambda_edit import lambda_edit_section, lambda_maps, measure_lambda_edit
+from bench.lambda_edit_ab import main as lambda_edit_ab
 from bench.models_report import benchmark_models, denoise_ms_by_threads, main
 from models.denoiser import Denoiser, DenoiserConfig
 from models.pretrained import SHIPPED_WEIGHTS_DIR, load_denoiser
@@ -71,3 +72,10 @@ def test_the_lambda_edit_reports_the_http_round_trip_against_a_real_server():
         assert http["tail_passes"] >= 2 and http["full_passes"] == 0
     section = lambda_edit_section(timing)
     assert section.count("`PUT /jobs/{id}/lambda` over HTTP on a finished 48×32") == 2 and "thread backend" in section
+
+
+@pytest.mark.slow
+def test_the_before_after_script_times_both_trees_in_alternating_processes():
+    results = lambda_edit_ab(["--before", "HEAD", "--size", "64", "48", "--rounds", "1", "--repeats", "1", "--threads", "1"])
+    assert set(results) == {"before", "after"}
+    assert all(len(ms) == 1 and ms[0] > 0 for cases in results.values() for ms in cases.values())

@@ -1,0 +1,109 @@
+"""The λ tail of two trees side by side (issue 43): an earlier commit's and this working tree's,
+on the same 2 MP input, in alternating fresh processes so the host's load hits both alike.
+
+    python -m bench.lambda_edit_ab --before COMMIT [--image RENDER.exr | --size W H] [--rounds 3] [--repeats 5] [--threads 2]
+
+`--before` is git-archived into a temporary folder; each round runs one process per tree, which
+loads the shipped weights of THIS tree (the same network on both sides), builds the cache from
+`--image` (a `renderloop render --no-denoise` EXR with its albedo/normal layers; default random
+1920×1080 inputs) and the OIDN candidate, then times `to_image(Denoiser.apply(cache, λ))` —
+`repeats` times after a warm-up — for a uniform λ map (a global edit as the service sends it)
+and a painted rectangle over the middle third. Printed: each round's medians, then per tree and
+case the median of the rounds' medians and their spread (min–max).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+CASES = ("uniform map", "rectangle map")
+
+
+def worker(root: str, image: str, threads: int, repeats: int, size: tuple[int, int] = (1920, 1080)) -> dict[str, float]:
+    """In a fresh process: median wall ms of each case with `root`'s models/ and service/."""
+    sys.path.insert(0, root)   # the tree under test, before anything imports models or service
+    import time
+
+    import torch
+
+    from models.checkpoint import load_checkpoint
+    from models.frames import FrameTensors
+    from service.loop.oidn import candidate_for
+    from service.loop.tensors import to_image
+
+    torch.set_num_threads(threads)
+    if image:
+        from service.exr import read_exr
+        from service.exr_denoise import frame_from_exr
+        frame = frame_from_exr(Path(image), read_exr(image))
+    else:
+        gen = torch.Generator().manual_seed(0)
+        r = lambda c: torch.rand(1, c, size[1], size[0], generator=gen)
+        frame = FrameTensors(color=r(3) * 4, variance=r(3), albedo=r(3), normal=r(3) * 2 - 1, depth=r(1))
+    denoiser = load_checkpoint(REPO / "models" / "weights" / "denoiser.pt").eval()
+    height, width = frame.color.shape[-2:]
+    rectangle = torch.ones(1, 1, height, width)
+    rectangle[..., height // 3: 2 * height // 3, width // 3: 2 * width // 3] = 6.0
+    maps = dict(zip(CASES, (torch.full((1, 1, height, width), 4.0), rectangle)))
+    medians = {}
+    with torch.inference_mode():
+        cache = denoiser.prepare([frame], 0, candidate_for(denoiser, frame))
+        for name, lam in maps.items():
+            to_image(denoiser.apply(cache, lam))
+            times = []
+            for _ in range(repeats):
+                started = time.perf_counter()
+                to_image(denoiser.apply(cache, lam))
+                times.append(1e3 * (time.perf_counter() - started))
+            medians[name] = statistics.median(times)
+    return medians
+
+
+def run_tree(root: Path, image: Path | None, threads: int, repeats: int, size: tuple[int, int]) -> dict[str, float]:
+    command = [sys.executable, str(Path(__file__).resolve()), "--worker", str(root), str(image or ""),
+               str(threads), str(repeats), *map(str, size)]
+    out = subprocess.run(command, check=True, capture_output=True, text=True, cwd=root).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> dict[str, dict[str, list[float]]]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--before", required=True, help="the earlier commit")
+    parser.add_argument("--image", type=Path, default=None)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--size", type=int, nargs=2, default=(1920, 1080), metavar=("W", "H"),
+                        help="the random inputs' size without --image")
+    args = parser.parse_args(argv)
+    image = args.image.resolve() if args.image else None
+    results: dict[str, dict[str, list[float]]] = {"before": {c: [] for c in CASES}, "after": {c: [] for c in CASES}}
+    with tempfile.TemporaryDirectory(prefix="lambda-ab-") as folder:
+        archive = subprocess.run(["git", "-C", str(REPO), "archive", args.before], check=True, capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", folder], input=archive, check=True)
+        for round_ in range(args.rounds):
+            for label, root in (("before", Path(folder)), ("after", REPO)):
+                medians = run_tree(root, image, args.threads, args.repeats, tuple(args.size))
+                for case, ms in medians.items():
+                    results[label][case].append(ms)
+                print(f"round {round_ + 1} {label}: " + ", ".join(f"{c} {ms:.0f} ms" for c, ms in medians.items()),
+                      flush=True)
+    for label, cases in results.items():
+        for case, ms in cases.items():
+            print(f"{label} ({args.before if label == 'before' else 'working tree'}) {case}: median of rounds "
+                  f"{statistics.median(ms):.0f} ms, spread {min(ms):.0f}–{max(ms):.0f} ms")
+    return results
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["--worker"]:
+        root, image, threads, repeats, width, height = sys.argv[2:8]
+        print(json.dumps(worker(root, image, int(threads), int(repeats), (int(width), int(height)))))
+    else:
+        main()
