@@ -115,3 +115,16 @@ def test_the_in_place_inference_tail_is_the_autograd_tail(lam):
     with torch.enable_grad():
         as_written = den.apply(cache, lam).detach()
     assert relative_difference(in_place, as_written) <= 1e-5
+
+
+def test_the_lambda_modules_per_pixel_logits_are_its_plain_definition():
+    """logits(p) = (W₀ + Σᵣ (sᵣ(λ_p) − sᵣ(1))·ΔWᵣ)·h(p), pixel by pixel (LambdaModule's docstring)."""
+    module = shipped_shape_with_random_weights().specialise
+    hidden = torch.rand(2, 1, 17, 5, 6)
+    hidden[:, :, -1] = 1.0
+    code = torch.rand(2, 1, 5, 6)
+    with torch.no_grad():
+        s = (module.mix(code) - module.mix(torch.zeros(1, 1, 1, 1))).permute(0, 2, 3, 1)     # (N,H,W,rank)
+        weight = module.base + torch.einsum("nhwr,rkc->nhwkc", s, module.delta)             # per pixel
+        plain = torch.einsum("nhwkc,nchw->nkhw", weight, hidden[:, 0])
+        torch.testing.assert_close(module(hidden, code), plain, rtol=1e-5, atol=1e-5)
