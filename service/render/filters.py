@@ -137,10 +137,12 @@ class PixelFilter:
         weight = self.rfilter.eval(offset) * self.bin_width * ratio / dr.maximum(mass, 1e-20)
         return offset, dr.select(dr.abs(offset) <= self.radius, weight, 0.0)
 
-    def sample(self, sampler, column, row):
-        """(film position in pixels, weight) for lanes at integer pixel (column, row)."""
+    def sample(self, sampler, column, row, u=None):
+        """(film position in pixels, weight) for lanes at integer pixel (column, row). `u`: the
+        lanes' 2D uniforms when they come stratified (stratified_sequence.py), else drawn from
+        `sampler`; the warp below is the same either way, so the weights stay exact."""
         mi = self.mi
-        u = sampler.next_2d()
+        u = sampler.next_2d() if u is None else u
         if self.uniform:
             return mi.Vector2f(mi.Float(column), mi.Float(row)) + u, None
         if self.tent:

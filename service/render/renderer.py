@@ -23,6 +23,7 @@ from service.render.object_motion import ShapeMotion, previous_position
 from service.render.runtime import mitsuba
 from service.render.scenes import SceneError
 from service.render.splat import FilmSplat
+from service.render.stratified_sequence import film_bits, is_stratifying, lens_bits, unit_point
 
 # 2^22 lanes ≈ a few hundred MB of Dr.Jit state on the LLVM backend: a 1024² × 64 spp pass
 # (67 M samples) runs in 16 chunks instead of one 10+ GB wavefront.
@@ -48,6 +49,16 @@ def expand_counts(counts: np.ndarray) -> np.ndarray:
     if flat.size and flat.min() < 0:
         raise ValueError("sample counts must be >= 0")
     return np.repeat(np.arange(flat.size, dtype=np.uint32), flat)
+
+
+def sample_indices(prior: np.ndarray, counts: np.ndarray, pixels: np.ndarray, first_lane: int) -> np.ndarray:
+    """Each lane's sample number in its pixel over the whole job: the pixel's count before this
+    pass plus the lane's index within the pass. `pixels` are the lanes first_lane… of
+    expand_counts(counts) (ascending, so a pixel's lanes are consecutive)."""
+    flat = np.asarray(counts, dtype=np.int64).ravel()
+    pixel_first_lane = np.cumsum(flat) - flat
+    lane = first_lane + np.arange(len(pixels), dtype=np.int64)
+    return (np.asarray(prior, dtype=np.int64).ravel()[pixels] + lane - pixel_first_lane[pixels]).astype(np.uint32)
 
 
 def pass_seed(user_seed: int, pass_index: int, chunk_index: int) -> int:
@@ -77,6 +88,9 @@ class _Setup:
     shape_motion: ShapeMotion | None = None
     # The raw image's sums (splat.py); None for the box filter, whose splat is the pixel itself.
     splat: FilmSplat | None = None
+    # Set when the scene's sampler stratifies: the job's seed that scrambles each pixel's
+    # (0,2)-sequence of film and lens samples (stratified_sequence.py), the same in every pass.
+    sequence_seed: int | None = None
 
 
 def _first_hit_flags(mi):
@@ -87,28 +101,49 @@ def _first_hit_flags(mi):
     return mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame
 
 
-def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int) -> tuple[np.ndarray, int, int]:
+def _stratified_uniforms(mi, setup: _Setup, idx, sample_index: np.ndarray | None):
+    """The lanes' film and lens 2D uniforms from their pixels' scrambled (0,2)-sequences, or
+    (None, None) when the scene's sampler is `independent` (then both come from the sampler)."""
+    if sample_index is None or setup.sequence_seed is None:
+        return None, None
+    k = mi.UInt32(sample_index)
+    # Opaque: a literal seed would compile a new kernel for every job and frame.
+    seed = dr.opaque(mi.UInt32, setup.sequence_seed & 0xFFFFFFFF)
+    film = unit_point(mi, film_bits(k, seed, idx))
+    lens = unit_point(mi, lens_bits(k, seed, idx)) if setup.sensor.needs_aperture_sample() else None
+    return film, lens
+
+
+def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int,
+                 sample_index: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
     """Trace one chunk of lanes (flat pixel indices, ascending) and return the per-pixel sums of
     the pixels it covers, the first of them, and the number of non-finite samples. Columns:
     radiance RGB, radiance² RGB, albedo RGB, normal XYZ, depth (+ motion XY) (+ the integrator's
-    AOVs)."""
+    AOVs). `sample_index`: each lane's sample number in its pixel (sample_indices), given when
+    the film and lens samples are stratified."""
     n = len(pixels)
     sensor, scene = setup.sensor, setup.scene
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
     idx = mi.UInt32(pixels)
+    film_u, lens_u = _stratified_uniforms(mi, setup, idx, sample_index)
     # Film position in pixels of the crop window: the box filter's uniform in-pixel offset, or
     # an offset drawn from the film's filter with its weight (filters.py). The sensor's sample
     # space [0, 1]² spans the crop window (Mitsuba builds its projection from film size, crop
     # size and crop offset), so dividing by the crop size is what mi.render does too.
-    position, weight = setup.pixel_filter.sample(sampler, idx % setup.width, idx // setup.width)
+    # Stratified uniforms are warped by the same filter sampling, before it (its weights and the
+    # splat's density stay exact).
+    position, weight = setup.pixel_filter.sample(sampler, idx % setup.width, idx // setup.width, film_u)
     crop = mi.ScalarVector2f(sensor.film().crop_size())
 
     # Sample rays: same arguments as Mitsuba's own sample_rays (time, wavelength, film
     # position normalised to [0, 1]², aperture sample for thin-lens cameras).
     time = sensor.shutter_open() + sampler.next_1d() * sensor.shutter_open_time()
     wavelength_sample = sampler.next_1d()
-    aperture_sample = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+    if lens_u is not None:
+        aperture_sample = lens_u
+    else:
+        aperture_sample = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
     ray, ray_weight = sensor.sample_ray_differential(time, wavelength_sample, position / crop, aperture_sample)
     ray.scale_differential(float(setup.diff_scale))
 
@@ -272,11 +307,13 @@ def render_samples(
         direct=direct_settings(mi, integrator),
         shape_motion=prev_shapes if prev_sensor is not None else None,
         splat=None if pixel_filter.uniform or not total or not splat else FilmSplat(mi, pixel_filter, counts),
+        sequence_seed=seed if is_stratifying(sensor.sampler()) else None,
     )
     chunks = max(1, -(-total // max_wavefront))
     for chunk in range(chunks if total else 0):
         pixels = lanes[chunk * max_wavefront:(chunk + 1) * max_wavefront]
-        sums, first, nonfinite = _trace_chunk(mi, setup, pixels, pass_seed(seed, buffer.passes, chunk))
+        index = None if setup.sequence_seed is None else sample_indices(buffer.spp, counts, pixels, chunk * max_wavefront)
+        sums, first, nonfinite = _trace_chunk(mi, setup, pixels, pass_seed(seed, buffer.passes, chunk), index)
         if nonfinite:
             buffer.meta["nonfinite_samples"] = int(buffer.meta.get("nonfinite_samples", 0) + nonfinite)
         _add_sums(buffer, sums, first, prev_sensor is not None)

@@ -6,8 +6,10 @@ edits the renderer needs are made on the parsed description *before* any plugin 
 - resolution override: the film's width/height are rewritten in the parsed film node. Changing
   `film.size` through `mi.traverse` after loading resizes the film but leaves the camera's
   projection computed for the old aspect ratio, so rays no longer match the pixels.
-- sampler: always `independent`, because the renderer hands out a different sample count to
-  every pixel and stratified/low-discrepancy samplers assume one fixed spp.
+- sampler: `independent`, unless the scene declares a stratifying one (stratified, multijitter,
+  orthogonal, ldsampler), which is kept as written so the renderer can see its kind: the
+  renderer never draws from the scene's sampler, it stratifies film and lens samples itself
+  (stratified_sequence.py) because every pixel gets its own, growing sample count.
 - the declared integrator, sensor and film are checked here, before anything is built: the
   integrator runs as written (with all its parameters) unless it cannot be driven per pixel,
   and those are refused with one line (see `integrators.py`). Whether the scene declares an
@@ -37,6 +39,8 @@ MAX_PIXELS = 16_777_216
 # What hdrfilm uses when a sensor declares no film (or a film without a size).
 MITSUBA_DEFAULT_FILM = (768, 576)
 INDEPENDENT_SAMPLER_PROPS = ("sample_count", "seed")
+# Samplers whose kind the renderer honours (renderer.py, stratified_sequence.py): kept as declared.
+STRATIFYING_SAMPLER_PLUGINS = ("stratified", "multijitter", "orthogonal", "ldsampler")
 # A film's crop window is in pixels of the declared size; it is dropped when the size changes.
 CROP_PROPS = ("crop_offset_x", "crop_offset_y", "crop_width", "crop_height")
 FRAME_PARAMETER = "frame"
@@ -322,7 +326,8 @@ def _conform(mi, state, width: int | None, height: int | None, label: str) -> tu
         max_depth = int(nodes[top].props["max_depth"])
     for node in nodes:
         if node.type == mi.ObjectType.Sampler:
-            _make_independent(node.props)
+            if node.props.plugin_name() not in STRATIFYING_SAMPLER_PLUGINS:
+                _make_independent(node.props)
         elif node.type == mi.ObjectType.Film:
             _resize_film(node.props, width, height, label)
     if width is not None or height is not None:

@@ -97,14 +97,15 @@ def test_xml_with_relative_texture_loads_from_any_working_directory(tmp_path, wr
     assert str(mitsuba().file_resolver()) == before
 
 
-def test_xml_sampler_is_replaced_by_independent_keeping_its_count(write_scene_xml):
+def test_xml_stratified_sampler_is_kept_as_declared_with_its_count(write_scene_xml):
     sensor = """
       <sensor type="perspective">
         <sampler type="stratified"><integer name="sample_count" value="16"/><boolean name="jitter" value="false"/></sampler>
         <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
       </sensor>"""
     sampler = load_scene(write_scene_xml(SPHERE, sensor=sensor)).sensors()[0].sampler()
-    assert sampler.class_name() == "IndependentSampler"
+    # the renderer reads its kind (stratified_sequence.is_stratifying), never draws from it
+    assert sampler.class_name() == "StratifiedSampler"
     assert sampler.sample_count() == 16
 
 
