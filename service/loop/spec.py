@@ -53,11 +53,15 @@ class JobLimits:
 
 SERVICE_LIMITS = JobLimits()
 # What a job holds in memory: a fixed part (Python, Mitsuba, torch and one 2^22-lane wavefront
-# chunk: `renderloop bench --memory` measured 0.73 GB for a whole 1024² pass, 0.13 GB of it the
-# frame buffer) plus, per pixel and frame, the float64 sums (128 B), the denoiser's cached
-# features (~260 B at width 32 over the pyramid) and temporaries — rounded up to 1 KiB.
+# chunk: `renderloop bench --memory` measured 0.73 GB for a whole 1024² pass) plus, per pixel and
+# frame, the float64 sums of the per-pixel and the splatted estimates, the background checkpoint's
+# copy of them (service/jobs/checkpoints.py), the denoiser's cached features over the pyramid, the
+# error map, the final image's raw share and temporaries. Measured as the peak RSS growth of a
+# cornell-box RenderLoop, 2 iterations with a state snapshot each, shipped networks, 2 threads:
+# 0.59 GiB at 512², 2.07 GiB at 1024², 3.81 GiB at 1920×1080 — about 2 000 B per pixel
+# (tests/loop/test_job_memory.py re-measures at 1024²). 2 304 B leaves ~15 % headroom.
 BASE_JOB_BYTES = 0.6e9
-BYTES_PER_PIXEL_FRAME = 1024
+BYTES_PER_PIXEL_FRAME = 2304
 
 
 def estimated_memory(width: int, height: int, frames: int) -> float:

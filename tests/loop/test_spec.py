@@ -85,5 +85,5 @@ def test_a_job_over_the_memory_cap_is_refused_with_its_estimate():
     assert estimated_memory(2048, 2048, 16) > SERVICE_LIMITS.max_memory_bytes  # 2048² × 16 frames
     with pytest.raises(LoopSpecError, match="GiB"):
         check_limits(spec, 2048, 2048)
-    roomy = replace(SERVICE_LIMITS, max_memory_bytes=128 * 2**30)
+    roomy = replace(SERVICE_LIMITS, max_memory_bytes=256 * 2**30)
     check_limits(spec, 2048, 2048, roomy)  # the same job fits a server configured for it
