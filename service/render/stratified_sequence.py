@@ -17,15 +17,16 @@ a (0,2)-sequence in base 2 — any 2^m consecutive points starting at a multiple
 
 Randomisation keeps every sample marginally uniform, so the estimator stays unbiased:
 - each coordinate is Owen-scrambled per pixel (Owen 1995, "Randomly permuted (t,m,s)-nets and
-  (t,s)-sequences"): its binary digit d flips by a hash of (seed, pixel, dimension, digits 1…d−1),
-  for the top OWEN_BITS digits; the digits below get a plain random XOR (digital shift). A
-  scrambled net is still a net. A digital shift alone is not enough: it leaves each pixel's
-  points a shifted regular grid per axis, which aliases with a fine texture — on a checkerboard
-  of ~2 checks per pixel it had 2.5× the per-pixel variance of independent samples;
-- the lens pair reads the same sequence at a shuffled index: bit i of k flips by a hash of
-  (seed, pixel, i, the bits of k above i). That permutation maps every aligned block of 2^m
-  indices onto an aligned block, so the lens points stay a net for each prefix of 2^m samples,
-  and, being non-linear, it does not tie the lens point to the film point (an XOR of the index
+  (t,s)-sequences"): its binary digit d flips by a function, random per (seed, pixel,
+  dimension), of digits 1…d−1 (nested_scramble: a short chain of integer operations on the
+  reversed bits instead of a hash per digit, as in Burley 2020). A scrambled net is still a net.
+  A digital shift alone (one XOR per pixel) is not enough: it leaves each pixel's points a
+  shifted regular grid per axis, which aliases with a fine texture — on a checkerboard of ~2
+  checks per pixel it had 2.5× the per-pixel variance of independent samples;
+- the lens pair reads the same sequence at a shuffled index: bit i of k flips by a random
+  function of the bits of k above i. That permutation maps every aligned block of 2^m indices
+  onto an aligned block, so the lens points stay a net for each prefix of 2^m samples, and,
+  being non-linear, it does not tie the lens point to the film point (an XOR of the index
   would: a digital sequence is linear over GF(2), x(k ⊕ c) = x(k) ⊕ x(c)).
 
 The functions take and return unsigned 32-bit arrays and work the same on Dr.Jit's UInt32
@@ -37,12 +38,6 @@ from __future__ import annotations
 # anything unknown) keeps independent uniforms: the scene as written.
 STRATIFYING_SAMPLERS = frozenset(
     {"StratifiedSampler", "MultijitterSampler", "OrthogonalSampler", "LowDiscrepancySampler"})
-# Index bits the lens shuffle permutes: per-pixel counts stay far below 2^16; bits above pass
-# through unchanged (still a block-to-block bijection, see the module docstring).
-SHUFFLE_BITS = 16
-# Leading digits of each coordinate that are Owen-scrambled: 2^-16 of a pixel is far below any
-# structure a pixel's ≤ 2^16 samples resolve; the lower digits are digitally shifted.
-OWEN_BITS = 16
 # Tags that make the hashes of the four shifted coordinates and of the shuffle differ.
 FILM_X, FILM_Y, LENS_X, LENS_Y, LENS_SHUFFLE = 0x1F3D5B79, 0x2B7E1516, 0x3C6EF372, 0x5BE0CD19, 0x7F4A7C15
 # 2^-24: the top 24 bits of a 32-bit coordinate make a float32 in [0, 1) exactly.
@@ -89,32 +84,39 @@ def sobol_dim1(k):
     return result
 
 
-def nested_flips(x, key, bits: range):
-    """x with each bit i in `bits` flipped by a hash of (key, i, x >> (i + 1)), the bits above
-    it: a nested permutation, mapping each aligned block of 2^i values onto an aligned block."""
-    result = x
-    for bit in bits:
-        above = x >> (bit + 1) if bit < 31 else x ^ x  # a shift by 32 is undefined (LLVM: poison)
-        flip = (mix32(above ^ key ^ ((bit * 0x9E3779B9) & 0xFFFFFFFF)) >> 31) & 1
-        result = result ^ (flip << bit)
-    return result
-
-
-def shuffle_index(k, key):
-    """k with its low SHUFFLE_BITS bits nested-permuted (each by the bits above it)."""
-    return nested_flips(k, key, range(SHUFFLE_BITS))
+def nested_scramble(x, key):
+    """x with bit i flipped by a key-dependent function of its bits below i: a nested
+    permutation of the bits' binary tree read from bit 0 up. Adding a number, multiplying by
+    an odd one and XOR-ing with a multiple by an even one each keep bit i a function of the bits
+    ≤ i that flips with bit i (Laine & Karras 2011, "Stratified sampling for stochastic
+    transparency"; Burley 2020, "Practical hash-based Owen scrambling"), and so does any chain
+    of them. Seven integer operations instead of a hash per digit."""
+    x = x + key
+    x = x ^ (x * 0x6A09E666)    # even multipliers: the fractional bits of √2, √3, √5, √7
+    x = x * (key | 1)
+    x = x ^ (x * 0xBB67AE84)
+    x = x + mix32(key)
+    x = x ^ (x * 0x3C6EF372)
+    return x ^ (x * 0xA54FF53A)
 
 
 def owen_scramble(fraction, key):
-    """A 32-bit fraction with its leading OWEN_BITS digits Owen-scrambled (each flipped by the
-    digits before it) and the rest XORed with the key's hash."""
-    scrambled = nested_flips(fraction, key, range(31, 31 - OWEN_BITS, -1))
-    return scrambled ^ (mix32(key ^ 0x68E31DA4) >> OWEN_BITS)
+    """A 32-bit fraction Owen-scrambled: digit d (from the binary point) flipped by a
+    key-dependent function of digits 1…d−1 — the nested scramble of its reversed bits."""
+    return reverse_bits(nested_scramble(reverse_bits(fraction), key))
+
+
+def shuffle_index(k, key):
+    """k permuted so that bit i flips by a key-dependent function of the bits above it (the
+    nested scramble of the reversed index): each aligned block of 2^m indices maps onto an
+    aligned block, so every prefix of 2^m samples stays a net."""
+    return reverse_bits(nested_scramble(reverse_bits(k), key))
 
 
 def sequence_bits(k, seed: int, pixel, tag_x: int, tag_y: int):
     """Point k of the pixel's Owen-scrambled (0,2)-sequence, as two 32-bit fractions."""
-    return (owen_scramble(reverse_bits(k), pixel_hash(seed, pixel, tag_x)),
+    # Dimension 0 is reverse_bits(k), and owen_scramble reverses it back first.
+    return (reverse_bits(nested_scramble(k, pixel_hash(seed, pixel, tag_x))),
             owen_scramble(sobol_dim1(k), pixel_hash(seed, pixel, tag_y)))
 
 
