@@ -24,10 +24,6 @@ from string import Template
 import numpy as np
 import torch
 
-from models.denoiser import Denoiser, DenoiserCache
-from models.error_predictor import ErrorMap
-from models.frames import FrameTensors
-from models.kernel_disagreement import apply_for_error_network
 from models.losses import SMAPE_EPS, smape, smape_map
 from models.metrics import psnr, relmse, ssim
 from models.pretrained import DENOISER_FILE, ERROR_PREDICTOR_FILE, Networks, load_networks, weights_dir
@@ -39,7 +35,7 @@ from service.render.framebuffer import FrameBuffer
 from service.render.renderer import render_samples
 from service.render.runtime import active_variant
 from service.render.scenes import load_scene
-from service.loop.oidn import OIDN_SETTINGS, candidate_for, oidn_image
+from service.loop.oidn import OIDN_SETTINGS, oidn_image
 from service.loop.tensors import nchw
 
 # Every reference render draws from its own stream: a reference that shared samples with an
@@ -244,19 +240,6 @@ def image_metrics(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
 def true_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """(H, W) per-pixel SMAPE of `image` against `reference`, both sanitised as `score` does."""
     return smape_map(sanitize(nchw(image)), sanitize(nchw(reference)))[0, 0].numpy()
-
-
-@torch.no_grad()
-def denoise_and_predict(denoiser: Denoiser, error_network: ErrorMap, window: list[FrameTensors],
-                        centre: int) -> tuple[DenoiserCache, torch.Tensor, torch.Tensor]:
-    """One prepare of the window's centre frame, as the loop runs it: the cache (for further λ
-    tails), the denoised image at λ = 1, and the error network's map of it, with the
-    kernels/OIDN disagreement for a network that reads it."""
-    candidate = candidate_for(denoiser, window[centre])
-    cache = denoiser.prepare(window, centre, candidate)
-    denoised, disagreement = apply_for_error_network(denoiser, cache, candidate, 1.0,
-                                                     error_network.reads_disagreement)
-    return cache, denoised, error_network(window[centre], denoised, disagreement)
 
 
 # --- Intel Open Image Denoise -----------------------------------------------------------------

@@ -31,7 +31,7 @@ from bench.server import bench_http_lambda
 from models.denoiser import Denoiser
 from models.frames import FrameTensors
 from service.api.serve import CONCURRENCY_ENV
-from service.loop.oidn import candidate_for
+from service.loop.denoise_frame import prepare_frame
 from service.loop.tensors import to_image
 
 LAMBDA_EDIT_SIZE = (1920, 1080)   # width, height: 1080p, the issue's ~2 MP
@@ -79,7 +79,7 @@ def time_lambda_tail(denoiser: Denoiser, width: int, height: int, repeats: int, 
     maps = lambda_maps(width, height)
     times: dict[str, list[float]] = {name: [] for name in maps}
     with torch.inference_mode(), pinned_torch_threads(threads):
-        cache = denoiser.prepare([frame], 0, candidate_for(denoiser, frame))
+        cache = prepare_frame(denoiser, [frame], 0).cache
         for lam in maps.values():
             to_image(denoiser.apply(cache, lam))
         for _ in range(repeats):

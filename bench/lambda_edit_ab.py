@@ -34,8 +34,13 @@ def worker(root: str, image: str, threads: int, repeats: int, size: tuple[int, i
 
     from models.checkpoint import load_checkpoint
     from models.frames import FrameTensors
-    from service.loop.oidn import candidate_for
     from service.loop.tensors import to_image
+    try:   # the one denoise path (service/loop/denoise_frame.py); a tree from before it fetched the candidate here
+        from service.loop.denoise_frame import prepare_frame
+        prepare = lambda: prepare_frame(denoiser, [frame], 0).cache   # noqa: E731
+    except ImportError:
+        from service.loop.oidn import candidate_for
+        prepare = lambda: denoiser.prepare([frame], 0, candidate_for(denoiser, frame))   # noqa: E731
 
     torch.set_num_threads(threads)
     if image:
@@ -53,7 +58,7 @@ def worker(root: str, image: str, threads: int, repeats: int, size: tuple[int, i
     maps = dict(zip(CASES, (torch.full((1, 1, height, width), 4.0), rectangle)))
     medians = {}
     with torch.inference_mode():
-        cache = denoiser.prepare([frame], 0, candidate_for(denoiser, frame))
+        cache = prepare()
         for name, lam in maps.items():
             to_image(denoiser.apply(cache, lam))
             times = []

@@ -27,6 +27,7 @@ from bench.lambda_edit import LAMBDA_EDIT_SIZE, LambdaEditTiming, lambda_edit_se
 from models.checkpoint import load_checkpoint, read_checkpoint
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
+from service.loop.denoise_frame import denoise_frame, prepare_frame
 from service.loop.oidn import oidn_tensor
 
 # single-frame: no temporal, no pyramid (KPCN); multi-scale: 3 levels, one frame; temporal-3:
@@ -58,20 +59,19 @@ def _case(name: str, size: int, repeats: int, threads: int, queue, base: Denoise
     model = Denoiser(cfg).eval()
     window = [_frame(size, size, gen) for _ in range(3 if cfg.temporal or name == "window-3" else 1)]
     center = len(window) // 2
-    candidate = (lambda: oidn_tensor(window[center])) if cfg.oidn_candidate else (lambda: None)
     with torch.inference_mode():
         if name == "window-3":
             def run():
                 filtered, at = model.filtered_window(window, center)
-                return model(filtered, at, 1.0, oidn_tensor(filtered[at]) if cfg.oidn_candidate else None)
+                return denoise_frame(model, filtered, at)
         elif name == "oidn":
             run = lambda: oidn_tensor(window[center])
         elif name.startswith("lambda-tail"):
-            cache = model.prepare(window, center, candidate())
+            cache = prepare_frame(model, window, center).cache
             lam = torch.rand(1, 1, size, size, generator=gen) * 9 + 1 if name.endswith("map") else 4.0
             run = lambda: model.apply(cache, lam)
         else:
-            run = lambda: model(window, center, 1.0, candidate())
+            run = lambda: denoise_frame(model, window, center)
         run()                                               # warm-up (oneDNN primitive caches)
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         times, cpu = [], []
@@ -159,7 +159,7 @@ def versus_oidn(config: DenoiserConfig, size: int = 512, repeats: int = 7, threa
     cache = model.prepare([frame], 0, candidate)
     cases = {
         "oidn": lambda: oidn_tensor(frame),
-        "denoise (with its OIDN call)": lambda: model([frame], 0, 1.0, oidn_tensor(frame) if config.oidn_candidate else None),
+        "denoise (with its OIDN call)": lambda: denoise_frame(model, [frame], 0),
         "network only": lambda: model([frame], 0, 1.0, candidate),
         "lambda tail": lambda: model.apply(cache, 4.0),
     }

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from torch import Tensor
 
-from bench.common import denoise_and_predict, oidn_denoiser, sanitize as clean, scene_reference, score
+from bench.common import oidn_denoiser, sanitize as clean, scene_reference, score
 from bench.quality_measures import flicker, lambda_measures, nanstats, pearson, spearman
 from models.denoiser import Denoiser, DenoiserCache
 from models.pyramid import down, pad_to
@@ -24,10 +24,11 @@ from models.error_predictor import ErrorPredictor
 from models.features import demodulate
 from models.frames import FrameTensors
 from models.losses import SMAPE_EPS, smape, smape_map
+from models.pretrained import Networks
 from service.dataset.build import read_manifest
 from service.dataset.loader import DenoiserDataset
 from service.exr import read_exr
-from service.loop.oidn import candidate_for
+from service.loop.denoise_frame import denoise_and_predict, denoise_frame
 from service.loop.tensors import frame_tensors, nchw, to_image
 from service.render.effects import inspect_scene, make_integrator
 from service.render.framebuffer import FrameBuffer
@@ -117,7 +118,7 @@ def oidn_method() -> tuple[Denoise, str]:
 def windowed(denoiser: Denoiser, image: EvalImage) -> Tensor:
     """The denoiser over the image's whole window, as the loop runs a sequence (λ = 1)."""
     window, centre = denoiser.filtered_window(image.window, image.centre)
-    return denoiser(window, centre, 1.0, candidate_for(denoiser, window[centre]))
+    return denoise_frame(denoiser, window, centre)
 
 
 def make_methods(denoiser: Denoiser, use_oidn: bool) -> tuple[dict[str, Denoise], str | None]:
@@ -125,8 +126,8 @@ def make_methods(denoiser: Denoiser, use_oidn: bool) -> tuple[dict[str, Denoise]
     single = ablation(denoiser, multiscale=False, temporal=False)
     methods: dict[str, Denoise] = {
         NOISY: lambda im: im.frame.color,
-        SINGLE: lambda im: single([im.frame], 0, 1.0, candidate_for(single, im.frame)),
-        MULTISCALE: lambda im: denoiser([im.frame], 0, 1.0, candidate_for(denoiser, im.frame)),
+        SINGLE: lambda im: denoise_frame(single, [im.frame], 0),
+        MULTISCALE: lambda im: denoise_frame(denoiser, [im.frame], 0),
         TEMPORAL: lambda im: windowed(denoiser, im),
     }
     note = None
@@ -227,7 +228,8 @@ def evaluate(images: list[EvalImage], methods: dict[str, Denoise], denoiser: Den
         window, centre = denoiser.filtered_window(image.window, image.centre)
         # one prepare gives the TEMPORAL result (what `windowed` computes), the error network's map
         # of it and the cache of the λ sweep
-        cache, denoised, predicted = denoise_and_predict(denoiser, predictor, window, centre)
+        result = denoise_and_predict(Networks(denoiser, predictor), window, centre)
+        cache, denoised, predicted = result.cache, result.image, result.error
         results = {name: denoised if name == TEMPORAL else method(image) for name, method in methods.items()}
         out = Outputs(image, results, predicted_error=predicted)
         if image.spp == HEADLINE_SPP:

@@ -24,7 +24,7 @@ from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.previews import preview_layers
 from service.loop.allocate import iteration_budget
 from service.loop.loop import next_counts
-from service.loop.oidn import candidate_for
+from service.loop.oidn import oidn_tensor
 from service.loop.tensors import frame_tensors, to_image
 
 # The stages of the table, in the order an iteration (and then the worker) runs them.
@@ -103,7 +103,7 @@ def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCost
         "allocate": _median_ms(lambda: next_counts(loop.spec.allocator, buffer, loop.state.error_maps[0],
                                                    iteration_budget(int(buffer.spp.sum())), seed=0), repeats),
         "to_tensors": _median_ms(lambda: frame_tensors(buffer), repeats),
-        "oidn_candidate": _median_ms(lambda: candidate_for(denoiser, frame), repeats)
+        "oidn_candidate": _median_ms(lambda: oidn_tensor(frame), repeats)
         if denoiser.config.oidn_candidate else 0.0,
         "denoiser": _median_ms(lambda: session.denoise(loop.state.buffers, lam), repeats),
         "error_network": _median_ms(lambda: session.predict_error(images), repeats),

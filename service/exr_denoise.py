@@ -20,10 +20,9 @@ import numpy as np
 import torch
 
 from models.frames import FrameTensors
-from models.kernel_disagreement import apply_for_error_network
 from models.pretrained import Networks
 from service.exr import ExrError, ExrFrame, read_exr, write_exr
-from service.loop.oidn import candidate_for
+from service.loop.denoise_frame import denoise_and_predict
 from service.loop.spec import lambda_problem
 from service.loop.tensors import lam_tensor, nchw, to_image
 
@@ -124,17 +123,13 @@ def denoise_exr(source: Path, output: Path, networks: Networks, *, lam: float = 
     with torch.no_grad():
         window, centre = networks.denoiser.filtered_window(window, centre)  # a single-frame network pools it
         filtered = window[centre]
-        candidate = candidate_for(networks.denoiser, filtered)
-        with_disagreement = networks.error_predictor.reads_disagreement
-        denoised, disagreement = apply_for_error_network(networks.denoiser,
-                                                         networks.denoiser.prepare(window, centre, candidate),
-                                                         candidate, lam_tensor(lam_map), with_disagreement)
         # An error network that reads sample counts needs the EXR's `spp` layer; without one the
         # file still gets its denoised image, only no error estimate.
         wants_spp = networks.error_predictor.config.sample_count_input
         # Nor is there one on an estimated variance (see the module's docstring for the measurement).
         predictable = centre_frame.variance is not None and not (wants_spp and filtered.spp is None)
-        error = networks.error_predictor(filtered, denoised, disagreement) if predictable else None
+        result = denoise_and_predict(networks, window, centre, lam_tensor(lam_map), predict=predictable)
+        denoised, error = result.image, result.error
     if centre_frame.noisy is None:  # Mitsuba's file: its radiance is the noisy input, kept beside the result
         centre_frame.noisy = centre_frame.color
     if centre_frame.spp is None and spp is not None:

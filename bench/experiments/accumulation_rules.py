@@ -37,7 +37,7 @@ from models.frames import FrameTensors
 from models.pretrained import Networks
 from models.warp import flow_to_center
 from service.loop.loop import RenderLoop
-from service.loop.oidn import candidate_for
+from service.loop.denoise_frame import denoise_frame
 from service.loop.spec import LoopSpec
 from service.loop.tensors import frame_tensors, to_image
 from service.render.framebuffer import FrameBuffer
@@ -125,7 +125,7 @@ def evaluate(buffers: list[FrameBuffer], references: list[np.ndarray], networks:
             lo, hi = max(0, f - 1), min(len(frames), f + 2)
             pooled, s = chosen(frames[lo:hi], f - lo) if chosen else (frames[f], 0.0)
             share.append(s)
-            images.append(to_image(denoiser([pooled], 0, 1.0, candidate_for(denoiser, pooled))))
+            images.append(to_image(denoise_frame(denoiser, [pooled], 0)))
         smape = np.mean([image_metrics(i, r)["smape"] for i, r in zip(images, references)])
         flicker = mean_abs_change([np.nan_to_num(i) - r for i, r in zip(images, references)])
         print(f"| {name} | {label} | {smape:.4f} | {flicker:.5f} | {np.mean(share):.2f} |", flush=True)

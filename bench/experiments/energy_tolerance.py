@@ -24,7 +24,7 @@ from bench.common import denoiser_settings, image_metrics, load_bench_networks, 
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.suite_quality import uniform_render
 from models.denoiser import Denoiser, DenoiserCache
-from service.loop.oidn import candidate_for
+from service.loop.denoise_frame import prepare_frame
 from service.loop.tensors import frame_tensors, to_image
 
 UNTOUCHED = 1e-9   # a τ this small trusts the samples with weight ~0: the denoiser's own energy
@@ -63,8 +63,8 @@ def main() -> None:
             mean = float(reference.mean())
             for spp in args.spp:
                 frame = frame_tensors(uniform_render(scene, spp, nets.networks).buffers[0])
-                candidate = candidate_for(denoiser, frame)
-                cache = denoiser.prepare([frame], 0, candidate)
+                prepared = prepare_frame(denoiser, [frame], 0)
+                cache, candidate = prepared.cache, prepared.candidate
                 images = outputs_per_tolerance(denoiser, cache, taus)
                 errors.setdefault(spp, []).append(float(images[0].mean()) / mean - 1.0)
                 cells = []

@@ -27,7 +27,7 @@ from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.suite_quality import uniform_render
 from models.denoiser import Denoiser
 from models.frames import FrameTensors
-from service.loop.oidn import candidate_for
+from service.loop.denoise_frame import prepare_frame
 from service.loop.tensors import frame_tensors, to_image
 
 DEFAULT_OFFSETS = (0.0, 1.0, 2.0, 3.0, 4.0)
@@ -79,7 +79,7 @@ def main() -> None:
             reference, _ = load_reference(SUITES[args.suite].references, scene, None if scene.frames == 1 else 0)
             for spp in args.spp:
                 frame = frame_tensors(uniform_render(scene, spp, nets.networks).buffers[0])
-                candidate = candidate_for(denoiser, frame)
+                candidate = prepare_frame(denoiser, [frame], 0).candidate   # the shipped path's OIDN image
                 oidn = image_metrics(to_image(candidate), reference)
                 cells = []
                 for pair, ratio in zip(pairs, offset_ratios(denoiser, frame, candidate, reference, oidn, pairs)):

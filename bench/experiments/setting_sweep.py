@@ -27,7 +27,7 @@ from bench.suite_quality import uniform_render
 from models.denoiser import POST_TRAINING_SETTINGS, Denoiser, DenoiserConfig
 from models.frames import FrameTensors
 from models.pretrained import Networks
-from service.loop.oidn import candidate_for
+from service.loop.denoise_frame import prepare_frame
 from service.loop.tensors import frame_tensors, to_image
 
 
@@ -74,7 +74,7 @@ def sweep(networks: Networks, suite: str, setting: str, values: Sequence[object]
                     buffer = uniform_render(scene, spp, networks, seed=seed).buffers[0]
                     theirs = image_metrics(oidn(buffer.mean, buffer.albedo, buffer.normal), reference)
                     frame = frame_tensors(buffer)
-                    candidate = candidate_for(denoiser, frame)
+                    candidate = prepare_frame(denoiser, [frame], 0).candidate   # fetched once, reused per value
                     for value, image in zip(values, setting_images(denoiser, frame, candidate, setting, values)):
                         ours = image_metrics(image, reference)
                         per_value[value].append((ours["smape"], theirs["smape"], ours["relmse"], theirs["relmse"]))

@@ -21,7 +21,7 @@ from bench.common import denoiser_settings, image_metrics, load_bench_networks, 
 from bench.dev_references import SUITES, still_scenes
 from bench.quality_measures import mean_abs_change
 from bench.suite_quality import SEED, uniform_render
-from service.loop.oidn import candidate_for
+from service.loop.denoise_frame import prepare_frame
 from service.loop.tensors import frame_tensors, to_image
 
 FRAMES = 4
@@ -58,9 +58,9 @@ def main() -> None:
             oidn = []
             for f in range(FRAMES):
                 frame = frame_tensors(uniform_render(scene, SPP, nets.networks, seed=SEED + f).buffers[0])
-                candidate = candidate_for(denoiser, frame)
-                oidn.append(to_image(candidate))
-                cache = denoiser.prepare([frame], 0, candidate)
+                prepared = prepare_frame(denoiser, [frame], 0)
+                oidn.append(to_image(prepared.candidate))
+                cache = prepared.cache
                 for name, changes in SETTINGS.items():
                     with denoiser_settings(denoiser, **changes):
                         ours[name].append(to_image(denoiser.apply(cache)))

@@ -13,9 +13,8 @@ import numpy as np
 import torch
 
 from models.frames import FrameTensors
-from models.kernel_disagreement import apply_for_error_network
 from models.pretrained import Networks
-from service.loop.oidn import candidate_for
+from service.loop.denoise_frame import DenoisedFrame, denoise_and_predict, predict_error
 from service.loop.tensors import frame_tensors, lam_tensor, temporal_window, to_image
 from service.render.framebuffer import FrameBuffer
 
@@ -28,10 +27,9 @@ class DenoiseSession:
         self.temporal_radius = temporal_radius  # 0: every frame alone (no temporal work)
         self.owned = owned if owned is not None else range(frames)
         self.lock = threading.RLock()
-        self._caches: dict[int, object] = {}  # models.Denoiser.prepare output per owned frame
-        self._inputs: dict[int, FrameTensors] = {}  # the center input each owned frame was filtered from
-        # per owned frame, the kernels/candidate disagreement, kept for an error network that reads it
-        self._disagreement: dict[int, torch.Tensor] = {}
+        # per owned frame, the last full pass: its pre-λ features (models.Denoiser.prepare), the
+        # center input it filtered and the kernels/candidate disagreement an error network may read
+        self._frames: dict[int, DenoisedFrame] = {}
         self.full_calls = 0  # full denoiser forward passes (prepare + apply)
         self.tail_calls = 0  # λ-only re-runs from cached features
         # Frames go where the networks are: CPU, or CUDA on a GPU worker (service.jobs.ray_actor).
@@ -43,11 +41,11 @@ class DenoiseSession:
     @property
     def inputs(self) -> dict[int, FrameTensors]:
         """Per owned frame, the center input the last `denoise` filtered (Denoiser.filtered_window)."""
-        return dict(self._inputs)
+        return {f: frame.centre for f, frame in self._frames.items()}
 
     @property
     def has_features(self) -> bool:
-        return all(f in self._caches for f in self.owned)
+        return all(f in self._frames for f in self.owned)
 
     @torch.no_grad()
     def denoise(self, buffers: list[FrameBuffer], lam_map: np.ndarray) -> dict[int, torch.Tensor]:
@@ -56,21 +54,18 @@ class DenoiseSession:
         needed = sorted({i for f in self.owned for i in temporal_window(f, len(buffers), self.temporal_radius)[0]})
         tensors = {i: self._tensors(buffers[i]) for i in needed}
         lam = lam_tensor(lam_map)
-        caches, images, inputs, disagreement = {}, {}, {}, {}
+        frames: dict[int, DenoisedFrame] = {}
         denoiser = self.networks.denoiser
-        with_disagreement = self.networks.error_predictor.reads_disagreement
         for f in self.owned:
             indices, centre = temporal_window(f, len(buffers), self.temporal_radius)
             # what the network filters (a single-frame one: the window's samples pooled); the
             # candidate image (OIDN) is computed on its center once per iteration, cached with the features
             window, centre = denoiser.filtered_window([tensors[i] for i in indices], centre)
-            inputs[f] = window[centre]
-            candidate = candidate_for(denoiser, window[centre])
-            caches[f] = denoiser.prepare(window, centre, candidate)
-            images[f], disagreement[f] = apply_for_error_network(denoiser, caches[f], candidate, lam, with_disagreement)
+            frames[f] = denoise_and_predict(self.networks, window, centre, lam, predict=False)
         with self.lock:
-            self._caches, self._inputs, self._disagreement = caches, inputs, disagreement
-            self.full_calls += len(caches)
+            self._frames = frames
+            self.full_calls += len(frames)
+        images = {f: frame.image for f, frame in frames.items()}
         return images
 
     @torch.no_grad()
@@ -78,15 +73,14 @@ class DenoiseSession:
         """Per-pixel predicted SMAPE of each denoised (owned) frame, (H, W) each, read from the
         inputs the denoiser filtered (those of the last `denoise`, which made `images`)."""
         network = self.networks.error_predictor
-        if not network.reads_disagreement:
-            return {f: to_image(network(self._inputs[f], image)) for f, image in images.items()}
-        return {f: to_image(network(self._inputs[f], image, self._disagreement[f])) for f, image in images.items()}
+        return {f: to_image(predict_error(network, self._frames[f].centre, image, self._frames[f].disagreement))
+                for f, image in images.items()}
 
     @torch.no_grad()
     def relambda(self, lam_map: np.ndarray) -> dict[int, np.ndarray]:
         """Every owned frame re-denoised with a new λ map from the cached features."""
         lam = lam_tensor(lam_map)
         with self.lock:
-            images = {f: to_image(self.networks.denoiser.apply(cache, lam)) for f, cache in self._caches.items()}
+            images = {f: to_image(self.networks.denoiser.apply(frame.cache, lam)) for f, frame in self._frames.items()}
             self.tail_calls += len(images)
         return images

@@ -1,6 +1,7 @@
 """Intel Open Image Denoise on a frame's noisy colour, albedo and normal: the candidate image a
 denoiser with `oidn_candidate` mixes into its joint softmax (models/candidate.py), and the
-comparison the benchmarks run. The product's one call into `pyoidn`.
+comparison the benchmarks run. The product's one call into `pyoidn`; whether a denoiser gets the
+candidate is decided in one place, service/loop/denoise_frame.py.
 """
 from __future__ import annotations
 
@@ -8,7 +9,6 @@ import numpy as np
 import pyoidn
 import torch
 
-from models.denoiser import Denoiser
 from models.exposure import Exposure
 from models.features import HDR_MAX
 from models.frames import FrameTensors
@@ -43,8 +43,3 @@ def oidn_tensor(frame: FrameTensors) -> torch.Tensor:
               for i in range(frame.color.shape[0])]
     stacked = torch.from_numpy(np.stack(images).transpose(0, 3, 1, 2).copy())
     return stacked.to(device=frame.color.device, dtype=frame.color.dtype)
-
-
-def candidate_for(denoiser: Denoiser, frame: FrameTensors) -> torch.Tensor | None:
-    """The candidate image `denoiser.prepare` needs for this centre frame, or None if it takes none."""
-    return oidn_tensor(frame) if denoiser.config.oidn_candidate else None

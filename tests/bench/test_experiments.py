@@ -10,16 +10,13 @@ import pytest
 import torch
 
 import bench.experiments
-from bench.common import denoise_and_predict, denoiser_settings, image_metrics
+from bench.common import denoiser_settings, image_metrics
 from bench.experiments.energy_tolerance import UNTOUCHED, outputs_per_tolerance
 from bench.experiments.gate_offset import offset_ratios
 from bench.experiments.seed_spread import paired_ratio
 from bench.experiments.setting_sweep import parse_values, setting_images, summary_rows
 from models.denoiser import Denoiser, DenoiserConfig
-from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from models.frames import FrameTensors
-from models.kernel_disagreement import apply_with_kernels_image, kernel_disagreement
-from service.loop.oidn import candidate_for
 from service.loop.tensors import to_image
 
 
@@ -97,21 +94,6 @@ def test_denoiser_settings_apply_inside_and_are_undone_even_when_the_measurement
             assert (denoiser.config.gate_offset, denoiser.config.kernel_clamp) == (3.0, 0.5)
             raise RuntimeError("a measurement failed")
     assert denoiser.config == config
-
-
-@torch.no_grad()
-def test_denoise_and_predict_hands_a_disagreement_reading_network_what_the_loop_gives_it():
-    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True)).eval()
-    reader = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, disagreement_input=True)).eval()
-    plain = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, disagreement_input=False)).eval()
-    frame = random_frame(16)
-    candidate = candidate_for(denoiser, frame)
-    output, kernels = apply_with_kernels_image(denoiser, denoiser.prepare([frame], 0, candidate))
-    cache, denoised, error = denoise_and_predict(denoiser, reader, [frame], 0)
-    torch.testing.assert_close(denoised, output)
-    torch.testing.assert_close(denoiser.apply(cache, 1.0), output)   # the cache serves further λ tails
-    torch.testing.assert_close(error, reader(frame, output, kernel_disagreement(kernels, candidate)))
-    torch.testing.assert_close(denoise_and_predict(denoiser, plain, [frame], 0)[2], plain(frame, output))
 
 
 def test_paired_ratio_settles_a_consistent_lead_and_calls_a_seed_to_seed_swing_a_tie():

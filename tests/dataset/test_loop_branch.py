@@ -17,7 +17,7 @@ from models.pretrained import SHIPPED_WEIGHTS_DIR, load_networks
 from service.dataset.build import LOOP_ITEMS, DatasetError, build_dataset, item_path, read_manifest
 from service.dataset.loader import DenoiserDataset
 from service.exr import read_exr
-from service.loop.oidn import candidate_for
+from service.loop.denoise_frame import denoise_frame
 
 LOOP_LEVELS = ("spp16",) + LOOP_ITEMS
 
@@ -76,7 +76,7 @@ def test_error_network_trains_on_loop_levels_reads_their_sample_counts_and_names
     denoiser = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser")
     sample = DenoiserDataset(loop_dataset, split="train", levels=("loop128",), crop=None)[0]
     with torch.no_grad():
-        denoised = denoiser([sample.noisy], 0, 1.0, candidate_for(denoiser, sample.noisy))
+        denoised = denoise_frame(denoiser, [sample.noisy], 0)
         disagreement = torch.zeros_like(denoised[:, :1])
         predicted = model(sample.noisy, denoised, disagreement)
         fewer = model(replace(sample.noisy, spp=sample.noisy.spp / 8), denoised, disagreement)

@@ -24,11 +24,11 @@ def candidate_networks() -> Networks:
 
 
 def test_oidn_runs_once_per_frame_per_iteration_and_not_on_a_lambda_edit(candidate_networks, monkeypatch):
-    import service.loop.denoise_session as session_module
+    import service.loop.denoise_frame as denoise_frame_module
 
     calls = []
-    real = session_module.candidate_for
-    monkeypatch.setattr(session_module, "candidate_for", lambda d, f: calls.append(1) or real(d, f))
+    real = denoise_frame_module._candidate
+    monkeypatch.setattr(denoise_frame_module, "_candidate", lambda d, f: calls.append(1) or real(d, f))
     loop = RenderLoop(LoopSpec(scene="cornell-box", width=SIZE, height=SIZE, max_iterations=2), candidate_networks)
     list(loop.run())
     before = loop.denoised_only()[0].copy()  # the denoiser's image (the final one may fall back to the raw one)
@@ -40,12 +40,13 @@ def test_oidn_runs_once_per_frame_per_iteration_and_not_on_a_lambda_edit(candida
 
 
 def test_the_oidn_candidate_is_what_pyoidn_returns_on_the_frame(candidate_networks):
-    from service.loop.oidn import candidate_for, oidn_image
+    from service.loop.denoise_frame import prepare_frame
+    from service.loop.oidn import oidn_image
     from service.loop.tensors import frame_tensors, to_image
 
     loop = RenderLoop(LoopSpec(scene="cornell-box", width=SIZE, height=SIZE, max_iterations=1), candidate_networks)
     buffer = list(loop.run())[-1].buffers[0]
-    candidate = candidate_for(candidate_networks.denoiser, frame_tensors(buffer))
+    candidate = prepare_frame(candidate_networks.denoiser, [frame_tensors(buffer)], 0).candidate
     np.testing.assert_allclose(to_image(candidate), oidn_image(buffer.mean, buffer.albedo, buffer.normal), atol=1e-6)
 
 
@@ -59,7 +60,7 @@ def test_an_error_network_reading_the_disagreement_runs_in_the_loop_and_the_exr_
     last = list(loop.run())[-1]
     error = last.error[0]
     assert error.shape == (SIZE, SIZE) and np.isfinite(error).all() and (error >= 0).all()
-    assert loop.session._disagreement[0].shape == (1, 1, SIZE, SIZE)
+    assert loop.session._frames[0].disagreement.shape == (1, 1, SIZE, SIZE)
     path = write_exr(tmp_path / "frame.exr", result_frame(last.buffers[0], last.buffers[0].mean, error=None, lam=None,
                                                           header={}))
     written = denoise_exr(path, tmp_path / "out.exr", networks)

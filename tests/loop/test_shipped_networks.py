@@ -21,7 +21,8 @@ from models.denoiser import Denoiser
 from models.error_predictor import ErrorPredictor
 from models.pretrained import Networks, load_networks
 from service.loop.loop import RenderLoop
-from service.loop.oidn import candidate_for, oidn_image
+from service.loop.denoise_frame import denoise_frame, prepare_frame
+from service.loop.oidn import oidn_image
 from service.loop.spec import LoopSpec
 from service.loop.tensors import frame_tensors, to_image
 
@@ -199,7 +200,7 @@ def kernel_smape_cut(denoiser: Denoiser, record, reference) -> float:
     """The SMAPE cut of the kernels alone: every level's result before the candidate joins."""
     frame = frame_tensors(record.buffers[0])
     with torch.inference_mode():
-        cache = denoiser.prepare([frame], 0, candidate_for(denoiser, frame))
+        cache = prepare_frame(denoiser, [frame], 0).cache
         kernel_levels: list[torch.Tensor] = []
         denoiser.filter_levels(cache, 1.0, kernel_levels)
         kernels = to_image(denoiser.merge_levels(cache, kernel_levels))
@@ -275,7 +276,7 @@ def test_shipped_denoiser_keeps_the_hard_shadows_contrast(dev_runs):
 def denoise_buffer(denoiser, buffer) -> np.ndarray:
     frame = frame_tensors(buffer)
     with torch.inference_mode():
-        return to_image(denoiser([frame], 0, 1.0, candidate_for(denoiser, frame)))
+        return to_image(denoise_frame(denoiser, [frame], 0))
 
 
 def luminance(image: np.ndarray) -> np.ndarray:
