@@ -159,7 +159,23 @@ def scene_sample_count(source: str | Path, *, params: dict[str, str] | None = No
     samplers = [node.props for node in parsed.state.nodes if node.type == mi.ObjectType.Sampler]
     if not samplers or "sample_count" not in samplers[0]:
         return None
-    return int(samplers[0]["sample_count"])
+    return sampler_sample_count(mi, samplers[0].plugin_name(), int(samplers[0]["sample_count"]))
+
+
+def sampler_sample_count(mi, kind: str, declared: int) -> int:
+    """The samples per pixel `mi.render` takes for a `kind` sampler declared with `declared`:
+    Mitsuba's stratifying samplers round it (stratified to a square, orthogonal to a prime's
+    square, ldsampler to a power of two — 24 becomes 25, 25 and 64), so the sampler itself is
+    asked, its rounding warning kept quiet (the user's `mi.render` prints the same)."""
+    logger = mi.logger()
+    level = logger.log_level()
+    logger.set_log_level(mi.LogLevel.Error)
+    try:
+        return int(mi.load_dict({"type": kind, "sample_count": declared}).sample_count())
+    except Exception:  # a sampler Mitsuba cannot build on its own: the declared count as written
+        return declared
+    finally:
+        logger.set_log_level(level)
 
 
 @dataclass

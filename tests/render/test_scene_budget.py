@@ -87,3 +87,17 @@ def test_explain_names_the_budget_for_a_scene_and_for_a_builtin(scene):
                              capture_output=True, text=True, timeout=300, cwd=REPO)
     assert builtin.returncode == 0, builtin.stderr
     assert "budget: 4 iterations (16 → 128 spp)" in builtin.stdout.splitlines()
+
+
+@pytest.mark.parametrize("kind, declared, rendered", [("independent", 24, 24), ("stratified", 24, 25),
+                                                      ("orthogonal", 24, 25), ("ldsampler", 24, 64)])
+def test_the_scene_budget_is_the_sample_count_mi_render_takes_after_the_samplers_rounding(
+        tmp_path, kind, declared, rendered):
+    from service.render.runtime import mitsuba
+    from service.render.scenes import scene_sample_count
+
+    path = tmp_path / "scene.xml"
+    path.write_text(SCENE.replace('type="independent"', f'type="{kind}"').replace('"4"', f'"{declared}"'))
+    mi = mitsuba()
+    assert mi.load_file(str(path)).sensors()[0].sampler().sample_count() == rendered  # what mi.render takes
+    assert scene_sample_count(path) == rendered
