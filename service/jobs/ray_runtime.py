@@ -20,6 +20,7 @@ What Ray 2.60 offers, measured (docs/security.md, "Ray"):
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import secrets
@@ -132,13 +133,22 @@ def chain_sigterm(first: Callable[[], None]) -> Callable[[], None]:
     return unchain
 
 
+@functools.cache
+def process_token() -> str:
+    """This process's Ray token, random, made once: Ray's driver loads the token the first time
+    it needs one and keeps it for the life of the process, so a local runtime started again in
+    the same process (after `stop`) must carry the same value, or its GCS refuses the driver
+    (InvalidAuthToken, "Failed to start GCS")."""
+    return secrets.token_hex(32)
+
+
 def private_token_file() -> Path:
-    """A fresh random token in a folder only this user can read (the folder 0700, the file 0600)."""
+    """This process's token in a fresh folder only this user can read (the folder 0700, the file 0600)."""
     folder = Path(tempfile.mkdtemp(prefix="renderloop-ray-"))  # mkdtemp: mode 0700
     path = folder / "auth_token"
     descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     with os.fdopen(descriptor, "w") as token:
-        token.write(secrets.token_hex(32))
+        token.write(process_token())
     return path
 
 
