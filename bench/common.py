@@ -142,9 +142,9 @@ class BenchNetworks:
     description: str  # where the weights came from and what they are, for the report
 
 
-# What a report says about each checkpoint: the command that trained it, the file it started
-# from (--init), the calibration fitted after.
-PROVENANCE_KEYS = ("command", "init", "calibration")
+# What a report says about each checkpoint (service/training/provenance.py): its recipe, the hash
+# of the data it trained on, the file it started from (--init) and the calibration fitted after.
+PROVENANCE_KEYS = ("recipe", "data", "init", "calibration")
 
 
 def load_bench_networks(folder: str | Path | None = None) -> BenchNetworks:
@@ -154,7 +154,7 @@ def load_bench_networks(folder: str | Path | None = None) -> BenchNetworks:
         path = directory / name
         digest = hashlib.sha1(path.read_bytes()).hexdigest()[:10] if path.is_file() else "missing"
         extra = (read_checkpoint(path).get("extra") or {}) if path.is_file() else {}
-        # whole, never cut: a command cut mid-word read "--steps 150" for --steps 1500
+        # each value whole, never cut
         summary = "; ".join(f"{key}={extra[key]}" for key in PROVENANCE_KEYS if isinstance(extra.get(key), str))
         parts.append(f"`{name}` sha1 {digest}" + (f" ({summary})" if summary else ""))
     return BenchNetworks(load_networks(directory), directory, f"{directory}: " + "; ".join(parts))

@@ -66,10 +66,10 @@ def test_every_template_field_is_filled_or_the_fill_fails():
         fill("memory.md", provenance="p")
 
 
-def test_bench_networks_describe_each_checkpoint_by_its_whole_command():
+def test_bench_networks_describe_each_checkpoint_by_its_recipe_and_data_hash():
     description = load_bench_networks(None).description
     for name in ("denoiser.pt", "error_predictor.pt"):
         extra = read_checkpoint(SHIPPED_WEIGHTS_DIR / name)["extra"]
-        assert f"command={extra['command']}" in description
+        assert f"recipe={extra['recipe']}" in description and f"data={extra['data']}" in description
         if "calibration" in extra:
             assert f"calibration={extra['calibration']}" in description
