@@ -14,6 +14,7 @@ from __future__ import annotations
 import itertools
 import math
 import statistics
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -175,13 +176,18 @@ class NoErrorPrediction(torch.nn.Module):
         return torch.zeros_like(denoised[:, :1])
 
 
+# An extrapolated time more than this many times the curve's last time is no estimate: a
+# nearly flat last segment (an untrained network's loop) would claim ages.
+EXTRAPOLATION_LIMIT = 100.0
+
+
 def time_to_reach(seconds: list[float], errors: list[float], target: float) -> tuple[float, str]:
     """Wall time at which the error curve reaches `target`, interpolated linearly in log-log.
 
     Returns (seconds, how): "interpolated"; "first iteration" (already reached by the first
     point: the time is an upper bound); "extrapolated" (never reached: the last segment's
     log-log slope continued, a guess flagged as such); "not reached" (inf: the curve stopped
-    falling).
+    falling, or would reach it only beyond EXTRAPOLATION_LIMIT times its last time).
     """
     pairs = [(t, e) for t, e in zip(seconds, errors) if t > 0 and e > 0 and math.isfinite(e)]
     if not pairs or not target > 0:
@@ -193,7 +199,9 @@ def time_to_reach(seconds: list[float], errors: list[float], target: float) -> t
             return _loglog_at(t0, e0, t1, e1, target), "interpolated"
     if len(pairs) >= 2 and pairs[-1][1] < pairs[-2][1]:
         (t0, e0), (t1, e1) = pairs[-2], pairs[-1]
-        return _loglog_at(t0, e0, t1, e1, target), "extrapolated"
+        guess = _loglog_at(t0, e0, t1, e1, target)
+        if guess <= EXTRAPOLATION_LIMIT * t1:
+            return guess, "extrapolated"
     return math.inf, "not reached"
 
 
@@ -201,7 +209,9 @@ def _loglog_at(t0: float, e0: float, t1: float, e1: float, target: float) -> flo
     if e1 == e0:
         return t1
     u = (math.log(target) - math.log(e0)) / (math.log(e1) - math.log(e0))
-    return math.exp(math.log(t0) + u * (math.log(t1) - math.log(t0)))
+    log_time = math.log(t0) + u * (math.log(t1) - math.log(t0))
+    # a nearly flat segment sends the guess past any float (exp overflows): no time at all
+    return math.exp(log_time) if log_time < math.log(sys.float_info.max) else math.inf
 
 
 # --- running one method on one scene -------------------------------------------------------------

@@ -84,3 +84,5 @@ def test_time_to_reach_flags_bounds_and_extrapolation() -> None:
     assert how == "extrapolated" and seconds == pytest.approx(16.0)
     assert time_to_reach([1.0, 4.0], [0.4, 0.5], 0.1) == (math.inf, "not reached")
     assert time_to_reach([], [], 0.1) == (math.inf, "not reached")
+    # a nearly flat last segment: no extrapolated age (it overflowed float before)
+    assert time_to_reach([0.016, 0.025], [0.25509, 0.25477], 0.0104) == (math.inf, "not reached")
