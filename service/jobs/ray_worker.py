@@ -22,7 +22,7 @@ import logging
 import os
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -478,4 +478,16 @@ def run_iteration(group: list, before_finish: Callable[[], None] = lambda: None)
     denoised = [ref for ref in _call(*[actor.denoise_phase.remote(rendered) for actor in group]) if ref is not None]
     before_finish()
     seconds = time.perf_counter() - started  # one clock for all actors: the same time-limit decision
-    return _call(*[actor.finish_phase.remote(denoised, seconds) for actor in group])[0]
+    return owned_report(_call(*[actor.finish_phase.remote(denoised, seconds) for actor in group])[0])
+
+
+def owned_report(report: IterationReport) -> IterationReport:
+    """The report with its image layers copied out of Ray's object store. `ray.get` hands numpy
+    arrays that map the store's shared memory and keep the object pinned until they are freed;
+    the previews are published from them on a background thread while the next iteration renders,
+    so they would be freed — and the pin released over the raylet's socket — after a SIGTERM to
+    the process group has ended the raylet, and Ray's driver ends the process (status 1) when it
+    finds its raylet gone. Copied here, the store's object is released at once, on this thread."""
+    layers = [{name: None if image is None else np.array(image) for name, image in frame.items()}
+              for frame in report.layers]
+    return replace(report, layers=layers)
