@@ -127,3 +127,22 @@ class LambdaEdits:
         if done.results is not None and require(self.store, job_id).state == COMPLETED:
             files.save_results(done.results())  # the result follows λ after the run too
         return LambdaApplied(version, done.full_passes, done.tail_passes)
+
+
+class LambdaEditsOfRunner:
+    """The λ part of the JobRunner protocol, the same on both backends: what differs (where a
+    job's loop lives and re-denoises) is the `relambda` their LambdaEdits was built with."""
+
+    lambdas: LambdaEdits
+
+    def image_size(self, job_id: str) -> tuple[int, int] | None:
+        return self.lambdas.image_size(job_id)
+
+    def current_lambda(self, job_id: str, shape: tuple[int, int]) -> np.ndarray:
+        return self.lambdas.current_lambda(job_id, shape)
+
+    def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None,
+                   sequence: int | None = None) -> LambdaApplied:
+        """Keep `lam` with the job and re-denoise it from cached features (wherever its loop lives)."""
+        return self.lambdas.set_lambda(job_id, lam, value, sequence)
+

@@ -32,7 +32,7 @@ from ray.exceptions import RayActorError, RayTaskError
 from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles
 from service.jobs.checkpoint_writer import CheckpointWriter
-from service.jobs.lambda_edits import LambdaApplied, LambdaEdits, Relambda, require
+from service.jobs.lambda_edits import LambdaEdits, LambdaEditsOfRunner, Relambda, require
 from service.jobs.previews import PreviewPublisher
 from service.jobs.queue_runner import LeaseLost, QueueRunner
 from service.jobs.ray_lambda import LambdaActors
@@ -104,7 +104,7 @@ class WorkerDied(RuntimeError):
     """A job's worker process ended without finishing its call."""
 
 
-class RayJobWorker:
+class RayJobWorker(LambdaEditsOfRunner):
     """The Ray backend: a JobRunner (service/jobs/runner.py) whose jobs run in Ray actors; its
     queue's threads only drive them (one thread per job)."""
 
@@ -440,17 +440,6 @@ class RayJobWorker:
         self._lambda_actors.drop(job_id)
         self.previews.forget(job_id)
         self.store.delete(job_id)
-
-    def image_size(self, job_id: str) -> tuple[int, int] | None:
-        return self.lambdas.image_size(job_id)
-
-    def current_lambda(self, job_id: str, shape: tuple[int, int]) -> np.ndarray:
-        return self.lambdas.current_lambda(job_id, shape)
-
-    def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None,
-                   sequence: int | None = None) -> LambdaApplied:
-        """Re-denoised in the job's actors while it runs, in its λ actor after the run."""
-        return self.lambdas.set_lambda(job_id, lam, value, sequence)
 
 
 def _call(*refs) -> list:

@@ -24,7 +24,7 @@ import numpy as np
 from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles
 from service.jobs.checkpoints import JobCheckpoint
-from service.jobs.lambda_edits import LambdaApplied, LambdaEdits, Relambda, require
+from service.jobs.lambda_edits import LambdaEdits, LambdaEditsOfRunner, Relambda, require
 from service.jobs.previews import PreviewPublisher, state_preview_layers
 from service.jobs.queue_runner import LeaseLost, QueueRunner
 from service.jobs.record import CANCELED, COMPLETED, JobRecord, bundle_scene, job_spec
@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 IDLE_LOOPS_KEPT = 2  # finished loops kept in memory so λ changes after the run stay cheap
 
 
-class JobWorker:
+class JobWorker(LambdaEditsOfRunner):
     """The thread backend: a JobRunner (service/jobs/runner.py) whose jobs' loops run in
     `concurrency` threads of this process."""
 
@@ -98,17 +98,6 @@ class JobWorker:
             self._idle.pop(job_id, None)
         self.previews.forget(job_id)
         self.store.delete(job_id)
-
-    def image_size(self, job_id: str) -> tuple[int, int] | None:
-        return self.lambdas.image_size(job_id)
-
-    def current_lambda(self, job_id: str, shape: tuple[int, int]) -> np.ndarray:
-        return self.lambdas.current_lambda(job_id, shape)
-
-    def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None,
-                   sequence: int | None = None) -> LambdaApplied:
-        """Keep `lam` with the job and re-denoise from its loop's cached features."""
-        return self.lambdas.set_lambda(job_id, lam, value, sequence)
 
     def _is_live(self, job_id: str) -> bool:
         with self._lock:
