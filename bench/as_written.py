@@ -180,7 +180,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tutorials", type=Path, default=None, metavar="DIR",
                         help="with --as-written: also the published tutorials scenes in DIR (cbox.xml, lego/scene.xml, simple.xml)")
     parser.add_argument("--seeds", type=int, nargs="+", default=None, metavar="SEED",
-                        help="with --as-written: one run per seed, the table gives their mean (default 0)")
+                        help="with --as-written, --loop or --calibration: one run per seed (default 0); --as-written's "
+                             "table gives their mean, --loop's and --calibration's their spread")
 
 
 def run_as_written_command(args: argparse.Namespace) -> int:

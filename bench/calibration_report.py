@@ -16,6 +16,7 @@ import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
+from bench.calibration_ceiling import CEILING_RENDERS, CeilingScore, FirstIterationMaps, ceiling_bound_line, ceiling_table, scene_ceiling
 from bench.common import fill, fmt, image_metrics, load_bench_networks, pinned_torch_threads, provenance, true_error_map
 from bench.dev_references import SUITES, dev_scenes, load_reference
 from bench.quality_measures import block_means, spearman
@@ -59,13 +60,17 @@ class IterationScore:
         return self.network / self.true if self.true > 0 else float("nan")
 
 
-def score_scene(path: Path, reference, networks) -> list[IterationScore]:
+def calibration_spec(path: Path, iterations: int = ITERATIONS, seed: int = 0) -> LoopSpec:
     # Run as a job that stops on a target error runs (its first iteration in two halves, so that
     # mean is calibrated too: RenderLoop._splits_first_iteration), with a target no scene reaches:
     # until it stops, a loop with any target E does exactly this, so these records say where E stops.
-    spec = LoopSpec(scene=str(path), max_iterations=ITERATIONS, allocator="error", target_error=UNREACHED_TARGET)
+    return LoopSpec(scene=str(path), max_iterations=iterations, allocator="error", target_error=UNREACHED_TARGET,
+                    seed=seed)
+
+
+def score_scene(path: Path, reference, networks, seed: int = 0) -> list[IterationScore]:
     scores, previous = [], None
-    for record in RenderLoop(spec, networks).run():
+    for record in RenderLoop(calibration_spec(path, seed=seed), networks).run():
         denoised, predicted = record.denoised[0], record.error[0]
         true = true_error_map(denoised, reference)
         scores.append(IterationScore(record.spp_mean, float(predicted.mean()),
@@ -75,6 +80,13 @@ def score_scene(path: Path, reference, networks) -> list[IterationScore]:
                                      change=float("nan") if previous is None else image_change(previous, denoised)))
         previous = denoised
     return scores
+
+
+def first_iteration_maps(path: Path, reference, networks, seed: int) -> tuple[float, FirstIterationMaps]:
+    """(spp, true and predicted maps) of the report's first iteration with `seed`: the same loop as
+    score_scene's, stopped there, so the ceiling is measured on what the report's Spearman scores."""
+    record = next(iter(RenderLoop(calibration_spec(path, iterations=1, seed=seed), networks).run()))
+    return record.spp_mean, FirstIterationMaps(true_error_map(record.denoised[0], reference), record.error[0])
 
 
 def stop_for_target(scores: list[IterationScore], target: float) -> IterationScore | None:
@@ -118,17 +130,30 @@ def write_calibrated_error_network(source_dir: Path, target_dir: Path, scale: fl
 
 
 def run_calibration_report(out_dir: Path, *, weights_dir: Path | None = None, only: list[str] | None = None,
-                           suite: str = "dev", fit_scale_to: Path | None = None) -> Path:
-    """Measure and write the report; with `fit_scale_to`, also write the calibrated error network there."""
+                           suite: str = "dev", fit_scale_to: Path | None = None, seeds: tuple[int, ...] = (0,),
+                           ceiling_renders: int = CEILING_RENDERS) -> Path:
+    """Measure and write the report; with `fit_scale_to`, also write the calibrated error network there.
+    One loop per scene and seed (the tables are the first seed's, the spread is over all); with
+    `ceiling_renders` K > 0, K more first iterations per scene for the repeatable ceiling."""
+    if not seeds:
+        raise ValueError("the calibration report needs at least one seed")
     nets = load_bench_networks(weights_dir)
-    results: dict[str, list[IterationScore]] = {}
+    by_seed: dict[int, dict[str, list[IterationScore]]] = {seed: {} for seed in seeds}
+    ceiling: dict[str, CeilingScore] = {}
     with pinned_torch_threads(TORCH_THREADS):
         for scene in dev_scenes(only, SUITES[suite].root):
             reference, _ = load_reference(SUITES[suite].references, scene, None if scene.frames == 1 else 0)
-            results[scene.name] = score_scene(scene.path, reference, nets.networks)
-            last = results[scene.name][-1]
-            print(f"bench --calibration: {scene.name}: predicted {last.predicted:.4f} true {last.true:.4f} "
-                  f"spearman {last.spearman:.2f}", flush=True)
+            for seed in seeds:
+                by_seed[seed][scene.name] = score_scene(scene.path, reference, nets.networks, seed)
+                last = by_seed[seed][scene.name][-1]
+                print(f"bench --calibration: {scene.name} seed {seed}: predicted {last.predicted:.4f} "
+                      f"true {last.true:.4f} spearman {last.spearman:.2f}", flush=True)
+            if ceiling_renders:
+                ceiling[scene.name] = scene_ceiling(
+                    lambda seed: first_iteration_maps(scene.path, reference, nets.networks, seed), ceiling_renders)
+                print(f"bench --calibration: {scene.name}: ceiling {ceiling[scene.name].ceiling:.2f} "
+                      f"network {ceiling[scene.name].network:.2f}", flush=True)
+    results = by_seed[seeds[0]]
     if fit_scale_to is not None:
         scale = fitted_output_scale(results)
         change_scale = fitted_change_scale(results, scale)
@@ -136,7 +161,7 @@ def run_calibration_report(out_dir: Path, *, weights_dir: Path | None = None, on
                    + (f" --only {' '.join(only)}" if only else ""))
         written = write_calibrated_error_network(nets.folder, fit_scale_to, scale, command, change_scale)
         print(f"bench --calibration: output scale ×{scale:.4f}, change scale {change_scale:.4f} → {written}", flush=True)
-    return write_calibration_report(results, out_dir, nets.description, suite)
+    return write_calibration_report(results, out_dir, nets.description, suite, by_seed=by_seed, ceiling=ceiling)
 
 
 def _per_iteration_table(results: dict[str, list[IterationScore]]) -> str:
@@ -178,8 +203,66 @@ def _target_table(results: dict[str, list[IterationScore]]) -> str:
     return "\n".join(rows)
 
 
+# The seed-spread table's columns: (header, one iteration's figure, decimals).
+SPREAD_COLUMNS = (("Spearman per pixel (median)", lambda s: s.spearman, 2),
+                  ("predicted / true (median)", lambda s: s.ratio, 2),
+                  ("true SMAPE (median)", lambda s: s.true, 4))
+
+
+def median_over_seeds(by_seed: dict[int, dict[str, list[IterationScore]]], iteration: int,
+                      figure) -> list[float]:
+    """One value per seed: the median over the scenes of `figure` at `iteration`."""
+    return [statistics.median(figure(scores[iteration]) for scores in results.values())
+            for results in by_seed.values()]
+
+
+def seed_spread_table(by_seed: dict[int, dict[str, list[IterationScore]]]) -> str:
+    """Per spp, each median over the scenes computed per seed, then the mean over seeds and their
+    min–max: how much of a figure is the seed."""
+    iterations = min(len(scores) for results in by_seed.values() for scores in results.values())
+    lines = ["| spp | " + " | ".join(header for header, _, _ in SPREAD_COLUMNS) + " |",
+             "|---:|" + "---:|" * len(SPREAD_COLUMNS)]
+    for i in range(iterations):
+        cells = []
+        for _, figure, digits in SPREAD_COLUMNS:
+            values = median_over_seeds(by_seed, i, figure)
+            cells.append(f"{statistics.mean(values):.{digits}f} ({min(values):.{digits}f}–{max(values):.{digits}f})")
+        spp = next(iter(next(iter(by_seed.values())).values()))[i].spp
+        lines.append(f"| {spp:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _seed_section(by_seed: dict[int, dict[str, list[IterationScore]]] | None) -> str:
+    if not by_seed or len(by_seed) < 2:
+        return "One seed (0) was run: `--seeds 0 1 2` adds the spread over loop seeds."
+    seeds = " ".join(str(s) for s in by_seed)
+    return (f"The tables above are seed {next(iter(by_seed))}'s. Over the loop seeds {seeds} (`--seeds`): each figure "
+            f"is the median over the scenes for one seed, then the mean over the {len(by_seed)} seeds and, in "
+            "brackets, their minimum–maximum.\n\n" + seed_spread_table(by_seed))
+
+
+def _ceiling_section(ceiling: dict[str, CeilingScore] | None) -> tuple[str, str]:
+    """(the bound's header line, the section) — both say when the ceiling was not measured."""
+    if not ceiling:
+        return ("Bound: the repeatable ceiling was not measured in this run (`--ceiling-renders 0`).",
+                "Not measured in this run.")
+    first = next(iter(ceiling.values()))
+    section = (f"Per scene, {first.renders} more renders at {first.spp:g} spp, each the loop above stopped after its "
+               "first iteration with its own seed (from 1000 up, apart from the loop seeds). Repeatable ceiling: "
+               f"the Spearman of the mean of {first.renders - 1} true error maps against the remaining one, "
+               f"averaged over the {first.renders} leave-one-out choices: what a perfect predictor of the "
+               "scene's expected error scores against one render (a little low: K − 1 maps estimate the "
+               "expectation). Network: the error network's per-pixel Spearman against each render's own true "
+               "map (the figure of the tables above), mean over the same renders, min–max in brackets. A "
+               "predictor reads the render's own inputs and can see part of its noise, so the ceiling bounds "
+               "predictors of the expected error, not every predictor. The ratio of the goal is the median "
+               "scene's network Spearman over the median scene's ceiling.\n\n" + ceiling_table(ceiling))
+    return ceiling_bound_line(ceiling), section
+
+
 def write_calibration_report(results: dict[str, list[IterationScore]], out_dir: Path, weights: str,
-                             suite: str = "dev") -> Path:
+                             suite: str = "dev", *, by_seed: dict[int, dict[str, list[IterationScore]]] | None = None,
+                             ceiling: dict[str, CeilingScore] | None = None) -> Path:
     iterations = min(len(scores) for scores in results.values())
     spp_header = " | ".join(f"{next(iter(results.values()))[i].spp:g} spp" for i in range(iterations))
     medians = []
@@ -194,11 +277,13 @@ def write_calibration_report(results: dict[str, list[IterationScore]], out_dir: 
                        f"{within} of {len(ratios)} | {statistics.median(network):.2f} | {within_network} of {len(network)} | "
                        f"{rho:.2f} | {rho_block:.2f} |")
     target_table = _target_table(results)
+    bound, ceiling_text = _ceiling_section(ceiling)
     path = out_dir / REPORT_NAMES[suite]
     out_dir.mkdir(parents=True, exist_ok=True)
     path.write_text(fill(
         "calibration.md", provenance=provenance(variant=active_variant()), weights=weights, count=len(results),
         about=SUITES[suite].about,
         spp_header=spp_header, spp_rule="|".join(["---:"] * iterations), per_iteration=_per_iteration_table(results),
-        medians="\n".join(medians), targets=target_table, trusted=f"{TRUSTED:.0%}", tolerance=f"{MEAN_TOLERANCE:.0%}"))
+        medians="\n".join(medians), targets=target_table, bound=bound, ceiling=ceiling_text,
+        seed_spread=_seed_section(by_seed), trusted=f"{TRUSTED:.0%}", tolerance=f"{MEAN_TOLERANCE:.0%}"))
     return path

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from bench.as_written import add_arguments as add_as_written_arguments, run_as_written_command
+from bench.calibration_ceiling import CEILING_RENDER_RANGE, CEILING_RENDERS
 from bench.calibration_report import run_calibration_report
 from bench.dev_references import DEFAULT_REFERENCE_DIR, SUITES, VAL_REFERENCE_DIR, scaled_reference_dir, write_references
 from bench.dev_suite_report import run_dev_suite_report
@@ -54,6 +55,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--calibration", action="store_true",
                    help="predicted vs true error per iteration and where --target-error stops, on scenes/dev → "
                         "calibration.md (with --suite val: scenes/val → calibration-val.md)")
+    p.add_argument("--ceiling-renders", type=int, default=CEILING_RENDERS, metavar="K",
+                   help=f"with --calibration: K renders per scene at the first spp for the repeatable-error ceiling "
+                        f"of the per-pixel Spearman ({CEILING_RENDER_RANGE[0]}–{CEILING_RENDER_RANGE[1]}, 0: not "
+                        f"measured; default {CEILING_RENDERS})")
     p.add_argument("--fit-scale", type=Path, default=None, metavar="DIR",
                    help="with --calibration --suite val: also write the error network of --weights to DIR with "
                         "the output scale that makes its median predicted ÷ true error 1 on those scenes, and the "
@@ -101,8 +106,13 @@ def run_bench(args: argparse.Namespace) -> int:
         return 2
     if args.calibration:
         suite = "val" if args.suite == "val" else "dev"
+        low, high = CEILING_RENDER_RANGE
+        if args.ceiling_renders != 0 and not low <= args.ceiling_renders <= high:
+            print(f"renderloop bench: error: --ceiling-renders takes {low}–{high} (or 0)", file=sys.stderr)
+            return 2
         report = run_calibration_report(args.out, weights_dir=args.weights, only=args.only, suite=suite,
-                                        fit_scale_to=args.fit_scale)
+                                        fit_scale_to=args.fit_scale, seeds=tuple(args.seeds or (0,)),
+                                        ceiling_renders=args.ceiling_renders)
         print(f"wrote {report}")
         return 0
     if args.dev_suite:
