@@ -5,10 +5,11 @@ on the CPU, layout copies), the allocation, and what the job worker writes after
 
 Measured on a finished loop's final state, by calling the very functions the loop and the worker
 call (`DenoiseSession.denoise / predict_error / relambda`, `frame_tensors`, `LoopState.snapshot`,
-`LoopState.save`, `JobFiles.save_preview(preview_layers(…))`), each `repeats` times, the median
-kept. The thread backend's worker (service/jobs/worker.py) copies the state on the loop's thread
-(the snapshot: time the render waits) and writes the checkpoint and the previews from that copy
-on a background thread (service/jobs/checkpoint_writer.py) while the next iteration renders.
+`checkpoint_format.write_state`, `JobFiles.save_preview(preview_layers(…))`), each `repeats`
+times, the median kept. The thread backend's worker (service/jobs/worker.py) copies the state
+on the loop's thread (the snapshot: time the render waits) and writes the checkpoint and the
+previews from that copy on a background thread (service/jobs/checkpoint_writer.py) while the
+next iteration renders.
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from pathlib import Path
 
 from bench.versus_mitsuba_run import LoopRun
 from service.jobs.artifacts import JobFiles, Preview
+from service.jobs.checkpoint_format import write_state
 from service.jobs.previews import preview_layers
 from service.loop.allocate import iteration_budget
 from service.loop.loop import next_counts
@@ -39,7 +41,7 @@ STAGES = (
     ("to_host", "denoised image → host array (device → host on a GPU)", True),
     ("lambda_tail", "λ tail from cached features (a λ edit)", True),
     ("snapshot", "state snapshot on the loop's thread (LoopState.snapshot, into the last one's arrays)", True),
-    ("checkpoint", "checkpoint write (LoopState.save, atomic; background thread)", True),
+    ("checkpoint", "checkpoint write (checkpoint_format.write_state, atomic; background thread)", True),
     ("preview", "preview write (all layers, atomic; background thread)", True),
 )
 RENDER_PATH_WRITES = ("snapshot",)  # what the loop's thread pays for the worker's writes
@@ -116,7 +118,7 @@ def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCost
         layers = preview_layers(loop, record)
         spare = loop.state.snapshot()  # the worker overwrites the last write's copy (checkpoint_writer.py)
         ms["snapshot"] = _median_ms(lambda: loop.state.snapshot(spare), repeats)
-        ms["checkpoint"] = _median_ms(lambda: loop.state.save(files.state_dir), repeats)
+        ms["checkpoint"] = _median_ms(lambda: write_state(loop.state, files.state_dir), repeats)
         ms["preview"] = _median_ms(lambda: [files.save_preview(f, Preview(1, frame_layers))
                                             for f, frame_layers in enumerate(layers)], repeats)
     iteration_ms = [1000 * sum(p.stages.values()) for p in run.curve.points]

@@ -10,12 +10,12 @@ failed write still fails the job.
 
 What the render path still pays is the snapshot (LoopState.snapshot). Measured on the shared
 2-core host (load ~3), one frame with every buffer and the splat sums (396 MiB of float64 at
-1920×1080, 200 MiB at 1024²), median of 5: at 2 MP LoopState.save 504 ms (235–1182), a fresh
-snapshot 84 ms (but 0.6–1.1 s while the allocator still faults its pages in), a snapshot into
-the previous one's arrays 46 ms (22–60); at 1024² save 334 ms, snapshot 81 ms, reused 35 ms.
-So the job's checkpoint (service/jobs/checkpoints.py) reuses the last write's snapshot, and
-the render path pays ~1/10 of the write. The Ray driver uses one of these too, for the previews
-and the record that follow the leader actor's checkpoint.
+1920×1080, 200 MiB at 1024²), median of 5: at 2 MP a save (checkpoint_format.write_state)
+504 ms (235–1182), a fresh snapshot 84 ms (but 0.6–1.1 s while the allocator still faults
+its pages in), a snapshot into the previous one's arrays 46 ms (22–60); at 1024² save
+334 ms, snapshot 81 ms, reused 35 ms. So the job's checkpoint (service/jobs/checkpoints.py)
+reuses the last write's snapshot, and the render path pays ~1/10 of the write. The Ray driver
+uses one of these too, for the previews and the record that follow the leader actor's checkpoint.
 """
 from __future__ import annotations
 

@@ -9,7 +9,7 @@ thread right after it. `through` is the last iteration on disk, and `wait_throug
 until iteration n is there, so whoever records an iteration (the thread worker's writer, the
 Ray driver asking the leader actor) never records one a restart could not resume from.
 
-The format (the npz files, the atomic directory swap) is LoopState.save/load's.
+The format (the npz files, the atomic directory swap) is service/jobs/checkpoint_format.py's.
 """
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import threading
 from pathlib import Path
 from typing import Callable
 
+from service.jobs import checkpoint_format
 from service.jobs.checkpoint_writer import CheckpointWriter
 from service.loop.state import LoopState
 
@@ -40,13 +41,13 @@ class JobCheckpoint:
     # -- reading --------------------------------------------------------------------------------
 
     def exists(self) -> bool:
-        return LoopState.exists(self.directory)
+        return checkpoint_format.holds_state(self.directory)
 
     def load(self) -> LoopState | None:
         """The state on disk, or None when the job has no checkpoint yet."""
         if not self.exists():
             return None
-        state = LoopState.load(self.directory)
+        state = checkpoint_format.read_state(self.directory)
         self._landed(state.iteration)
         return state
 
@@ -101,7 +102,7 @@ class JobCheckpoint:
 
     def _write(self, snapshot: LoopState, then: Callable[[LoopState], None]) -> None:
         try:
-            snapshot.save(self.directory)
+            checkpoint_format.write_state(snapshot, self.directory)
         except BaseException as exc:
             with self._done:
                 self._failure = exc

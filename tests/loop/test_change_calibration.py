@@ -14,7 +14,7 @@ from tests.models.conftest import PLAIN_ERROR_NETWORK
 from service.loop.change_calibration import calibrate_by_change, calibrated_mean, image_change
 from service.loop.loop import RenderLoop, exposed_change
 from service.loop.spec import LoopSpec
-from service.loop.state import LoopState
+from service.jobs.checkpoint_format import read_state, write_state
 
 SIZE = 16
 SCALE = 1.5
@@ -115,8 +115,8 @@ def test_a_resumed_loop_reports_the_network_until_it_has_an_image_of_its_own(cal
     first = make_loop(calibrated_networks, max_iterations=3)
     run = first.run()
     next(run)
-    first.state.save(tmp_path / "state")
-    resumed = RenderLoop(first.spec, calibrated_networks, state=LoopState.load(tmp_path / "state"))
+    write_state(first.state, tmp_path / "state")
+    resumed = RenderLoop(first.spec, calibrated_networks, state=read_state(tmp_path / "state"))
     resumed_run = resumed.run()
     second = next(resumed_run)
     second_denoised = resumed.denoised_only()[0].copy()  # the denoiser's own images are what the change compares

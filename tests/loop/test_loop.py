@@ -11,7 +11,7 @@ from models.pretrained import Networks
 from tests.models.conftest import PLAIN_DENOISER
 from service.loop.loop import IterationInterrupted, LoopSpecError, RenderLoop
 from service.loop.spec import LoopSpec
-from service.loop.state import LoopState
+from service.jobs.checkpoint_format import read_state, write_state
 
 SIZE = 16
 
@@ -113,8 +113,8 @@ def test_resume_from_checkpoint_continues_the_doubling(tiny_networks, tmp_path):
     run = first.run()
     next(run)
     first.state.lam_map[:] = 3.0
-    first.state.save(tmp_path / "state")
-    state = LoopState.load(tmp_path / "state")
+    write_state(first.state, tmp_path / "state")
+    state = read_state(tmp_path / "state")
     assert state.iteration == 1 and (state.lam_map == 3.0).all()
     resumed = RenderLoop(first.spec, tiny_networks, state=state)
     records = list(resumed.run())
@@ -125,8 +125,8 @@ def test_resume_from_checkpoint_continues_the_doubling(tiny_networks, tmp_path):
 def test_a_finished_checkpoint_does_not_render_again(tiny_networks, tmp_path):
     loop = make_loop(tiny_networks, max_iterations=1)
     list(loop.run())
-    loop.state.save(tmp_path / "s")
-    again = RenderLoop(loop.spec, tiny_networks, state=LoopState.load(tmp_path / "s"))
+    write_state(loop.state, tmp_path / "s")
+    again = RenderLoop(loop.spec, tiny_networks, state=read_state(tmp_path / "s"))
     assert list(again.run()) == []
     assert again.state.spp_mean == 16
 
@@ -179,8 +179,8 @@ def test_a_checkpoint_keeps_the_scene_integrators_aov_channels(tmp_path):
     list(loop.run())
     before = loop.state.buffers[0]
     assert before.aov_names and before.aov_sum is not None
-    loop.state.save(tmp_path / "s")
-    after = LoopState.load(tmp_path / "s").buffers[0]
+    write_state(loop.state, tmp_path / "s")
+    after = read_state(tmp_path / "s").buffers[0]
     assert after.aov_names == before.aov_names
     np.testing.assert_array_equal(after.aov_sum, before.aov_sum)
 

@@ -7,10 +7,10 @@ import time
 
 import pytest
 
+from service.jobs import checkpoint_format
 from service.jobs.store import COMPLETED, FAILED
 from service.jobs.worker import JobWorker
 from service.loop.loop import RenderLoop
-from service.loop.state import LoopState
 from worker_jobs import run_tiny_job, store  # noqa: F401  (store: a fixture)
 
 SLOW_SAVE_SECONDS = 2.0  # far longer than a 16² iteration takes, even on a loaded host
@@ -35,13 +35,13 @@ class Events:
 def events(monkeypatch, store) -> Events:
     """Saves take SLOW_SAVE_SECONDS; saves, renders and iteration records are timestamped."""
     log = Events()
-    save, render, record_iteration = LoopState.save, RenderLoop.render_step, store.record_iteration
+    save, render, record_iteration = checkpoint_format.write_state, RenderLoop.render_step, store.record_iteration
 
-    def slow_save(self, directory):
-        log.add("save_start", self.iteration)
+    def slow_save(state, directory):
+        log.add("save_start", state.iteration)
         time.sleep(SLOW_SAVE_SECONDS)
-        path = save(self, directory)
-        log.add("save_end", self.iteration)
+        path = save(state, directory)
+        log.add("save_end", state.iteration)
         return path
 
     def timed_render(self, timings, should_stop=lambda: False):
@@ -52,7 +52,7 @@ def events(monkeypatch, store) -> Events:
         log.add("record", iteration)
         return record_iteration(job_id, iteration, *args, **kwargs)
 
-    monkeypatch.setattr(LoopState, "save", slow_save)
+    monkeypatch.setattr(checkpoint_format, "write_state", slow_save)
     monkeypatch.setattr(RenderLoop, "render_step", timed_render)
     monkeypatch.setattr(store, "record_iteration", recorded)
     return log
@@ -74,16 +74,16 @@ def test_the_next_iteration_renders_while_the_checkpoint_is_written(store, tiny_
         assert record[iteration] >= save_end[iteration], events.items
     # Rendering did not wait for the disk: three slow saves overlapped two iterations' work.
     assert done.timings["io"] < SLOW_SAVE_SECONDS * 3, done.timings
-    assert LoopState.load(worker.files(done.id).state_dir).iteration == 3  # the last write landed
+    assert checkpoint_format.read_state(worker.files(done.id).state_dir).iteration == 3  # the last write landed
 
 
 @pytest.mark.parametrize("iterations", [1, 3])
 def test_a_failed_checkpoint_write_fails_the_job_with_the_writes_message(monkeypatch, store, tiny_networks,
                                                                          iterations):
-    def full_disk(self, directory):
+    def full_disk(state, directory):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(LoopState, "save", full_disk)
+    monkeypatch.setattr(checkpoint_format, "write_state", full_disk)
     worker = JobWorker(store, tiny_networks)
     try:
         done = run_tiny_job(store, worker, iterations=iterations)

@@ -5,8 +5,9 @@ processes inherit the environment of `ray.init`), with RENDERLOOP_PROBE_DIR nami
 In every process that then imports the loop, it
 - logs `render_start` (the 0-based iteration about to render), `denoise_end`, `save_start` and
   `save_end` (the checkpoint's iteration) with wall-clock times to PROBE_DIR/events.jsonl;
-- makes LoopState.save behave as PROBE_DIR/save_mode says at each call: `slow SECONDS`
-  (sleeps first), `fail` (raises ENOSPC, as a full disk does), absent: as written.
+- makes the checkpoint write (checkpoint_format.write_state) behave as PROBE_DIR/save_mode says
+  at each call: `slow SECONDS` (sleeps first), `fail` (raises ENOSPC, as a full disk does),
+  absent: as written.
 So a test can watch the leader actor from outside its process: whether it renders the next
 iteration while its checkpoint is written, and when each checkpoint landed.
 """
@@ -35,20 +36,20 @@ def save_mode() -> list[str]:
 
 
 def patch_state(module) -> None:
-    save = module.LoopState.save
+    save = module.write_state
 
-    def probed_save(self, directory):
+    def probed_save(state, directory):
         mode = save_mode()
-        log("save_start", self.iteration)
+        log("save_start", state.iteration)
         if mode[:1] == ["fail"]:
             raise OSError(errno.ENOSPC, "No space left on device")
         if mode[:1] == ["slow"]:
             time.sleep(float(mode[1]))
-        path = save(self, directory)
-        log("save_end", self.iteration)
+        path = save(state, directory)
+        log("save_end", state.iteration)
         return path
 
-    module.LoopState.save = probed_save
+    module.write_state = probed_save
 
 
 def patch_loop(module) -> None:
@@ -67,7 +68,7 @@ def patch_loop(module) -> None:
     module.RenderLoop.denoise_step = probed_denoise
 
 
-PATCHES = {"service.loop.state": patch_state, "service.loop.loop": patch_loop}
+PATCHES = {"service.jobs.checkpoint_format": patch_state, "service.loop.loop": patch_loop}
 
 
 class ProbeFinder(importlib.abc.MetaPathFinder):
