@@ -42,8 +42,12 @@ PROGRESSIVE_STEPS = ((16, 16), (32, 16), (64, 32), (128, 64))
 HEADLINE_SPP = 16
 LAMBDAS = (1.0, 2.0, 5.0, 10.0)
 
-NOISY, SINGLE, MULTISCALE, TEMPORAL, OIDN = (
-    "noisy input", "single-frame KPCN", "multi-scale (1 frame)", "temporal multi-scale", "OIDN (pyoidn)")
+NOISY, SINGLE, MULTISCALE, OIDN = ("noisy input", "single-scale (1 frame)", "multi-scale (1 frame)", "OIDN (pyoidn)")
+# The row the loop runs on a sequence's window, named after what the weights do with it: a
+# temporal network filters the warped window jointly (one kernel per frame, one softmax); a
+# single-frame network (the shipped one) denoises the centre frame with its neighbours'
+# consistent samples pooled in (models/accumulation.py).
+TEMPORAL, POOLED = "temporal multi-scale", "pooled window"
 
 # Built-in scenes are static: a "sequence" is the same view rendered with different seeds,
 # which is exactly what the loop renders for `--frames F` of a static scene.
@@ -76,13 +80,19 @@ class EvalImage:
 
 @dataclass
 class Outputs:
-    """Every method's result for one image, plus the temporal model's error prediction."""
+    """Every method's result for one image, plus the error prediction of the loop's result."""
 
     image: EvalImage
     results: dict[str, Tensor]               # method → (1,3,H,W)
-    predicted_error: Tensor | None = None    # (1,1,H,W), for the temporal result
+    window: str                              # the method the loop runs (window_method)
+    predicted_error: Tensor | None = None    # (1,1,H,W), for the loop's result
     lambda_results: dict[float, Tensor] = field(default_factory=dict)
     pyramid: list[dict[str, float]] = field(default_factory=list)   # per coarse level, see pyramid_levels
+
+    @property
+    def loop_result(self) -> Tensor:
+        """What the loop hands on for this image: the window method's result."""
+        return self.results[self.window]
 
 
 Denoise = Callable[[EvalImage], Tensor]
@@ -115,6 +125,11 @@ def oidn_method() -> tuple[Denoise, str]:
     return run, note
 
 
+def window_method(denoiser: Denoiser) -> str:
+    """The name of the row the loop runs on a window, after what these weights do with it."""
+    return TEMPORAL if denoiser.temporal is not None else POOLED
+
+
 def windowed(denoiser: Denoiser, image: EvalImage) -> Tensor:
     """The denoiser over the image's whole window, as the loop runs a sequence (λ = 1)."""
     window, centre = denoiser.filtered_window(image.window, image.centre)
@@ -128,7 +143,7 @@ def make_methods(denoiser: Denoiser, use_oidn: bool) -> tuple[dict[str, Denoise]
         NOISY: lambda im: im.frame.color,
         SINGLE: lambda im: denoise_frame(single, [im.frame], 0),
         MULTISCALE: lambda im: denoise_frame(denoiser, [im.frame], 0),
-        TEMPORAL: lambda im: windowed(denoiser, im),
+        window_method(denoiser): lambda im: windowed(denoiser, im),
     }
     note = None
     if use_oidn:
@@ -223,15 +238,15 @@ def evaluate(images: list[EvalImage], methods: dict[str, Denoise], denoiser: Den
              predictor: ErrorPredictor, lambdas: Sequence[float]) -> list[Outputs]:
     """Run every method on every image; at the headline level also the λ sweep (one prepare,
     several cheap λ tails, as the service does)."""
-    outputs = []
+    outputs, window_name = [], window_method(denoiser)
     for n, image in enumerate(images, 1):
         window, centre = denoiser.filtered_window(image.window, image.centre)
-        # one prepare gives the TEMPORAL result (what `windowed` computes), the error network's map
+        # one prepare gives the loop's result (what `windowed` computes), the error network's map
         # of it and the cache of the λ sweep
         result = denoise_and_predict(Networks(denoiser, predictor), window, centre)
         cache, denoised, predicted = result.cache, result.image, result.error
-        results = {name: denoised if name == TEMPORAL else method(image) for name, method in methods.items()}
-        out = Outputs(image, results, predicted_error=predicted)
+        results = {name: denoised if name == window_name else method(image) for name, method in methods.items()}
+        out = Outputs(image, results, window_name, predicted_error=predicted)
         if image.spp == HEADLINE_SPP:
             out.lambda_results = {lam: denoiser.apply(cache, lam) for lam in lambdas}
             out.pyramid = pyramid_levels(denoiser, cache, image)
@@ -274,15 +289,16 @@ def quality_table(outputs: list[Outputs], methods: Sequence[str]) -> dict[tuple[
     return {key: {m: float(np.mean([s[m] for s in scores])) for m in scores[0]} for key, scores in rows.items()}
 
 
-def headline_factor(table: dict[tuple[int, str], dict[str, float]]) -> float:
-    noisy, best = table.get((HEADLINE_SPP, NOISY)), table.get((HEADLINE_SPP, TEMPORAL))
+def headline_factor(table: dict[tuple[int, str], dict[str, float]], window: str) -> float:
+    """Mean SMAPE of the noisy input ÷ of the loop's result (`window`) at the headline level."""
+    noisy, best = table.get((HEADLINE_SPP, NOISY)), table.get((HEADLINE_SPP, window))
     return noisy["smape"] / best["smape"] if noisy and best and best["smape"] > 0 else float("nan")
 
 
 def per_scene_headline(outputs: list[Outputs]) -> list[tuple[str, float, float]]:
-    """(scene, SMAPE noisy, SMAPE temporal) at the headline level, per image."""
+    """(scene, SMAPE noisy, SMAPE of the loop's result) at the headline level, per image."""
     return [(o.image.scene, float(smape(clean(o.results[NOISY]), o.image.reference)),
-             float(smape(clean(o.results[TEMPORAL]), o.image.reference)))
+             float(smape(clean(o.loop_result), o.image.reference)))
             for o in outputs if o.image.spp == HEADLINE_SPP]
 
 
@@ -298,7 +314,7 @@ def error_predictor_table(outputs: list[Outputs]) -> dict[int, dict[str, tuple]]
     """spp → Pearson/Spearman stats per image and mean predicted vs true SMAPE."""
     rows: dict[int, list[tuple[float, float, float, float]]] = {}
     for out in outputs:
-        true = smape_map(clean(out.results[TEMPORAL]), out.image.reference).numpy()
+        true = smape_map(clean(out.loop_result), out.image.reference).numpy()
         pred = out.predicted_error.numpy()
         rows.setdefault(out.image.spp, []).append(
             (pearson(pred, true), spearman(pred, true), float(pred.mean()), float(true.mean())))
@@ -329,14 +345,14 @@ def flicker_rows(renderer: BuiltinRenderer, reference: Tensor, methods: dict[str
 
 
 def pick_example(outputs: list[Outputs], prefer: str | None = None) -> Outputs | None:
-    """At the headline level: the preferred scene if present, else the median temporal SMAPE
-    (a representative image, not the best one)."""
+    """At the headline level: the preferred scene if present, else the image whose loop result
+    has the median SMAPE (a representative image, not the best one)."""
     candidates = [o for o in outputs if o.image.spp == HEADLINE_SPP]
     if not candidates:
         return None
     for o in candidates:
         if o.image.scene == prefer:
             return o
-    ranked = sorted(candidates, key=lambda o: float(smape(clean(o.results[TEMPORAL]), o.image.reference)))
+    ranked = sorted(candidates, key=lambda o: float(smape(clean(o.loop_result), o.image.reference)))
     return ranked[len(ranked) // 2]
 

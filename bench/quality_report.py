@@ -18,11 +18,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from bench.common import OIDN_SETTINGS, fill, fmt, pinned_torch_threads, provenance, sanitize as clean
+from bench.common import (OIDN_SETTINGS, PROVENANCE_KEYS, fill, fmt, pinned_torch_threads, provenance,
+                          sanitize as clean)
 from bench.quality_eval import (FLICKER_SEEDS, FLICKER_SPP, HEADLINE_SPP, LAMBDAS, NOISY, OIDN, PROGRESSIVE_STEPS,
-                                SEQUENCE_SEEDS, TEMPORAL, BuiltinRenderer, Outputs, builtin_images, builtin_reference,
+                                SEQUENCE_SEEDS, BuiltinRenderer, Outputs, builtin_images, builtin_reference,
                                 error_predictor_table, evaluate, flicker_rows, headline_factor, heldout_images,
-                                lambda_table, log, make_methods, per_scene_headline, pick_example, quality_table)
+                                lambda_table, log, make_methods, per_scene_headline, pick_example, quality_table,
+                                window_method)
 from models.checkpoint import load_checkpoint
 from models.denoiser import Denoiser
 from models.error_predictor import ErrorPredictor
@@ -64,7 +66,7 @@ def write_crops(out: Outputs, folder: Path, stem: str) -> list[tuple[str, str]]:
 
     panels = [(name, tonemap(hwc(t))) for name, t in out.results.items()]
     panels.append(("reference", tonemap(hwc(out.image.reference))))
-    true = smape_map(clean(out.results[TEMPORAL]), out.image.reference)[0, 0].numpy()[ys, xs]
+    true = smape_map(clean(out.loop_result), out.image.reference)[0, 0].numpy()[ys, xs]
     pred = out.predicted_error[0, 0].numpy()[ys, xs]
     vmax = float(np.percentile(true, 99)) or 1.0  # same scale for both, so they compare directly
     panels += [("predicted error", false_colour(pred, vmax)), ("true SMAPE", false_colour(true, vmax))]
@@ -80,7 +82,8 @@ def write_crops(out: Outputs, folder: Path, stem: str) -> list[tuple[str, str]]:
 
 # --- the markdown --------------------------------------------------------------------------------
 
-def markdown_quality(title: str, table: dict[tuple[int, str], dict[str, float]], methods: Sequence[str]) -> str:
+def markdown_quality(title: str, table: dict[tuple[int, str], dict[str, float]], methods: Sequence[str],
+                     emphasised: str) -> str:
     lines = [f"### {title}", "",
              "| spp | method | SMAPE | relMSE | PSNR (dB) | 1−SSIM | SMAPE ÷ (noisy / method) |",
              "|---:|---|---:|---:|---:|---:|---:|"]
@@ -90,7 +93,7 @@ def markdown_quality(title: str, table: dict[tuple[int, str], dict[str, float]],
             row = table.get((spp, name))
             if row is None:
                 continue
-            emphasis = "**" if name == TEMPORAL else ""
+            emphasis = "**" if name == emphasised else ""
             factor = base / row["smape"] if row["smape"] > 0 else float("nan")
             lines.append(f"| {spp} | {emphasis}{name}{emphasis} | {fmt(row['smape'])} | {fmt(row['relmse'])} | "
                          f"{fmt(row['psnr'], '.2f')} | {fmt(row['dssim'])} | {fmt(factor, '.2f')}× |")
@@ -152,13 +155,22 @@ def shown_path(path: Path) -> str:
 
 
 def weights_line(model: torch.nn.Module, path: Path) -> str:
+    """File, size, best validation, the checkpoint's provenance (recipe, data hash: no paths) and config."""
     extra = getattr(model, "checkpoint_extra", {}) or {}
     config = ", ".join(f"{k}={v}" for k, v in dataclasses.asdict(model.config).items())
-    produced = extra.get("command")
+    made = "".join(f"{key}={extra[key]}; " for key in PROVENANCE_KEYS if isinstance(extra.get(key), str))
     best = f"best validation {extra['val']:.4f} at step {extra['step']}; " if "val" in extra and "step" in extra else ""
     size_mb = path.stat().st_size / 1e6
-    return (f"`{shown_path(path)}` ({size_mb:.2f} MB; {best}{config})"
-            + (f", produced by `{produced}`" if produced else ""))
+    return f"`{shown_path(path)}` ({size_mb:.2f} MB; {best}{made}{config})"
+
+
+def window_description(denoiser: Denoiser) -> str:
+    """How the loop's row treats a window, for the report's list of methods."""
+    if denoiser.temporal is not None:
+        return ("the weights are temporal: the window's frames, warped along motion vectors, are "
+                "filtered jointly (one kernel per frame, one softmax)")
+    return ("the weights are single-frame: the centre frame is denoised with its neighbours' "
+            "consistent samples pooled in, as the loop denoises a sequence frame by frame")
 
 
 
@@ -204,7 +216,7 @@ def evaluate_and_write(data_dir: Path, out_dir: Path, weights_dir: Path, builtin
 
     with torch.no_grad():
         methods, oidn_note = make_methods(denoiser, use_oidn)
-        names = list(methods)
+        names, window = list(methods), window_method(denoiser)
 
         log(f"held-out split of {data_dir}")
         held_images, held_entry = heldout_images(data_dir, denoiser.config.temporal_radius)
@@ -222,10 +234,10 @@ def evaluate_and_write(data_dir: Path, out_dir: Path, weights_dir: Path, builtin
             flicker_tables[name] = flicker_rows(renderer, reference, methods)
 
         held_table, built_table = quality_table(held, names), quality_table(built, names)
-        factor = headline_factor(held_table)
+        factor = headline_factor(held_table, window)
         sections = {
-            "held_quality": markdown_quality("Held-out procedural scenes", held_table, names),
-            "built_quality": markdown_quality("Built-in scenes", built_table, names) if built else "",
+            "held_quality": markdown_quality("Held-out procedural scenes", held_table, names, window),
+            "built_quality": markdown_quality("Built-in scenes", built_table, names, window) if built else "",
             "held_lambda": markdown_lambda(f"Held-out scenes, {HEADLINE_SPP} spp", lambda_table(held)),
             "built_lambda": markdown_lambda(f"Built-in scenes, {HEADLINE_SPP} spp", lambda_table(built)) if built else "",
             "held_error": markdown_error("Held-out scenes", error_predictor_table(held)),
@@ -242,12 +254,13 @@ def evaluate_and_write(data_dir: Path, out_dir: Path, weights_dir: Path, builtin
                 crops.append(markdown_crops(
                     f"{example.image.group}: {example.image.scene}, {example.image.spp} spp", files,
                     f"Centre crop of at most {CROP_SIDE}² pixels, enlarged with nearest-neighbour. Error maps: "
-                    f"predicted vs true per-pixel SMAPE of the temporal result, same colour scale "
+                    f"predicted vs true per-pixel SMAPE of the loop's result ({window}), same colour scale "
                     f"(black 0 → white at the 99th percentile of the true error)."))
 
     results = QualityResults(
         data_dir=data_dir, denoiser_weights=weights_line(denoiser, denoiser_path),
         predictor_weights=weights_line(predictor, predictor_path),
+        window=window, window_how=window_description(denoiser),
         held_entry=held_entry, n_held=len({o.image.scene for o in held}), builtin_scenes=tuple(builtin_scenes),
         builtin_size=builtin_size, reference_spp=reference_spp, cache=cache, factor=factor,
         per_scene=per_scene_headline(held), sections=sections, flicker_tables=flicker_tables,
@@ -267,13 +280,15 @@ class QualityResults:
     data_dir: Path
     denoiser_weights: str  # file, size, config and provenance of each network
     predictor_weights: str
+    window: str  # the row the loop runs on a window (quality_eval.window_method)
+    window_how: str  # what that row does with the window (window_description)
     held_entry: dict  # the data set manifest's held-out split, plus radius and reference_noise
     n_held: int
     builtin_scenes: tuple[str, ...]
     builtin_size: int
     reference_spp: int
     cache: Path
-    factor: float  # the headline: 16-spp SMAPE of the noisy input ÷ of the temporal result
+    factor: float  # the headline: 16-spp SMAPE of the noisy input ÷ of the loop's result
     per_scene: list[tuple[str, float, float]]
     sections: dict[str, str]  # markdown tables, by template field
     flicker_tables: dict[str, dict[str, tuple[float, float]]]
@@ -291,8 +306,8 @@ def write_quality_report(out_dir: Path, r: QualityResults) -> Path:
     gap = "" if not finite or factor >= TARGET_FACTOR else (
         "\nBelow target. Levers not measured here, in the order we would try them: more training "
         "scenes (the held-out scenes come from the same generator as the training scenes, so more of "
-        "the same data should transfer directly), more optimiser steps and larger crops (the CPU recipe "
-        "is sized to about an hour), a wider network (`--width`), and the bigger GPU recipe.\n")
+        "the same data should transfer directly), more optimiser steps and larger crops, and a wider "
+        "network (DenoiserConfig.width).\n")
     low_reference = "" if entry["reference_spp"] >= 8 * PROGRESSIVE_STEPS[-1][0] else (
         f" The held-out references have only {entry['reference_spp']} spp, so at the higher input "
         "levels part of every error is the reference's own noise, and denoised results are penalised "
@@ -309,6 +324,7 @@ def write_quality_report(out_dir: Path, r: QualityResults) -> Path:
         minutes=f"{r.seconds / 60:.1f}", denoiser_weights=r.denoiser_weights,
         predictor_weights=r.predictor_weights, headline_spp=HEADLINE_SPP,
         factor=fmt(factor, ".2f"), verdict=verdict, gap=gap, window=2 * entry["radius"] + 1,
+        loop_row=r.window, window_how=r.window_how,
         oidn_item=f"- **OIDN**: {r.oidn_note}" if oidn_shown else "",
         oidn_skipped="" if oidn_shown else f"OIDN (run as: {OIDN_SETTINGS}): {r.oidn_note}",
         data_dir=r.data_dir, n_held=r.n_held, held_scenes=entry["scenes"], held_frames=entry["frames"],
