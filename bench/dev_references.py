@@ -56,8 +56,8 @@ DEFAULT_SPP = 16384
 HIGH_VARIANCE_SPP = {"lamp_room": 65536, "fog_spot": 65536, "glass_box": 65536,
                      "shaded_bulb_study": 16384, "misty_lantern": 16384}
 PASS_SPP = 1024  # one mi.render call: bounded wavefront memory, and passes can be added later
-# References of the suite at K× its film size in width and height (`--film-scale K`, issue 14's
-# 512² benchmark): 4K× the pixels of the committed ones, so they are rendered on demand and kept
+# References of the suite at K× its film size in width and height (`--film-scale K`, for the loop
+# benchmark at 512²): 4K× the pixels of the committed ones, so they are rendered on demand and kept
 # in the bench cache, not committed; 4096 spp is what a 2-core CPU renders for the cheaper scenes
 # in minutes each (a GPU renders the committed spp).
 SCALED_REFERENCE_SPP = 4096

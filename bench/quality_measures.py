@@ -109,7 +109,7 @@ def shadow_contrast_ratio(image: np.ndarray, reference: np.ndarray,
     The reference splits the region into shadow and lit pixels at the midpoint of its 5th and
     95th luminance percentiles; contrast is (lit − shadow) / (lit + shadow) of the class means.
     Noise leaves the means unbiased (a noisy render scores ≈ 1); blurring or erasing the shadows
-    mixes the classes and lowers it. Issue 13 asks ≥ 0.9 of the reference at λ = 1."""
+    mixes the classes and lowers it. The quality report's goal is ≥ 0.9 of the reference at λ = 1."""
     h, w = reference.shape[:2]
     top, bottom, left, right = region
     window = (slice(int(top * h), int(bottom * h)), slice(int(left * w), int(right * w)))

@@ -41,7 +41,7 @@ SPP_LEVELS = (16, 64, 256)
 METHODS = ("noisy", "kpcn", "oidn")
 FLICKER_METHODS = METHODS + ("oidn_pooled",)  # + OIDN on the input our network filtered (sequence_images)
 CROP = 64
-ENERGY_TOLERANCE = 0.02  # issue 13: mean radiance within 2 % of the reference on every scene
+ENERGY_TOLERANCE = 0.02  # the goal: mean radiance within 2 % of the reference on every scene (no lost energy)
 SEED = 1
 STATIC_FRAMES = 4  # frames of the static sequence a still scene is rendered as, for its flicker
 # Regions (top, bottom, left, right as frame fractions) of one albedo crossed by hard shadows,

@@ -69,7 +69,7 @@ def flicker_table(flicker: dict[str, dict[str, float]], animated: frozenset[str]
         ratio = statistics.median(v["kpcn"] / max(v["oidn"], 1e-12) for v in static)
         pooled = sum(v["kpcn"] <= v["oidn_pooled"] for v in static)
         lines += ["", f"Static sequences: ours at most OIDN's flicker on {steadier} of {len(static)} scenes, "
-                      f"median ratio {ratio:.3f} (issue 13 asks ≤ OIDN's); at most the flicker of OIDN on the same "
+                      f"median ratio {ratio:.3f} (the goal: at most OIDN's); at most the flicker of OIDN on the same "
                       f"pooled input on {pooled} of {len(static)}."]
     return "\n".join(lines)
 

@@ -1,4 +1,4 @@
-"""Are the suite's near-ties with OIDN wins and losses, or one seed's luck? (issue 13)
+"""Are the suite's near-ties with OIDN wins and losses, or one seed's luck?
 
 `renderloop bench --denoiser --suite dev` scores one uniform render per scene and sample count
 (seed 1). At 16 spp most scenes sit within 1–3 % of OIDN either way, about what another seed's

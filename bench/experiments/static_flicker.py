@@ -1,7 +1,7 @@
 """Can a single-frame setting make ours steadier than OIDN on a static sequence? (the static
 flicker of `renderloop bench --denoiser`, docs/suite-quality.md; the post-training settings)
 
-Issue 13 asks for temporal flicker on a static sequence at most OIDN's. Per still scene, FRAMES
+The goal is temporal flicker on a static sequence at most OIDN's. Per still scene, FRAMES
 renders of the same view at 16 spp, each with its own seed (as `renderloop bench --denoiser`
 makes its static sequences), each denoised alone; per post-training setting of the shipped
 network (one preparation per frame serves them all): flicker = mean |Δ| between consecutive
