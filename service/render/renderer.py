@@ -3,7 +3,9 @@
 Reads like Mitsuba 3's own Python render loop (prepare → sample rays → sample → develop);
 the one difference is the per-pixel sample count: pixel indices are expanded by their counts
 into one flat wavefront (docs/design.md, "Runtime facts"), split into chunks of at most
-`max_wavefront` lanes so memory stays bounded.
+`max_wavefront` lanes so memory stays bounded. A scene with a stratifying sampler traces its
+pass in groups of uniform count instead, one per binary digit of the counts, so that Mitsuba's
+own sampler can stratify every dimension of each pixel's samples (stratified_lanes.py).
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ from service.render.object_motion import ShapeMotion, previous_position
 from service.render.runtime import mitsuba
 from service.render.scenes import SceneError
 from service.render.splat import FilmSplat
+from service.render.stratified_lanes import digit_group_chunks, group_sampler
 from service.render.stratified_sequence import film_bits, is_stratifying, lens_bits, unit_point
 
 # 2^22 lanes ≈ a few hundred MB of Dr.Jit state on the LLVM backend: a 1024² × 64 spp pass
@@ -30,6 +33,8 @@ from service.render.stratified_sequence import film_bits, is_stratifying, lens_b
 DEFAULT_MAX_WAVEFRONT = 1 << 22
 # Floats of the smallest per-chunk sums array (256 KB to zero): see sums_capacity.
 MIN_SUMS_CAPACITY = 1 << 16
+# Bytes: what Dr.Jit's LLVM backend takes as an aligned input array (see `aligned`).
+KERNEL_ALIGNMENT = 64
 # A miss has no first-hit point; motion of the background is taken at this distance.
 BACKGROUND_DISTANCE = 1e4
 
@@ -49,16 +54,6 @@ def expand_counts(counts: np.ndarray) -> np.ndarray:
     if flat.size and flat.min() < 0:
         raise ValueError("sample counts must be >= 0")
     return np.repeat(np.arange(flat.size, dtype=np.uint32), flat)
-
-
-def sample_indices(prior: np.ndarray, counts: np.ndarray, pixels: np.ndarray, first_lane: int) -> np.ndarray:
-    """Each lane's sample number in its pixel over the whole job: the pixel's count before this
-    pass plus the lane's index within the pass. `pixels` are the lanes first_lane… of
-    expand_counts(counts) (ascending, so a pixel's lanes are consecutive)."""
-    flat = np.asarray(counts, dtype=np.int64).ravel()
-    pixel_first_lane = np.cumsum(flat) - flat
-    lane = first_lane + np.arange(len(pixels), dtype=np.int64)
-    return (np.asarray(prior, dtype=np.int64).ravel()[pixels] + lane - pixel_first_lane[pixels]).astype(np.uint32)
 
 
 def pass_seed(user_seed: int, pass_index: int, chunk_index: int) -> int:
@@ -106,7 +101,7 @@ def _stratified_uniforms(mi, setup: _Setup, idx, sample_index: np.ndarray | None
     (None, None) when the scene's sampler is `independent` (then both come from the sampler)."""
     if sample_index is None or setup.sequence_seed is None:
         return None, None
-    k = mi.UInt32(sample_index)
+    k = mi.UInt32(aligned(sample_index))
     # Opaque: a literal seed would compile a new kernel for every job and frame.
     seed = dr.opaque(mi.UInt32, setup.sequence_seed & 0xFFFFFFFF)
     film = unit_point(mi, film_bits(k, seed, idx))
@@ -114,18 +109,40 @@ def _stratified_uniforms(mi, setup: _Setup, idx, sample_index: np.ndarray | None
     return film, lens
 
 
-def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int,
-                 sample_index: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
-    """Trace one chunk of lanes (flat pixel indices, ascending) and return the per-pixel sums of
-    the pixels it covers, the first of them, and the number of non-finite samples. Columns:
+def aligned(array: np.ndarray) -> np.ndarray:
+    """`array` (contiguous) with its data on a 64-byte boundary. Dr.Jit's LLVM backend reads a
+    numpy array in place and writes its alignment into the kernel (`align 64` or `align 1`),
+    so the same kernel hashed differently whenever malloc placed a small lane array elsewhere
+    and was built again (~0.4 s each; seen on 2 of 8 digit groups per pass, stratified_lanes.py)."""
+    array = np.ascontiguousarray(array)
+    if array.ctypes.data % KERNEL_ALIGNMENT == 0:
+        return array
+    raw = np.empty(array.nbytes + KERNEL_ALIGNMENT, dtype=np.uint8)
+    start = -raw.ctypes.data % KERNEL_ALIGNMENT
+    out = raw[start:start + array.nbytes].view(array.dtype).reshape(array.shape)
+    out[...] = array
+    return out
+
+
+def independent_sampler(mi, seed: int, lanes: int):
+    """Mitsuba's `independent` sampler seeded for one chunk of `lanes` lanes."""
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, lanes)
+    return sampler
+
+
+def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, sampler, sample_index: np.ndarray | None = None,
+                 lanes_per_pixel: int | None = None) -> tuple[np.ndarray, slice | np.ndarray, int]:
+    """Trace one chunk of lanes (flat pixel indices, ascending, a pixel's lanes consecutive) with
+    `sampler` (seeded for len(pixels) lanes) and return per-pixel sums, the flat pixels they
+    belong to (a slice, or an index array), and the number of non-finite samples. Columns:
     radiance RGB, radiance² RGB, albedo RGB, normal XYZ, depth (+ motion XY) (+ the integrator's
-    AOVs). `sample_index`: each lane's sample number in its pixel (sample_indices), given when
-    the film and lens samples are stratified."""
+    AOVs). `sample_index`: each lane's sample number in its pixel, given when the film and lens
+    samples are stratified; `lanes_per_pixel`: set when every pixel of the chunk has that many
+    lanes (a digit group, stratified_lanes.py)."""
     n = len(pixels)
     sensor, scene = setup.sensor, setup.scene
-    sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(seed, n)
-    idx = mi.UInt32(pixels)
+    idx = mi.UInt32(aligned(pixels))
     film_u, lens_u = _stratified_uniforms(mi, setup, idx, sample_index)
     # Film position in pixels of the crop window: the box filter's uniform in-pixel offset, or
     # an offset drawn from the film's filter with its weight (filters.py). The sensor's sample
@@ -200,21 +217,32 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, seed: int,
         channels += [motion.x, motion.y]
     channels += [dr.select(finite, a, 0.0) for a in aovs]
     # Reduce into per-pixel sums inside the same kernel (dr.scatter_reduce): per-lane values
-    # never exist as arrays, so memory stays O(pixels of this chunk). Lanes are sorted by
-    # pixel, so the chunk covers one contiguous pixel range and only that range is summed.
-    first, span, stride = int(pixels[0]), int(pixels[-1]) - int(pixels[0]) + 1, len(channels)
-    # The kernel is keyed by the sums array's size and by literals: a chunk's first pixel and
-    # span change from chunk to chunk under a non-uniform count map, and each new key built a new
-    # kernel (~0.34 s on the LLVM backend, for every chunk of every adaptive pass). A power-of-two
-    # capacity and an opaque offset leave a handful of kernels per scene, each built once.
+    # never exist as arrays, so memory stays O(pixels of this chunk).
+    stride = len(channels)
+    if lanes_per_pixel is None:
+        # Lanes are sorted by pixel, so the chunk covers one contiguous pixel range and only that
+        # range is summed. The kernel is keyed by the sums array's size and by literals: a chunk's
+        # first pixel and span change from chunk to chunk under a non-uniform count map, and each
+        # new key built a new kernel (~0.34 s on the LLVM backend, for every chunk of every
+        # adaptive pass). A power-of-two capacity and an opaque offset leave a handful of kernels
+        # per scene, each built once.
+        first, span = int(pixels[0]), int(pixels[-1]) - int(pixels[0]) + 1
+        slot = idx - dr.opaque(mi.UInt32, first)
+        rows: slice | np.ndarray = slice(first, first + span)
+    else:
+        # A digit group's pixels are a sparse subset of the film, each with lanes_per_pixel
+        # consecutive lanes: its k-th pixel's sums go to row k (lane >> b), not to a span that
+        # could reach across the whole film.
+        span = n // lanes_per_pixel
+        slot = dr.arange(mi.UInt32, n) >> (lanes_per_pixel.bit_length() - 1)
+        rows = pixels[::lanes_per_pixel].astype(np.int64)
     sums = dr.zeros(mi.Float, sums_capacity(span * stride))
-    offset = dr.opaque(mi.UInt32, first)
     for c, value in enumerate(channels):
-        dr.scatter_reduce(dr.ReduceOp.Add, sums, value, (idx - offset) * stride + c)
+        dr.scatter_reduce(dr.ReduceOp.Add, sums, value, slot * stride + c)
     nonfinite = dr.count(~finite)
     dr.eval(sums, nonfinite, *([setup.splat.sums] if setup.splat is not None else []))
     per_pixel = np.asarray(sums, dtype=np.float64)[:span * stride].reshape(span, stride)
-    return per_pixel, first, int(np.asarray(nonfinite).ravel()[0])
+    return per_pixel, rows, int(np.asarray(nonfinite).ravel()[0])
 
 
 def sums_capacity(size: int) -> int:
@@ -223,24 +251,24 @@ def sums_capacity(size: int) -> int:
     return max(1 << max(size - 1, 0).bit_length(), MIN_SUMS_CAPACITY)
 
 
-def _add_sums(buffer: FrameBuffer, sums: np.ndarray, first: int, motion: bool) -> None:
-    """Add one chunk's per-pixel sums (its pixels `first`…, 13 [+2 motion] [+AOVs] columns)."""
-    rows = slice(first, first + len(sums))
+def _add_sums(buffer: FrameBuffer, sums: np.ndarray, rows: slice | np.ndarray, motion: bool) -> None:
+    """Add one chunk's per-pixel sums (13 [+2 motion] [+AOVs] columns) to its flat pixels `rows`
+    (a slice, or distinct indices)."""
 
     def flat(array: np.ndarray) -> np.ndarray:
-        return array.reshape(-1, *array.shape[2:])[rows]  # a view: the buffers are contiguous
+        return array.reshape(-1, *array.shape[2:])  # a view: the buffers are contiguous
 
-    flat(buffer.radiance_sum)[...] += sums[:, 0:3]
-    flat(buffer.radiance_sq_sum)[...] += sums[:, 3:6]
-    flat(buffer.albedo_sum)[...] += sums[:, 6:9]
-    flat(buffer.normal_sum)[...] += sums[:, 9:12]
-    flat(buffer.depth_sum)[...] += sums[:, 12]
+    flat(buffer.radiance_sum)[rows] += sums[:, 0:3]
+    flat(buffer.radiance_sq_sum)[rows] += sums[:, 3:6]
+    flat(buffer.albedo_sum)[rows] += sums[:, 6:9]
+    flat(buffer.normal_sum)[rows] += sums[:, 9:12]
+    flat(buffer.depth_sum)[rows] += sums[:, 12]
     first_aov = 13
     if motion:
-        flat(buffer.motion_sum)[...] += sums[:, 13:15]
+        flat(buffer.motion_sum)[rows] += sums[:, 13:15]
         first_aov = 15
     if buffer.aov_sum is not None:
-        flat(buffer.aov_sum)[...] += sums[:, first_aov:]
+        flat(buffer.aov_sum)[rows] += sums[:, first_aov:]
 
 
 def check_integrator(mi, integrator) -> None:
@@ -290,8 +318,9 @@ def render_samples(
         buffer.aov_names = aov_names
     elif aov_names != buffer.aov_names:
         raise ValueError(f"integrator AOVs {aov_names} do not match the buffer's {buffer.aov_names}")
-    lanes = expand_counts(counts)
-    total = len(lanes)
+    if counts.size and counts.min() < 0:
+        raise ValueError("sample counts must be >= 0")
+    total = int(counts.sum())
     if prev_sensor is not None and buffer.motion_sum is None:
         buffer.motion_sum = np.zeros((height, width, 2))
     film = sensor.film()
@@ -309,18 +338,51 @@ def render_samples(
         splat=None if pixel_filter.uniform or not total or not splat else FilmSplat(mi, pixel_filter, counts),
         sequence_seed=seed if is_stratifying(sensor.sampler()) else None,
     )
-    chunks = max(1, -(-total // max_wavefront))
-    for chunk in range(chunks if total else 0):
-        pixels = lanes[chunk * max_wavefront:(chunk + 1) * max_wavefront]
-        index = None if setup.sequence_seed is None else sample_indices(buffer.spp, counts, pixels, chunk * max_wavefront)
-        sums, first, nonfinite = _trace_chunk(mi, setup, pixels, pass_seed(seed, buffer.passes, chunk), index)
-        if nonfinite:
-            buffer.meta["nonfinite_samples"] = int(buffer.meta.get("nonfinite_samples", 0) + nonfinite)
-        _add_sums(buffer, sums, first, prev_sensor is not None)
-        if progress is not None:
-            progress(len(pixels))
+    if setup.sequence_seed is None:
+        chunks = _trace_independent(mi, setup, buffer, counts, seed, max_wavefront, progress)
+    else:
+        chunks = _trace_digit_groups(mi, setup, buffer, counts, seed, max_wavefront, progress)
     if setup.splat is not None:
         buffer.add_splat(setup.splat.host())
     buffer.spp += counts.astype(np.int64)
     buffer.passes += 1
-    return RenderPass(samples=total, chunks=chunks if total else 0, seconds=perf_counter() - start)
+    return RenderPass(samples=total, chunks=chunks, seconds=perf_counter() - start)
+
+
+def _add_chunk(buffer: FrameBuffer, traced: tuple[np.ndarray, slice | np.ndarray, int], motion: bool) -> None:
+    """Add one traced chunk (_trace_chunk's result) to the buffer, counting non-finite samples."""
+    sums, rows, nonfinite = traced
+    if nonfinite:
+        buffer.meta["nonfinite_samples"] = int(buffer.meta.get("nonfinite_samples", 0) + nonfinite)
+    _add_sums(buffer, sums, rows, motion)
+
+
+def _trace_independent(mi, setup: _Setup, buffer: FrameBuffer, counts: np.ndarray, seed: int,
+                       max_wavefront: int, progress: Callable[[int], None] | None) -> int:
+    """The `independent` scene's pass: lanes in pixel order, cut every max_wavefront lanes, each
+    chunk its own seed. Returns the number of chunks."""
+    lanes = expand_counts(counts)
+    chunks = -(-len(lanes) // max_wavefront)
+    for chunk in range(chunks):
+        pixels = lanes[chunk * max_wavefront:(chunk + 1) * max_wavefront]
+        sampler = independent_sampler(mi, pass_seed(seed, buffer.passes, chunk), len(pixels))
+        _add_chunk(buffer, _trace_chunk(mi, setup, pixels, sampler), setup.prev_projection is not None)
+        if progress is not None:
+            progress(len(pixels))
+    return chunks
+
+
+def _trace_digit_groups(mi, setup: _Setup, buffer: FrameBuffer, counts: np.ndarray, seed: int,
+                        max_wavefront: int, progress: Callable[[int], None] | None) -> int:
+    """A stratifying scene's pass: every dimension stratified per pixel, in groups of uniform
+    count by the binary digits of the counts (stratified_lanes.py), each chunk its own seed.
+    Returns the number of chunks."""
+    chunks = 0
+    for chunk in digit_group_chunks(buffer.spp, counts, max_wavefront):
+        sampler = group_sampler(mi, chunk.lanes_per_pixel, pass_seed(seed, buffer.passes, chunks), len(chunk.pixels))
+        traced = _trace_chunk(mi, setup, chunk.pixels, sampler, chunk.sample_index, chunk.lanes_per_pixel)
+        _add_chunk(buffer, traced, setup.prev_projection is not None)
+        chunks += 1
+        if progress is not None:
+            progress(len(chunk.pixels))
+    return chunks
