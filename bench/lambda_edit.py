@@ -7,9 +7,10 @@ OIDN made for them. Three λ inputs, timed round by round so the machine's load 
 
 - a uniform map: a global λ as the service sends it (every edit arrives as a map), which the
   denoiser folds into one GEMM per level (Denoiser._lambda_code);
-- the same map with one pixel nudged by 1e-3: the per-pixel path, what every edit cost before
-  the fold (1 + rank GEMMs per level, LambdaModule);
-- a rectangle over the left half at λ = 8: a painted region (the per-pixel path).
+- a gradient across the columns from λ = 1 to 10: a map of too many values to split into
+  rectangles (models.lambda_regions), so it takes the per-pixel path (1 + rank GEMMs per level
+  and the λ MLP at every pixel, LambdaModule) — what every painted edit cost before the rectangles;
+- a rectangle over the left half at λ = 8: a painted region, folded rectangle by rectangle.
 
 The HTTP figure is `bench.server.bench_http_lambda`: a `renderloop serve` app (uvicorn) in a
 subprocess, on each of HTTP_BACKENDS, one finished 16-spp iteration of cornell-box at the same size, then PUTs
@@ -30,6 +31,7 @@ from bench.common import pinned_torch_threads
 from bench.server import bench_http_lambda
 from models.denoiser import Denoiser
 from models.frames import FrameTensors
+from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN
 from service.api.serve import CONCURRENCY_ENV
 from service.loop.denoise_frame import prepare_frame
 from service.loop.tensors import to_image
@@ -40,7 +42,7 @@ HTTP_SEED = 0
 # thread backend (`renderloop serve --concurrency 1`), where the λ edit skips the actor hop.
 HTTP_BACKENDS = ("ray", "thread")
 BACKEND_LABELS = {"ray": "its default Ray backend", "thread": "the thread backend (`--concurrency 1`)"}
-NUDGE = 1e-3                      # keeps a uniform map on the per-pixel path
+PER_PIXEL_CASE = "per-pixel map (a gradient: too many values to fold)"
 
 
 @dataclass
@@ -65,12 +67,10 @@ def _random_frame(width: int, height: int, gen: torch.Generator) -> FrameTensors
 def lambda_maps(width: int, height: int) -> dict[str, torch.Tensor]:
     """The three λ inputs of the module docstring, (1, 1, H, W) each."""
     uniform = torch.full((1, 1, height, width), 4.0)
-    nudged = uniform.clone()
-    nudged[..., 0, 0] += NUDGE
+    gradient = torch.linspace(LAMBDA_MIN, LAMBDA_MAX, width).expand(1, 1, height, width).contiguous()
     rectangle = torch.ones(1, 1, height, width)
     rectangle[..., :, : max(1, width // 2)] = 8.0
-    return {"uniform map (global λ)": uniform, "per-pixel path, same λ (before the fold)": nudged,
-            "rectangle map": rectangle}
+    return {"uniform map (global λ)": uniform, PER_PIXEL_CASE: gradient, "rectangle map": rectangle}
 
 
 def time_lambda_tail(denoiser: Denoiser, width: int, height: int, repeats: int, threads: int) -> dict[str, list[float]]:

@@ -37,6 +37,7 @@ from models.pyramid import down, down_frame, pad_to
 from models.warp import flow_to_center, warp
 
 from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN  # noqa: F401  (re-exported: eq. 6 range)
+from models.lambda_regions import Region, constant_regions, region_tiles
 
 
 @dataclass
@@ -370,6 +371,10 @@ class Denoiser(nn.Module):
         kernel_only: a list to receive each level's result before the candidate joins (training)."""
         results = []
         for i, (level, code) in enumerate(zip(cache.levels, self._level_codes(cache, lam))):
+            regions = self._painted_regions(code, kernel_only)
+            if regions is not None:
+                results.append(self._regional_result(level, regions, i))
+                continue
             result = self._kernel_result(level, code)
             if kernel_only is not None:
                 kernel_only.append(result)
@@ -383,6 +388,29 @@ class Denoiser(nn.Module):
                     result = blend(result, level.candidate, weight)
             results.append(result)
         return results
+
+    @staticmethod
+    def _painted_regions(code: Tensor, kernel_only: list[Tensor] | None) -> list[Region] | None:
+        """A λ map's rectangles of one value (models.lambda_regions), at inference only."""
+        if code.shape[-2:] == (1, 1) or kernel_only is not None or torch.is_grad_enabled():
+            return None
+        return constant_regions(code)
+
+    def _regional_result(self, level: LevelCache, regions: list[Region], i: int) -> Tensor:
+        """One level's kernel result with the candidate joined, tile by tile of a painted map's
+        rectangles: each tile's kernel head and gate fold at its one λ (one GEMM each instead
+        of 1 + rank and the λ MLP per pixel), the same values up to float rounding."""
+        k = self.config.kernel_size
+        out = level.padded[0].new_empty(level.padded[0].shape[:2] + level.hidden.shape[-2:])
+        for rows, cols, code in region_tiles(regions, TILE_PIXELS):
+            weights = unnormalised_weights(self.specialise(level.hidden[..., rows, cols], code))
+            padded = [p[:, :, rows.start:rows.stop + k - 1, cols.start:cols.stop + k - 1] for p in level.padded]
+            result = filter_padded(padded, weights, k)
+            if level.candidate is not None:
+                weight = self.gate.weight(level.gate_hidden[..., rows, cols], code, self.config.level_gate_offset(i))
+                result = self._join_candidate_in_place(result, level.candidate[..., rows, cols], code, weight)
+            out[:, :, rows, cols] = result
+        return out
 
     def _join_candidate_in_place(self, result: Tensor, candidate: Tensor, code: Tensor, weight: Tensor) -> Tensor:
         """clamp_around then blend (models.candidate) written over the fresh kernel result:

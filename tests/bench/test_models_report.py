@@ -48,7 +48,7 @@ def test_the_lambda_edit_times_each_lambda_input_on_the_shipped_network():
     timing = measure_lambda_edit(load_denoiser(), None, (40, 24), repeats=2, threads=1)
     assert list(timing.ms) == list(lambda_maps(40, 24)) and all(len(ms) == 2 and min(ms) > 0 for ms in timing.ms.values())
     section = lambda_edit_section(timing)
-    assert "## A λ edit at 40×24" in section and "| per-pixel path, same λ (before the fold) |" in section
+    assert "## A λ edit at 40×24" in section and "| per-pixel map (a gradient: too many values to fold) |" in section
 
 
 def test_the_nudged_map_takes_the_per_pixel_path_and_the_uniform_one_the_folded_path():
