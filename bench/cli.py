@@ -111,7 +111,7 @@ def run_bench(args: argparse.Namespace) -> int:
             print(f"renderloop bench: error: --ceiling-renders takes {low}–{high} (or 0)", file=sys.stderr)
             return 2
         report = run_calibration_report(args.out, weights_dir=args.weights, only=args.only, suite=suite,
-                                        fit_scale_to=args.fit_scale, seeds=tuple(args.seeds or (0,)),
+                                        fit_scale_to=args.fit_scale, seeds=tuple(dict.fromkeys(args.seeds or (0,))),
                                         ceiling_renders=args.ceiling_renders)
         print(f"wrote {report}")
         return 0

@@ -61,6 +61,7 @@ class BenchSettings:
     suite: str = "procedural"  # "procedural": built-ins + held-out procedural; "dev": scenes/dev as written
     film_scale: int = 1  # dev suite: each film's width and height × this (2: about 512²)
     micro: bool = True  # the renderer / model / HTTP micro-benchmarks
+    seed: int = LOOP_SEED  # LoopSpec.seed of every method's loop (--seeds runs one loop per seed)
 
 
 FULL = BenchSettings(size=64, reference_spp=4096, iterations=5,
@@ -100,6 +101,22 @@ METHODS: tuple[LoopMethod, ...] = (
     LoopMethod("o", "true-error adaptive + KPCN (bound: the reference's error map)", "error", "kpcn", False, oracle=True),
 )
 PRODUCT = "d"
+# What the allocation bound needs (bench.loop_seeds): uniform + KPCN, the product, the true-error allocation.
+BOUND_METHODS = ("b", "d", "o")
+
+
+def select_methods(keys: list[str] | tuple[str, ...] | None) -> tuple[LoopMethod, ...]:
+    """METHODS in their order, only `keys` when given; the headline is read against the product,
+    so it is always among them."""
+    if keys is None:
+        return METHODS
+    known = {m.key for m in METHODS}
+    unknown = sorted(set(keys) - known)
+    if unknown:
+        raise ValueError(f"unknown method(s) {', '.join(unknown)}: choose from {', '.join(sorted(known))}")
+    if PRODUCT not in keys:
+        raise ValueError(f"the methods must include the product ({PRODUCT}): every time is read against its SMAPE")
+    return tuple(m for m in METHODS if m.key in keys)
 
 
 @dataclass(frozen=True)
@@ -243,7 +260,7 @@ class MethodRun:
 def _loop_spec(scene: BenchScene, method: LoopMethod, settings: BenchSettings, iterations: int) -> LoopSpec:
     width, height = scene.film or (settings.size, settings.size)
     return LoopSpec(scene=scene.source, width=width, height=height, max_iterations=iterations,
-                    allocator=method.allocator, denoise=method.denoiser == "kpcn", seed=LOOP_SEED)
+                    allocator=method.allocator, denoise=method.denoiser == "kpcn", seed=settings.seed)
 
 
 class TrueErrorMap(torch.nn.Module):
