@@ -83,7 +83,8 @@ class LoopResults:
 def run_loop_benchmark(out_dir: Path = Path("docs"), *, quick: bool = False, weights_dir: Path | None = None,
                        cache_dir: Path = DEFAULT_CACHE_DIR, command: str | None = None, suite: str = "procedural",
                        only: list[str] | None = None, film_scale: int = 1, reference_spp: int | None = None,
-                       seeds: tuple[int, ...] = (LOOP_SEED,), methods: list[str] | None = None) -> Path:
+                       seeds: tuple[int, ...] = (LOOP_SEED,), methods: list[str] | None = None,
+                       timing_repeats: int | None = None) -> Path:
     """Run the loop benchmark and write `out_dir/benchmarks.md` (+ CSV and PNGs in
     `out_dir/benchmarks/`), or `benchmarks-dev.md` for the development suite (`benchmarks-dev-xK.md`
     at film_scale K > 1, against the references `renderloop bench --references --film-scale K`
@@ -93,6 +94,8 @@ def run_loop_benchmark(out_dir: Path = Path("docs"), *, quick: bool = False, wei
     started = time.perf_counter()
     out_dir, cache_dir = Path(out_dir), Path(cache_dir)
     settings = dev_settings(film_scale, reference_spp) if suite == "dev" else QUICK if quick else FULL
+    if timing_repeats is not None:
+        settings = replace(settings, timing_repeats=timing_repeats)
     name = ("benchmarks-dev" + (f"-x{film_scale}" if film_scale > 1 else "")) if suite == "dev" else "benchmarks"
     nets = load_bench_networks(weights_dir)
     probe, threads = choose_torch_threads(nets, settings.size or THREAD_PROBE_SIZE)
@@ -449,6 +452,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--film-scale", type=int, default=1, metavar="K",
                         help="with --loop --suite dev or --references: each film's width and height × K (2: about "
                              "512²), against references rendered by --references --film-scale K into the cache")
+    parser.add_argument("--timing-repeats", type=int, default=None, metavar="K",
+                        help="with --loop: identical runs of each loop whose fastest stages count (default 3, "
+                             "2 with --suite dev, 1 with --quick; later --seeds always run once)")
     parser.add_argument("--methods", nargs="+", default=None, metavar="KEY",
                         help=f"with --loop: only these methods ({', '.join(m.key for m in METHODS)}; must include "
                              f"{PRODUCT}); '--methods {' '.join(BOUND_METHODS)}' is what the allocation bound needs")
@@ -474,11 +480,14 @@ def run_loop_command(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"renderloop bench: error: --methods: {exc}", file=sys.stderr)
         return 2
+    if args.timing_repeats is not None and args.timing_repeats < 1:
+        print("renderloop bench: error: --timing-repeats must be >= 1", file=sys.stderr)
+        return 2
     try:
         path = run_loop_benchmark(args.out, quick=args.quick, weights_dir=args.weights, cache_dir=args.cache,
                                   suite=args.suite, only=args.only, film_scale=args.film_scale,
                                   reference_spp=args.reference_spp, seeds=tuple(dict.fromkeys(args.seeds or (LOOP_SEED,))),
-                                  methods=args.methods)
+                                  methods=args.methods, timing_repeats=args.timing_repeats)
     except FileNotFoundError as exc:  # a scaled reference not rendered yet: the message names the command
         print(f"renderloop bench: error: {exc}", file=sys.stderr)
         return 2

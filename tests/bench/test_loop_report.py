@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from bench.common import METRIC_NAMES as METRICS
+from bench.cli import main as bench_main
 from bench.common import true_error_map
 from bench.loop_report import run_loop_benchmark
 from bench.loop_run import METHODS, STAGES, Headline, TrueErrorMap, select_methods, time_to_reach
@@ -138,3 +139,10 @@ def test_methods_must_be_known_and_include_the_product() -> None:
         select_methods(["b", "o"])
     with pytest.raises(ValueError, match="unknown"):
         select_methods(["b", "d", "x"])
+
+
+def test_loop_flags_refuse_a_method_set_without_the_product_and_zero_timing_repeats(capsys) -> None:
+    assert bench_main(["--loop", "--methods", "b", "o"]) == 2
+    assert "must include the product (d)" in capsys.readouterr().err
+    assert bench_main(["--loop", "--timing-repeats", "0"]) == 2
+    assert "--timing-repeats must be >= 1" in capsys.readouterr().err
