@@ -3,6 +3,8 @@ on the same 2 MP input, in alternating fresh processes so the host's load hits b
 
     python -m bench.lambda_edit_ab --before COMMIT [--image RENDER.exr | --size W H] [--rounds 3] [--repeats 5] [--threads 2]
 
+    python -m bench.lambda_edit_ab --before COMMIT --http [--backends thread ray] [--size W H] [--requests 6]
+
 `--before` is git-archived into a temporary folder; each round runs one process per tree, which
 loads the shipped weights of THIS tree (the same network on both sides), builds the cache from
 `--image` (a `renderloop render --no-denoise` EXR with its albedo/normal layers; default random
@@ -10,11 +12,18 @@ loads the shipped weights of THIS tree (the same network on both sides), builds 
 `repeats` times after a warm-up — for a uniform λ map (a global edit as the service sends it)
 and a painted rectangle over the middle third. Printed: each round's medians, then per tree and
 case the median of the rounds' medians and their spread (min–max).
+
+With `--http` each round instead runs `bench.server.bench_http_lambda` with each tree (its code
+on PYTHONPATH, for the server subprocess too) on each backend: a real `renderloop serve` app, a
+finished one-iteration 16-spp cornell-box job of `--size`, then `--requests` PUT /jobs/{id}/lambda
+back to back (global value and rectangle alternating); printed: p50/p95/max ms per tree, backend
+and round.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -77,6 +86,36 @@ def run_tree(root: Path, image: Path | None, threads: int, repeats: int, size: t
     return json.loads(out.strip().splitlines()[-1])
 
 
+def run_http(root: Path, backend: str, size: tuple[int, int], requests: int, threads: int) -> dict:
+    """bench_http_lambda with `root`'s code in a fresh process (and its server subprocess)."""
+    code = ("import json, sys; from bench.server import bench_http_lambda; "
+            f"print(json.dumps(bench_http_lambda({size[0]}, {requests}, sys.argv[1], 0, {threads}, height={size[1]})))")
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    env.pop("RENDERLOOP_CONCURRENCY", None)
+    if backend == "thread":
+        env["RENDERLOOP_CONCURRENCY"] = "1"   # `renderloop serve --concurrency 1`
+    out = subprocess.run([sys.executable, "-c", code, str(REPO / "models" / "weights")], check=True,
+                         capture_output=True, text=True, cwd=root, env=env).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def main_http(args: argparse.Namespace) -> dict[str, dict[str, list[dict]]]:
+    results: dict[str, dict[str, list[dict]]] = {"before": {b: [] for b in args.backends},
+                                                 "after": {b: [] for b in args.backends}}
+    with tempfile.TemporaryDirectory(prefix="lambda-ab-") as folder:
+        archive = subprocess.run(["git", "-C", str(REPO), "archive", args.before], check=True, capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", folder], input=archive, check=True)
+        for round_ in range(args.rounds):
+            for backend in args.backends:
+                for label, root in (("before", Path(folder)), ("after", REPO)):
+                    row = run_http(root, backend, tuple(args.size), args.requests, args.threads)
+                    results[label][backend].append(row)
+                    print(f"round {round_ + 1} {backend} {label}: p50 {row['p50_ms']:.0f} ms, p95 {row['p95_ms']:.0f} ms, "
+                          f"max {row['max_ms']:.0f} ms over {row['requests']} requests "
+                          f"({row['tail_passes']} tail, {row['full_passes']} full passes)", flush=True)
+    return results
+
+
 def main(argv: list[str] | None = None) -> dict[str, dict[str, list[float]]]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--before", required=True, help="the earlier commit")
@@ -85,8 +124,13 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, list[float]]]:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--size", type=int, nargs=2, default=(1920, 1080), metavar=("W", "H"),
-                        help="the random inputs' size without --image")
+                        help="the random inputs' size without --image; the job's with --http")
+    parser.add_argument("--http", action="store_true", help="time PUT /jobs/{id}/lambda against a real server")
+    parser.add_argument("--backends", nargs="+", choices=("thread", "ray"), default=["thread", "ray"])
+    parser.add_argument("--requests", type=int, default=6)
     args = parser.parse_args(argv)
+    if args.http:
+        return main_http(args)
     image = args.image.resolve() if args.image else None
     results: dict[str, dict[str, list[float]]] = {"before": {c: [] for c in CASES}, "after": {c: [] for c in CASES}}
     with tempfile.TemporaryDirectory(prefix="lambda-ab-") as folder:

@@ -187,7 +187,7 @@ def get_preview(
     exposure: float = Query(0.0, ge=-20, le=20, description="stops, radiance layers only"),
 ) -> Response:
     check_frame(record, frame)
-    preview = worker.files(record.id).load_preview(frame)
+    preview = worker.load_preview(record.id, frame)  # a λ edit's from memory until its files land
     if preview is None:
         return Response(status_code=204)  # no iteration finished yet
     values = preview.layers.get(layer)
@@ -206,9 +206,9 @@ def get_preview(
     **JOB_ERRORS, 200: {"content": {"image/x-exr": {}}, "description": "the frame's multi-layer EXR"}})
 def get_result(record: Job, worker: Worker, frame: int = Query(0, ge=0)) -> FileResponse:
     check_frame(record, frame)
-    path = worker.files(record.id).result_path(frame)
     if not record.finished:
         raise JobConflict(f"job is {record.state}: result.exr is written when it finishes")
+    path = worker.result_path(record.id, frame)  # the job's λ edits written into it first
     if not path.is_file():
         raise JobConflict(f"job is {record.state} and produced no result")
     return FileResponse(path, media_type="image/x-exr", filename=f"{record.id}_frame{frame:03d}.exr")

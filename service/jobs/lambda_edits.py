@@ -1,22 +1,31 @@
 """λ edits of a job, whichever backend runs it: the saved map, a per-job latest-wins mailbox
 (under a burst only the newest request is applied, and every caller gets the version that
 shows it), the re-denoise (the backend's `relambda`: wherever the job's loop lives) and the
-preview it publishes."""
+preview it publishes.
+
+What an edit waits for before its answer: the λ map on disk (the durable record of the edit: a
+crash right after the answer still leaves it for the resumed job; 8 MB at 2 MP) and the new image
+in memory, published as the next preview version. What it does not wait for: writing the preview
+layers and a finished job's result EXRs (about a second at 2 MP, measured: docs/models-speed.md),
+done by the publisher's LatestWriter; a GET of the preview reads the memory until then, a GET of
+the result and a graceful stop flush them (`flush`)."""
 from __future__ import annotations
 
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from service.exr import ExrFrame
-from service.jobs.artifacts import JobFiles
+from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
 from service.jobs.previews import PreviewPublisher
 from service.jobs.record import CANCELED, COMPLETED, FAILED, JobRecord, job_spec
+from service.loop.loop import RenderLoop
 
 LAMBDA_WAIT_SECONDS = 300.0
 
@@ -34,7 +43,8 @@ class LambdaApplied:
 @dataclass(frozen=True)
 class Relambda:
     """A λ re-denoise: the new image per frame, the denoiser work it took, and how to build the
-    result frames from it (None where the loop lives elsewhere and keeps them itself)."""
+    result frames from it (None where the loop lives elsewhere and keeps them itself); `results`
+    is called on the writer's thread, after the answer (see `results_of`)."""
 
     images: list[np.ndarray]
     full_passes: int = 0
@@ -44,6 +54,15 @@ class Relambda:
 
 # The backend's re-denoise of a job with a λ map: None when nothing was rendered yet.
 Relambdas = Callable[[str, JobRecord, np.ndarray], "Relambda | None"]
+
+
+def results_of(loop: RenderLoop) -> Callable[[], list[ExrFrame]]:
+    """The loop's result frames, built under its lock: the writer's thread builds them while the
+    next edit may already be re-denoising the same loop."""
+    def build() -> list[ExrFrame]:
+        with loop.lock:
+            return loop.result_frames()
+    return build
 
 
 def require(store, job_id: str) -> JobRecord:
@@ -56,10 +75,12 @@ def require(store, job_id: str) -> JobRecord:
 
 class LambdaEdits:
     def __init__(self, store, previews: PreviewPublisher, relambda: Relambdas,
-                 observed: Callable[[float], None]) -> None:
+                 observed: Callable[[float], None],
+                 flush_elsewhere: Callable[[str | None], None] = lambda job_id: None) -> None:
         self.store = store
         self.previews = previews
         self._relambda = relambda
+        self._flush_elsewhere = flush_elsewhere  # writes the backend makes away from here (a Ray worker's)
         self._observed = observed  # seconds from a request to the version that shows it
         self._lock = threading.Lock()
         self._mailboxes: dict[str, LatestWins[tuple[np.ndarray, float | None], LambdaApplied]] = {}
@@ -72,10 +93,24 @@ class LambdaEdits:
         spec = job_spec(require(self.store, job_id))
         if spec.width and spec.height:
             return spec.height, spec.width
-        preview = self.files(job_id).load_preview(0)
+        preview = self.load_preview(job_id, 0)
         if preview is not None and preview.layers.get("noisy") is not None:
             return preview.layers["noisy"].shape[:2]
         return None
+
+    def load_preview(self, job_id: str, frame: int) -> Preview | None:
+        """The newest preview of `frame`, a λ edit's included before its files are written."""
+        return self.previews.load(job_id, self.files(job_id), frame)
+
+    def flush(self, job_id: str | None = None) -> None:
+        """Wait until the job's (every job's, with None) edits are on disk: previews and results."""
+        self.previews.writes.flush(job_id)
+        self._flush_elsewhere(job_id)
+
+    def result_path(self, job_id: str, frame: int) -> Path:
+        """The frame's result EXR, with the job's last λ edit written into it."""
+        self.flush(job_id)
+        return self.files(job_id).result_path(frame)
 
     def current_lambda(self, job_id: str, shape: tuple[int, int]) -> np.ndarray:
         record = require(self.store, job_id)
@@ -107,8 +142,9 @@ class LambdaEdits:
             return self._mailboxes[job_id]
 
     def _apply(self, job_id: str, lam: np.ndarray, value: float | None) -> LambdaApplied:
-        # Persisted here, on the one thread that applies this job's λ, so the saved map is
-        # always the newest request's; later iterations and restarts read it.
+        # Persisted here, before the answer and on the one thread that applies this job's λ, so
+        # the saved map is always the newest request's; later iterations and restarts read it
+        # (a loop that opens reads it after registering: one this edit missed still sees it).
         files = self.files(job_id)
         files.save_lambda(lam)
         self.store.set_lambda_value(job_id, value)
@@ -120,12 +156,13 @@ class LambdaEdits:
             return LambdaApplied(record.preview_version, done.full_passes, done.tail_passes)
         frames = []
         for f, image in enumerate(done.images):
-            previous = files.load_preview(f)
+            previous = self.previews.load(job_id, files, f)
             layers = dict(previous.layers) if previous else {"noisy": None, "error": None, "spp": None}
             frames.append({**layers, "denoised": image, "lambda": lam})
-        version = self.previews.publish(job_id, files, frames)
+        version = self.previews.publish_later(job_id, files, frames)
         if done.results is not None and require(self.store, job_id).state == COMPLETED:
-            files.save_results(done.results())  # the result follows λ after the run too
+            build = done.results   # the result follows λ after the run too
+            self.previews.writes.submit(job_id, "results", lambda: files.save_results(build()))
         return LambdaApplied(version, done.full_passes, done.tail_passes)
 
 
@@ -140,6 +177,12 @@ class LambdaEditsOfRunner:
 
     def current_lambda(self, job_id: str, shape: tuple[int, int]) -> np.ndarray:
         return self.lambdas.current_lambda(job_id, shape)
+
+    def load_preview(self, job_id: str, frame: int) -> Preview | None:
+        return self.lambdas.load_preview(job_id, frame)
+
+    def result_path(self, job_id: str, frame: int) -> Path:
+        return self.lambdas.result_path(job_id, frame)
 
     def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None,
                    sequence: int | None = None) -> LambdaApplied:

@@ -31,6 +31,7 @@ import torch
 from models.pretrained import Networks
 from service.atomic import atomic_write_bytes
 from service.jobs.artifacts import JobFiles
+from service.jobs.latest_writer import LatestWriter
 from service.jobs.record import JobRecord, bundle_scene, job_spec
 from service.jobs.previews import preview_layers
 from service.jobs.runner import total_samples
@@ -126,6 +127,7 @@ class JobActor:
         self.plan = plan
         self.files = JobFiles(plan.job_dir)
         self.checkpoint = self.files.checkpoint  # written by the leader, in the background
+        self.results = LatestWriter("results")   # a finished job's λ edits: results written after the answer
         self.networks = use_devices(networks, plan.cpus)
         self.watch = MemoryWatch(plan.memory_share, str(self.files.root / FAILURE_FILE))
         self._cancel = threading.Event()
@@ -198,6 +200,20 @@ class JobActor:
         """The result EXRs of the job's current state (the leader holds every frame)."""
         if self.loop is not None and self.loop.state.iteration > 0:
             self.files.save_results(self.loop.result_frames())
+
+    def save_results_later(self) -> None:
+        """save_results on a background thread, the newest edit's winning: the next λ edit runs
+        meanwhile (this actor takes one call at a time)."""
+        self.results.submit(self.plan.record.id, "results", self._save_results_locked)
+
+    def flush_results(self) -> None:
+        """Return once the results asked for so far are written."""
+        self.results.flush()
+
+    def _save_results_locked(self) -> None:
+        with self.loop.lock:   # the next edit may be re-denoising this loop
+            frames = self.loop.result_frames() if self.loop.state.iteration > 0 else []
+        self.files.save_results(frames)
 
     # -- λ -----------------------------------------------------------------------------------
 

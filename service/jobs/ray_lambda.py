@@ -9,6 +9,7 @@ IDLE_ACTORS_KEPT most recently edited; it asks Ray for no CPU, so it never holds
 """
 from __future__ import annotations
 
+import logging
 import threading
 from collections import OrderedDict
 from typing import Any, Callable
@@ -22,6 +23,11 @@ from service.jobs.record import JobRecord, job_spec
 from service.jobs.lambda_edits import Relambda
 from service.loop.spec import estimated_memory
 
+log = logging.getLogger(__name__)
+
+# A λ actor's result writes take about a second at 2 MP; a stop or a GET waits at most this
+# long for them (its runtime may be going down with the server).
+FLUSH_SECONDS = 120.0
 IDLE_ACTORS_KEPT = 2  # as the thread backend keeps IDLE_LOOPS_KEPT finished loops
 
 
@@ -41,7 +47,7 @@ class LambdaActors:
         actor = self._actor(job_id, record, files, size)
         try:
             images, full, tail = self._call(actor.set_lambda.remote(lam))[0]
-            self._call(actor.save_results.remote())  # the result follows λ after the run too
+            self._call(actor.save_results_later.remote())  # the result follows λ after the answer
         except Exception:
             self.drop(job_id)  # a dead or broken actor: the next edit starts a fresh one
             raise
@@ -78,17 +84,34 @@ class LambdaActors:
             while len(self._actors) > IDLE_ACTORS_KEPT:
                 retired.append(self._actors.popitem(last=False)[1])
         for old in retired:
+            self._flush_quietly(old)
             ray.kill(old, no_restart=True)
         return actor
+
+    def flush(self, job_id: str | None = None) -> None:
+        """Wait until the job's (every warm actor's, with None) λ results are written."""
+        with self._lock:
+            actors = list(self._actors.values()) if job_id is None else [self._actors[job_id]] if job_id in self._actors else []
+        for actor in actors:
+            self._flush_quietly(actor)
 
     def drop(self, job_id: str) -> None:
         with self._lock:
             actor = self._actors.pop(job_id, None)
         if actor is not None:
+            self._flush_quietly(actor)
             ray.kill(actor, no_restart=True)
 
     def drop_all(self) -> None:
         with self._lock:
             actors, self._actors = list(self._actors.values()), OrderedDict()
         for actor in actors:
+            self._flush_quietly(actor)
             ray.kill(actor, no_restart=True)
+
+    def _flush_quietly(self, actor: Any) -> None:
+        """The actor's pending result writes land; a dead actor has nothing left to write."""
+        try:
+            ray.get(actor.flush_results.remote(), timeout=FLUSH_SECONDS)
+        except Exception:  # noqa: BLE001 — its process is gone (or going): nothing to wait for
+            log.warning("a λ actor's result writes could not be flushed", exc_info=True)

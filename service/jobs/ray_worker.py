@@ -120,7 +120,8 @@ class RayJobWorker(LambdaEditsOfRunner):
         self.queue = QueueRunner(store, settings.workers, run=self._run, ended=self._cancel.forget,
                                  live=lambda: (), stopping=self._stopping)  # leases: checked before each checkpoint
         self.previews = PreviewPublisher(store)
-        self.lambdas = LambdaEdits(store, self.previews, self._relambda, observer.lambda_applied)
+        self.lambdas = LambdaEdits(store, self.previews, self._relambda, observer.lambda_applied,
+                                   flush_elsewhere=lambda job_id: self._lambda_actors.flush(job_id))
         self._groups: dict[str, list] = {}  # job id → its actors, leader first
         self._runtime: LocalRay | None = None  # the local runtime this worker started, if it did
         self._joined = False
@@ -150,6 +151,7 @@ class RayJobWorker(LambdaEditsOfRunner):
         started = time.monotonic()
         self._stopping.set()
         self.queue.stop()
+        self.lambdas.flush()  # λ edits answered before the stop: their previews and results land
         with self._lock:
             groups = list(self._groups.values())
         for group in groups:

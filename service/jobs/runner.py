@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 from typing import Callable, Protocol
 
 import numpy as np
 
-from service.jobs.artifacts import JobFiles
+from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.errors import JobConflict
 from service.jobs.lambda_edits import LambdaApplied, require
 from service.jobs.record import JobRecord
@@ -78,6 +79,12 @@ class JobRunner(Protocol):
 
     def current_lambda(self, job_id: str, shape: tuple[int, int]) -> np.ndarray:
         """The job's λ map (its saved one, else its global λ)."""
+
+    def load_preview(self, job_id: str, frame: int) -> Preview | None:
+        """The frame's newest preview, a λ edit's before its files are written."""
+
+    def result_path(self, job_id: str, frame: int) -> Path:
+        """The frame's result EXR, once the job's λ edits are written into it."""
 
     def set_lambda(self, job_id: str, lam: np.ndarray, value: float | None = None,
                    sequence: int | None = None) -> LambdaApplied:

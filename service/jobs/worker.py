@@ -24,7 +24,7 @@ import numpy as np
 from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles
 from service.jobs.checkpoints import JobCheckpoint
-from service.jobs.lambda_edits import LambdaEdits, LambdaEditsOfRunner, Relambda, require
+from service.jobs.lambda_edits import LambdaEdits, LambdaEditsOfRunner, Relambda, require, results_of
 from service.jobs.previews import PreviewPublisher, state_preview_layers
 from service.jobs.queue_runner import LeaseLost, QueueRunner
 from service.jobs.record import CANCELED, COMPLETED, JobRecord, bundle_scene, job_spec
@@ -73,6 +73,7 @@ class JobWorker(LambdaEditsOfRunner):
         """Ask running loops to stop within one wavefront chunk; they stay resumable."""
         self._stopping.set()
         self.queue.stop()
+        self.lambdas.flush()  # λ edits answered before the stop: their previews and results land
 
     def submit(self, job_id: str) -> None:
         """A job was queued: a free thread takes the queue's next job (the queue's order, by
@@ -265,7 +266,7 @@ class JobWorker(LambdaEditsOfRunner):
         full_before, tail_before = (session.full_calls, session.tail_calls) if session else (0, 0)
         images = loop.set_lambda(lam)
         full, tail = (session.full_calls - full_before, session.tail_calls - tail_before) if session else (0, 0)
-        return Relambda(images, full, tail, results=loop.result_frames)
+        return Relambda(images, full, tail, results=results_of(loop))
 
     def _loop_for_lambda(self, job_id: str, record: JobRecord) -> RenderLoop | None:
         with self._lock:

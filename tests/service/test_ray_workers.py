@@ -214,7 +214,7 @@ def test_lambda_edits_on_a_running_job_rerun_only_the_cached_tail_in_its_worker(
     assert store.get(job_id).state == RUNNING  # answered by the job's actor, not a rebuilt loop
     assert (applied.full_passes, applied.tail_passes) == (0, 1)
     assert applied.version > record.preview_version
-    preview = worker.files(job_id).load_preview(0)
+    preview = worker.load_preview(job_id, 0)  # the API's read: a λ edit's from memory until written
     assert preview.version >= applied.version and np.all(preview.layers["lambda"] == 3.0)
     worker.cancel(job_id)
     wait_until(store, job_id, lambda r: r.finished)
@@ -235,9 +235,9 @@ def test_lambda_edits_on_a_finished_job_run_in_a_ray_worker_never_loading_the_sc
     second = worker.set_lambda(job_id, np.full((32, 32), 5.0, dtype=np.float32), 5.0)
     assert (second.full_passes, second.tail_passes) == (0, 1)  # that worker stayed warm
     assert second.version > first.version > done.preview_version
-    preview = worker.files(job_id).load_preview(0)
+    preview = worker.load_preview(job_id, 0)  # the API's read: a λ edit's from memory until written
     assert preview.version == second.version and np.all(preview.layers["lambda"] == 5.0)
-    result = read_exr(worker.files(job_id).result_path(0))  # the result follows λ, saved by the worker
+    result = read_exr(worker.result_path(job_id, 0))  # the result follows λ, saved by the worker
     np.testing.assert_array_equal(result.lam, np.full((32, 32), 5.0, dtype=np.float32))
 
 
