@@ -14,8 +14,10 @@ OIDN made for them. Three λ inputs, timed round by round so the machine's load 
 
 The HTTP figure is `bench.server.bench_http_lambda`: a `renderloop serve` app (uvicorn) in a
 subprocess, on each of HTTP_BACKENDS, one finished 16-spp iteration of cornell-box at the same size, then PUTs
-alternating a global value and a rectangle; it includes routing, the job store, the λ tail and
-writing the new preview.
+alternating a global value and a rectangle, back to back; it includes routing, the job store,
+saving the λ map, the λ tail and publishing the new preview in memory (the preview's files and the
+finished job's result EXRs are written after the answer, service/jobs/latest_writer.py, so a
+request that follows at once shares the CPU with them).
 """
 from __future__ import annotations
 

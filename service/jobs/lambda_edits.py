@@ -57,12 +57,12 @@ Relambdas = Callable[[str, JobRecord, np.ndarray], "Relambda | None"]
 
 
 def results_of(loop: RenderLoop) -> Callable[[], list[ExrFrame]]:
-    """The loop's result frames, built under its lock: the writer's thread builds them while the
-    next edit may already be re-denoising the same loop."""
-    def build() -> list[ExrFrame]:
-        with loop.lock:
-            return loop.result_frames()
-    return build
+    """The loop's result frames, built on the writer's thread while the next edit may already be
+    re-denoising the same loop. Not under the loop's lock (building them at 2 MP takes longer
+    than the tail and would hold the next edit up): an edit replaces the λ map and the images,
+    never writes into them, and every edit's own write follows its re-denoise, so the file
+    the last write leaves is the last edit's."""
+    return loop.result_frames
 
 
 def require(store, job_id: str) -> JobRecord:

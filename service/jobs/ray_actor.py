@@ -203,17 +203,13 @@ class JobActor:
 
     def save_results_later(self) -> None:
         """save_results on a background thread, the newest edit's winning: the next λ edit runs
-        meanwhile (this actor takes one call at a time)."""
-        self.results.submit(self.plan.record.id, "results", self._save_results_locked)
+        meanwhile (this actor takes one call at a time; service.jobs.lambda_edits.results_of says
+        why no lock is needed)."""
+        self.results.submit(self.plan.record.id, "results", self.save_results)
 
     def flush_results(self) -> None:
         """Return once the results asked for so far are written."""
         self.results.flush()
-
-    def _save_results_locked(self) -> None:
-        with self.loop.lock:   # the next edit may be re-denoising this loop
-            frames = self.loop.result_frames() if self.loop.state.iteration > 0 else []
-        self.files.save_results(frames)
 
     # -- λ -----------------------------------------------------------------------------------
 
