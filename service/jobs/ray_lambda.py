@@ -3,7 +3,8 @@ scene (an uploaded scene is the user's, and its memory is only watched inside a 
 
 A finished job's actors are gone (they hold CPUs the next jobs need), so its first λ edit starts
 one actor for all its frames that opens the last checkpoint — loads the scene, recomputes the
-denoiser's cached features once (a full pass) — re-denoises and saves the result EXRs. The
+denoiser's cached features once (a full pass) — re-denoises, then writes the result EXRs on
+its own thread after the answer (JobActor.save_results_later). The
 actor stays for the next edits (λ-only tail passes) while its job is among the
 IDLE_ACTORS_KEPT most recently edited; it asks Ray for no CPU, so it never holds up a job.
 """
@@ -16,6 +17,7 @@ from typing import Any, Callable
 
 import numpy as np
 import ray
+import torch
 
 from service.jobs.artifacts import JobFiles
 from service.jobs.ray_actor import ActorPlan, JobActor
@@ -51,7 +53,9 @@ class LambdaActors:
         except Exception:
             self.drop(job_id)  # a dead or broken actor: the next edit starts a fresh one
             raise
-        return Relambda([images[f] for f in sorted(images)], full, tail)
+        # copied out of the object store: the preview keeps them, and a pinned object outlives a
+        # SIGTERM'd raylet badly (see ray_worker.owned_report)
+        return Relambda([np.array(images[f]) for f in sorted(images)], full, tail)
 
     def save_results(self, job_id: str, record: JobRecord, files: JobFiles, size: tuple[int, int]) -> tuple[int, float]:
         """Write the result EXRs of the job's last checkpoint in a worker (a job canceled mid-
@@ -71,7 +75,10 @@ class LambdaActors:
                 self._actors.move_to_end(job_id)
                 return actor
         frames = job_spec(record).frames
-        plan = ActorPlan(str(files.root), record, (0, frames), estimated_memory(size[1], size[0], frames), cpus=1)
+        # The tail on as many torch threads as the server's own (the thread backend's λ edits run
+        # there): the actor reserves no CPU, an edit is short and someone is waiting for it.
+        plan = ActorPlan(str(files.root), record, (0, frames), estimated_memory(size[1], size[0], frames),
+                         cpus=max(1, torch.get_num_threads()))
         actor = ray.remote(JobActor).options(num_cpus=0, max_restarts=0).remote(self._networks_ref(), plan)
         try:
             self._call(actor.open.remote())  # the scene and the checkpoint, loaded in the worker

@@ -415,7 +415,7 @@ class RayJobWorker(LambdaEditsOfRunner):
             return self._relambda_finished(job_id, require(self.store, job_id), lam)  # it just ended
         images: dict[int, np.ndarray] = {}
         for owned, _, _ in answers:
-            images.update(owned)
+            images.update({f: np.array(image) for f, image in owned.items()})  # out of the object store (ray_lambda)
         full, tail = sum(a[1] for a in answers), sum(a[2] for a in answers)
         return Relambda([images[f] for f in sorted(images)], full, tail)
 

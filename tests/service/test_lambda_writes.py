@@ -151,3 +151,30 @@ def test_a_server_stopped_right_after_a_put_restarts_with_the_edit(start_server,
         preview = client.get(f"/jobs/{job_id}/preview", params={"layer": "lambda", "format": "exr"})
         assert preview.headers["x-preview-version"] == str(applied.json()["version"])
         np.testing.assert_array_equal(exr_of(preview, tmp_path, "lambda.exr").lam, expected)
+
+
+def test_edited_previews_stay_in_memory_for_the_last_jobs_and_never_before_their_files(store, monkeypatch):  # noqa: F811
+    """A λ edit's frames are the only copy of their version until written; once written, the
+    newest EDITED_JOBS_KEPT jobs keep them; an iteration's newer files take their place."""
+    from service.jobs.previews import EDITED_JOBS_KEPT, PreviewPublisher
+    from service.loop.spec import LoopSpec
+
+    publisher = PreviewPublisher(store)
+    spec = LoopSpec(scene="cornell-box", width=4, height=4)
+    jobs = [store.create(spec.to_stored(), spec.lam).id for _ in range(EDITED_JOBS_KEPT + 2)]
+    frames = lambda value: [{"denoised": np.full((4, 4, 3), value, np.float32), "noisy": None}]   # noqa: E731
+    gate = threading.Event()
+    publisher.writes.submit("someone", "else", gate.wait)   # holds the writer: nothing lands yet
+    for i, job in enumerate(jobs):
+        publisher.publish_later(job, JobFiles(store.job_dir(job)), frames(i))
+    assert all(publisher.load(job, JobFiles(store.job_dir(job)), 0) is not None for job in jobs)   # none written, none dropped
+    gate.set()
+    publisher.writes.flush()
+    kept = [job for job in jobs if job in publisher._edited]
+    assert kept == jobs[-EDITED_JOBS_KEPT:]
+    oldest = JobFiles(store.job_dir(jobs[0]))
+    assert float(publisher.load(jobs[0], oldest, 0).layers["denoised"][0, 0, 0]) == 0.0   # from its file now
+    newest = JobFiles(store.job_dir(jobs[-1]))
+    version = publisher.publish(jobs[-1], newest, frames(9.0))   # an iteration, written at once
+    assert jobs[-1] not in publisher._edited
+    assert publisher.load(jobs[-1], newest, 0).version == version
