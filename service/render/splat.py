@@ -19,11 +19,24 @@ pixel's own count in each. For a tent under a uniform count the FIS densities su
 (a partition of unity) and w is exactly hdrfilm's f; for the Gaussian and Mitchell and at the
 film's border the 1/q(x) removes the ripple and truncation of the sampling density.
 
-Accumulated per pixel, on the device inside the trace kernel (one dr.scatter_reduce per tap and
-channel, no per-sample host round trip): Σw, Σw·L, Σw²·L, Σw²·L², Σw². FrameBuffer.raw and
+Accumulated per pixel, on the device inside the trace kernel (no per-sample host round trip):
+Σw, Σw·L, Σw²·L, Σw²·L², Σw². FrameBuffer.raw and
 raw_variance turn them into the estimate R = Σw·L / Σw and the ratio estimator's variance
 Σw²·(L − R)² / (Σw)² — every term carries w², so a negative Mitchell lobe adds variance
 instead of cancelling it (a signed Σw·L² can make the spread negative or arbitrarily large).
+
+What it costs. A sample touches 4 (tent) or 16 (Gaussian, Mitchell) pixels × 11 sums. Written as
+one dr.scatter_reduce per channel, Dr.Jit's LLVM backend resolves each channel's conflicts on its
+own: a packet's lanes (one pixel's samples, consecutive) hit up to ~9 different pixels per tap,
+and each distinct address is one trip through a compare-reduce-store loop — ~1.7 µs per sample
+for the Gaussian, more than tracing the path (docs/sampler.md). Instead each tap's 11 sums go out
+as two packets, 8 adjacent float64 (Σw, Σw·L, Σw²·L, Σw²) and 4 (Σw²·L², one unused), which Dr.Jit
+writes as one vector read-add-store per lane into a per-thread copy of the array
+(ReduceMode.Expand): ~10× cheaper, the same sums up to the order of float64 additions. The copies
+cost (threads × the arrays) of memory, so a film too large for EXPAND_BUDGET_BYTES keeps the
+per-channel atomics (and so does CUDA, where Expand does not exist). A uniform pass (every
+pixel's count the same, e.g. the first iteration or `--spp N`) skips the 16 count gathers: n
+cancels from n_q / Σ_p n_p·p_p(x).
 """
 from __future__ import annotations
 
@@ -31,7 +44,23 @@ import drjit as dr
 import numpy as np
 
 from service.render.filters import PixelFilter
-from service.render.framebuffer import SPLAT_CHANNELS as CHANNELS
+from service.render.framebuffer import RADIANCE, SPLAT_CHANNELS, SQ_RADIANCE, SQ_RADIANCE_SQ, WEIGHT, WEIGHT_SQ
+
+# The two packets one tap writes (powers of two: what Dr.Jit's packet scatter takes). The first
+# holds Σw, Σw·L (3), Σw²·L (3), Σw²; the second Σw²·L² (3) and one unused slot.
+FIRST_PACKET, SECOND_PACKET = 8, 4
+# Bytes the per-thread copies of both arrays (ReduceMode.Expand) may take: 2 threads × a 2 MP
+# film × 12 float64 is 0.4 GB; a film or a thread pool too large for it keeps the atomics.
+EXPAND_BUDGET_BYTES = 1 << 30
+
+
+def reduce_mode(mi, pixels: int) -> dr.ReduceMode:
+    """Expand (per-thread copies, non-atomic packet writes) on the LLVM backend when the copies
+    fit EXPAND_BUDGET_BYTES; else Auto (Dr.Jit splits the packets into per-channel atomics)."""
+    if dr.backend_v(mi.Float) != dr.JitBackend.LLVM:
+        return dr.ReduceMode.Auto
+    copies = pixels * (FIRST_PACKET + SECOND_PACKET) * 8 * max(dr.thread_count(), 1)
+    return dr.ReduceMode.Expand if copies <= EXPAND_BUDGET_BYTES else dr.ReduceMode.Auto
 
 
 class FilmSplat:
@@ -41,16 +70,26 @@ class FilmSplat:
         self.mi = mi
         self.filter = pixel_filter
         self.height, self.width = counts.shape
-        self.channels = CHANNELS
-        # One sums array for the whole film, kept on the device across chunks: the taps of a
-        # chunk reach beyond its own pixel range, and only one kernel per film size is built.
+        pixels = self.height * self.width
+        # Film-sized arrays kept on the device across chunks: the taps of a chunk reach beyond
+        # its own pixel range, and only one kernel per film size is built.
         # Float64: a pixel gathers samples from ~16 source pixels that different threads add in
         # a varying order, and the variance is a difference of these sums. In float32 two runs of
         # one seed differed by up to 1e-5 relative in raw_variance (1.4e-6 in raw), what a job
         # shared between workers may differ by (tests/service/test_ray_workers.py); in float64
         # they were bit-identical, at no measurable cost.
-        self.sums = dr.zeros(mi.Float64, self.height * self.width * self.channels)
-        self.counts = mi.Float(np.asarray(counts, dtype=np.float32).ravel())
+        self.first = dr.zeros(mi.Float64, pixels * FIRST_PACKET)
+        self.second = dr.zeros(mi.Float64, pixels * SECOND_PACKET)
+        self.mode = reduce_mode(mi, pixels)
+        counts = np.asarray(counts)
+        # A uniform pass needs no counts on the device (see the module docstring).
+        self.uniform_count = bool(counts.size) and int(counts.min()) == int(counts.max())
+        self.counts = None if self.uniform_count else mi.Float(counts.astype(np.float32).ravel())
+
+    @property
+    def sums(self) -> tuple:
+        """The device arrays the trace kernel writes (what the renderer evaluates per chunk)."""
+        return self.first, self.second
 
     def _axis(self, coordinate, size: int, tables):
         """Per tap along one axis: pixel index, whether it is on the film, filter value f and
@@ -78,22 +117,37 @@ class FilmSplat:
         for row, row_in, fy, py in rows:
             for column, column_in, fx, px in columns:
                 index = row * self.width + column
-                n = dr.gather(mi.Float, self.counts, index, row_in & column_in)
-                density += n * px * py
-                taps.append((index, fx * fy * n, row_in & column_in))
+                inside = row_in & column_in
+                if self.uniform_count:
+                    density += px * py
+                    taps.append((index, fx * fy, inside))
+                else:
+                    n = dr.gather(mi.Float, self.counts, index, inside)
+                    density += n * px * py
+                    taps.append((index, fx * fy * n, inside))
         inverse = dr.select(density > 0, dr.rcp(density), 0.0)
         square = dr.square(radiance)
         for index, weighted_count, inside in taps:
             w = weighted_count * inverse
             active = inside & (w != 0)
             w2 = w * w
-            values = [w, w * radiance[0], w * radiance[1], w * radiance[2],
-                      w2 * radiance[0], w2 * radiance[1], w2 * radiance[2],
-                      w2 * square[0], w2 * square[1], w2 * square[2], w2]
-            base = index * self.channels
-            for c, value in enumerate(values):
-                dr.scatter_reduce(dr.ReduceOp.Add, self.sums, mi.Float64(value), base + c, active)
+            first = [w, w * radiance[0], w * radiance[1], w * radiance[2],
+                     w2 * radiance[0], w2 * radiance[1], w2 * radiance[2], w2]
+            second = [w2 * square[0], w2 * square[1], w2 * square[2], 0.0]
+            dr.scatter_reduce(dr.ReduceOp.Add, self.first, mi.ArrayXf64([mi.Float64(v) for v in first]),
+                              index, active, mode=self.mode)
+            dr.scatter_reduce(dr.ReduceOp.Add, self.second, mi.ArrayXf64([mi.Float64(v) for v in second]),
+                              index, active, mode=self.mode)
 
     def host(self) -> np.ndarray:
-        """(H, W, channels) float64 sums, read back once per render call."""
-        return np.asarray(self.sums, dtype=np.float64).reshape(self.height, self.width, self.channels)
+        """(H, W, SPLAT_CHANNELS) float64 sums in framebuffer.py's column order, read back once
+        per render call."""
+        first = np.asarray(self.first, dtype=np.float64).reshape(self.height, self.width, FIRST_PACKET)
+        second = np.asarray(self.second, dtype=np.float64).reshape(self.height, self.width, SECOND_PACKET)
+        sums = np.empty((self.height, self.width, SPLAT_CHANNELS))
+        sums[..., WEIGHT] = first[..., 0]
+        sums[..., RADIANCE] = first[..., 1:4]
+        sums[..., SQ_RADIANCE] = first[..., 4:7]
+        sums[..., WEIGHT_SQ] = first[..., 7]
+        sums[..., SQ_RADIANCE_SQ] = second[..., 0:3]
+        return sums
