@@ -2,6 +2,7 @@
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -97,10 +98,19 @@ def test_malformed_xml_is_reported_without_a_traceback(tmp_path):
     assert "broken.xml" in result.stderr
 
 
-def test_denoise_takes_a_no_denoise_render_end_to_end(tmp_path):
-    noisy = tmp_path / "noisy.exr"
-    assert renderloop("render", "cornell-box", "--width", 24, "--height", 24, "--spp", 16, "--no-denoise",
-                      "-o", noisy).returncode == 0
+@pytest.fixture(scope="module")
+def no_denoise_render(tmp_path_factory) -> Path:
+    """`renderloop render --no-denoise` of cornell-box at 24², 16 spp: the input both denoise tests
+    read (rendered once; neither writes to it)."""
+    noisy = tmp_path_factory.mktemp("no-denoise") / "noisy.exr"
+    result = renderloop("render", "cornell-box", "--width", 24, "--height", 24, "--spp", 16, "--no-denoise",
+                        "-o", noisy)
+    assert result.returncode == 0, result.stderr
+    return noisy
+
+
+def test_denoise_takes_a_no_denoise_render_end_to_end(no_denoise_render, tmp_path):
+    noisy = no_denoise_render
     out = tmp_path / "denoised.exr"
     result = renderloop("denoise", noisy, "--lambda", 3, "--png", "-o", out)
     assert result.returncode == 0, result.stderr
@@ -114,13 +124,10 @@ def test_denoise_takes_a_no_denoise_render_end_to_end(tmp_path):
     assert bad.returncode == 2 and "[1, 10]" in bad.stderr
 
 
-def test_denoise_of_an_exr_without_sample_counts_writes_the_image_and_no_error_layer(tmp_path):
+def test_denoise_of_an_exr_without_sample_counts_writes_the_image_and_no_error_layer(no_denoise_render, tmp_path):
     from service.exr import write_exr
 
-    noisy = tmp_path / "noisy.exr"
-    assert renderloop("render", "cornell-box", "--width", 16, "--height", 16, "--spp", 8, "--no-denoise",
-                      "-o", noisy).returncode == 0
-    frame = read_exr(noisy)
+    frame = read_exr(no_denoise_render)
     frame.spp = None  # an EXR from another tool: every layer the denoiser needs, no spp
     stripped = tmp_path / "no-spp.exr"
     write_exr(stripped, frame)
