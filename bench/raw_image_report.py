@@ -30,8 +30,9 @@ QUALITY_SEEDS = 3
 REFERENCE_SPP = 4096
 TARGET_QUALITY_RATIO = 1.05  # our raw relMSE ÷ mi.render's the raw image is held to
 COST_FILTERS = ("tent", "gaussian", "mitchell")
-COST_SPP = (16, 64, 128)
-COST_SIZE = 128
+# (film side, spps): a small film at several rates and a larger one at the loop's first rate,
+# where the splat's film-sized sums no longer sit in cache.
+COST_CASES = ((128, (16, 64, 128)), (512, (16,)))
 
 
 @dataclass(frozen=True)
@@ -86,6 +87,7 @@ def quality_table(rows: list[QualityRow]) -> str:
 @dataclass(frozen=True)
 class CostRow:
     filter: str
+    size: int
     spp: int
     with_splat_s: float  # median seconds of one pass
     without_splat_s: float
@@ -100,32 +102,39 @@ class CostRow:
         return self.with_splat_s / self.without_splat_s - 1.0
 
 
-def cost_rows(case_for=lambda f: SamplerCase("cornell-box", "path", f), size: int = COST_SIZE,
-              spps: tuple[int, ...] = COST_SPP, repeats: int = 3) -> list[CostRow]:
+def cost_rows(case_for=lambda f: SamplerCase("cornell-box", "path", f), cases=COST_CASES,
+              repeats: int = 3) -> list[CostRow]:
     rows = []
-    for filter_type in COST_FILTERS:
-        scene = case_scene(case_for(filter_type), size)
-        for spp in spps:
-            counts = np.full((size, size), spp)
-            for splat in (True, False):  # kernels are compiled (and cached) on first use
-                render_samples(scene, counts, FrameBuffer.empty(size, size), splat=splat)
-            with_splat, without = [], []
-            for rep in range(repeats):
-                for splat, times in ((True, with_splat), (False, without)):
-                    t0 = time.perf_counter()
-                    render_samples(scene, counts, FrameBuffer.empty(size, size), seed=rep, splat=splat)
-                    times.append(time.perf_counter() - t0)
-            rows.append(CostRow(filter_type, spp, statistics.median(with_splat), statistics.median(without),
-                                size * size * spp))
+    for size, spps in cases:
+        for filter_type in COST_FILTERS:
+            rows += _cost_rows(case_scene(case_for(filter_type), size), filter_type, size, spps, repeats)
+    return rows
+
+
+def _cost_rows(scene, filter_type: str, size: int, spps: tuple[int, ...], repeats: int) -> list[CostRow]:
+    """One filter's scene at one film size: each spp's pass with and without the splat sums."""
+    rows = []
+    for spp in spps:
+        counts = np.full((size, size), spp)
+        for splat in (True, False):  # kernels are compiled (and cached) on first use
+            render_samples(scene, counts, FrameBuffer.empty(size, size), splat=splat)
+        with_splat, without = [], []
+        for rep in range(repeats):
+            for splat, times in ((True, with_splat), (False, without)):
+                t0 = time.perf_counter()
+                render_samples(scene, counts, FrameBuffer.empty(size, size), seed=rep, splat=splat)
+                times.append(time.perf_counter() - t0)
+        rows.append(CostRow(filter_type, size, spp, statistics.median(with_splat), statistics.median(without),
+                            size * size * spp))
     return rows
 
 
 def cost_table(rows: list[CostRow]) -> str:
-    lines = ["| filter | spp | with splat s | without s | ns/sample with | ns/sample without | splat cost |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| film | filter | spp | with splat s | without s | ns/sample with | ns/sample without | splat cost |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         with_ns, without_ns = r.ns_per_sample
-        lines.append(f"| {r.filter} | {r.spp} | {r.with_splat_s:.3f} | {r.without_splat_s:.3f} | {with_ns:.0f} | "
+        lines.append(f"| {r.size}² | {r.filter} | {r.spp} | {r.with_splat_s:.3f} | {r.without_splat_s:.3f} | {with_ns:.0f} | "
                      f"{without_ns:.0f} | {100 * r.overhead:+.0f} % |")
     return "\n".join(lines)
 
@@ -134,4 +143,4 @@ def report_fields(quality: list[QualityRow], cost: list[CostRow]) -> dict[str, o
     """The raw-image sections of docs/sampler.md (bench/templates/sampler.md)."""
     return {"quality_size": QUALITY_SIZE, "quality_seeds": QUALITY_SEEDS, "reference_spp": REFERENCE_SPP,
             "quality_target": f"{TARGET_QUALITY_RATIO:g}", "quality_table": quality_table(quality),
-            "cost_size": COST_SIZE, "cost_table": cost_table(cost)}
+            "cost_sizes": " and ".join(f"{size}²" for size, _ in COST_CASES), "cost_table": cost_table(cost)}
