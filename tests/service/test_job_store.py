@@ -311,12 +311,14 @@ def test_a_claim_takes_a_lease_that_its_owner_renews(tmp_path, db_url):
 
 def test_only_a_lapsed_lease_is_requeued_and_not_a_live_servers(tmp_path, db_url):
     alive = JobStore(tmp_path, db_url, leases=Leases(seconds=60))
-    dying = JobStore(tmp_path, db_url, leases=Leases(seconds=0.5))
+    # 2 s: opening the third store below took over 0.5 s on a loaded host, and the lease lapsed early.
+    dying = JobStore(tmp_path, db_url, leases=Leases(seconds=2))
     theirs, lost = alive.create({}, None), alive.create({}, None)
     assert alive.claim(theirs.id) and dying.claim(lost.id)
     other = JobStore(tmp_path, db_url)  # a third server starting up
     assert other.requeue_abandoned() == []  # both leases hold (and both owners live in this process)
-    time.sleep(0.6)  # the dying server stops renewing
+    while time.time() <= other.get(lost.id).lease_expires_at:  # the dying server stops renewing
+        time.sleep(0.05)
     assert alive.renew_leases() == [theirs.id]
     assert other.requeue_lapsed() == [lost.id]
     assert other.get(lost.id).state == QUEUED and other.get(theirs.id).state == RUNNING
