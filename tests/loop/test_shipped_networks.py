@@ -40,14 +40,17 @@ UNTRAINED_SEEDS = (0, 1, 2)
 # Measured by `python tests/loop/test_shipped_networks.py` (main, below) on a 2-core AVX2 EPYC
 # (float32 trunk), shipped / untrained of the shipped architecture (seeds 0–2, through the loop) /
 # OIDN alone:
-#   geometric mean of the crops' SMAPE ÷ OIDN's   0.842 / 0.869–0.871 / 1
-#   share of the crops where ours beats OIDN      0.713 / 0.542–0.556 / 0
-#   per scene: hard_shadows 0.998 / 1.008–1.009, metals 0.966 / 1.012–1.014,
-#              glass_box 0.937 / 1.036–1.050, env_object 0.955 / 0.942–0.943
-# (before the final image's fallback, 60abd4b: 0.962 / 0.975–0.977 and 0.662 / 0.537–0.551.)
-# The crop bars sit halfway (≥ 1.4 % and ≥ 0.07 from either side); no scene may end up worse than OIDN.
-MAX_CROP_SMAPE_RATIO_TO_OIDN = 0.855
-MIN_SHARE_OF_CROPS_BEATING_OIDN = 0.63
+#   geometric mean of the crops' SMAPE ÷ OIDN's   0.823 / 0.845–0.849 / 1
+#   share of the crops where ours beats OIDN      0.722 / 0.602–0.611 / 0
+#   per scene: hard_shadows 0.998 / 1.008–1.009, metals 0.961 / 1.014–1.015,
+#              glass_box 0.949 / 1.038–1.054, env_object 0.955 / 0.942–0.943
+# (measured at 1184da7, once metals' and glass_box's stratifying samplers drove every dimension
+# of their paths (cee44b3, 8476026); at 28410ed 0.842 / 0.869–0.871 and 0.713 / 0.542–0.556, bars
+# 0.855 and 0.63, which the untrained network's pooled figure no longer failed; before the final
+# image's fallback, 60abd4b: 0.962 / 0.975–0.977 and 0.662 / 0.537–0.551.)
+# The crop bars sit halfway (≥ 1.1 % and ≥ 0.05 from either side); no scene may end up worse than OIDN.
+MAX_CROP_SMAPE_RATIO_TO_OIDN = 0.834
+MIN_SHARE_OF_CROPS_BEATING_OIDN = 0.665
 MAX_SCENE_SMAPE_RATIO_TO_OIDN = 1.005
 CROP = 32
 
@@ -63,14 +66,16 @@ class Guard:
 # architecture: kernels seed 0 / an untrained error network, the latter from an earlier run)
 # [best √variance ÷ denoised map over five ways of forming it, see sqrt_variance_maps]:
 #   hard_shadows 4.13 / 0.529  (2.49 / 0.05)   [0.089]
-#   metals       4.31 / 0.562  (2.22 / 0.29)   [0.207]
-#   glass_box    3.25 / 0.612  (1.06 / 0.33)   [0.554]
+#   metals       3.08 / 0.605  (1.44 / 0.29)   [0.180]
+#   glass_box    3.02 / 0.663  (0.93 / 0.33)   [0.590]
 #   env_object   4.17 / 0.836  (1.96 / −0.57)  [0.698]
-# Rank bars sit between the shipped network and the √variance map (glass_box: 0.03 either side).
+# (metals and glass_box at 1184da7, with their stratified paths: the noisy input the cut divides
+# is less noisy; at 28410ed metals 4.31 / 0.562 (2.22) [0.207], glass_box 3.25 / 0.612 (1.06) [0.554].)
+# Rank bars sit between the shipped network and the √variance map (glass_box: 0.036 either side).
 GUARDS = {
     "hard_shadows": Guard(kernel_smape_cut=3.8, error_rank=0.45),
-    "metals": Guard(kernel_smape_cut=3.7, error_rank=0.47),
-    "glass_box": Guard(kernel_smape_cut=2.9, error_rank=0.58),
+    "metals": Guard(kernel_smape_cut=2.8, error_rank=0.47),
+    "glass_box": Guard(kernel_smape_cut=2.9, error_rank=0.626),
     "env_object": Guard(kernel_smape_cut=3.7, error_rank=0.75),
 }
 # No-regression checks (they do not tell trained from untrained: an untrained network of the
@@ -188,9 +193,24 @@ def test_oidn_alone_fails_the_whole_image_guard(dev_runs):
     assert [f.split(":")[0] for f in failures][:2] == ["pooled", "crops"], failures   # ratio 1, no crop beaten
 
 
+def untrained_whole_image_failures(shipped: Networks, seed: int, runs: dict[str, DevRun]) -> list[str]:
+    """The whole-image guard's failures for an untrained denoiser of this seed; the loop re-renders
+    each scene (seeded: the same 16 spp as the shipped run) and that is most of the cost."""
+    return whole_image_failures(untrained_images(shipped, seed), runs)
+
+
 def test_an_untrained_denoiser_of_the_shipped_architecture_fails_the_whole_image_guard(shipped, dev_runs):
-    for seed in UNTRAINED_SEEDS:
-        failures = whole_image_failures(untrained_images(shipped, seed), dev_runs)
+    # One seed in the default suite: over seeds 0-2 the untrained figures spread by 0.002 (pooled
+    # 0.869-0.871) and 0.014 (crops won 0.542-0.556), a seventh and a fifth of their margins to
+    # the bars (0.855, 0.63); the other seeds run in the slow test below.
+    failures = untrained_whole_image_failures(shipped, UNTRAINED_SEEDS[0], dev_runs)
+    assert [f.split(":")[0] for f in failures][:2] == ["pooled", "crops"], failures
+
+
+@pytest.mark.slow
+def test_untrained_denoisers_of_other_seeds_fail_the_whole_image_guard_too(shipped, dev_runs):
+    for seed in UNTRAINED_SEEDS[1:]:
+        failures = untrained_whole_image_failures(shipped, seed, dev_runs)
         assert [f.split(":")[0] for f in failures][:2] == ["pooled", "crops"], (seed, failures)
 
 
