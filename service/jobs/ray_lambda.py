@@ -17,7 +17,6 @@ from typing import Any, Callable
 
 import numpy as np
 import ray
-import torch
 
 from service.jobs.artifacts import JobFiles
 from service.jobs.ray_actor import ActorPlan, JobActor
@@ -75,10 +74,10 @@ class LambdaActors:
                 self._actors.move_to_end(job_id)
                 return actor
         frames = job_spec(record).frames
-        # The tail on as many torch threads as the server's own (the thread backend's λ edits run
-        # there): the actor reserves no CPU, an edit is short and someone is waiting for it.
-        plan = ActorPlan(str(files.root), record, (0, frames), estimated_memory(size[1], size[0], frames),
-                         cpus=max(1, torch.get_num_threads()))
+        # One thread: giving it the server's torch threads (2) made PUT /jobs/{id}/lambda at 2 MP
+        # p50 21.9-31.2 s instead of 1.8-4.1 s on the loaded host (load 15-24, two rounds of
+        # bench.lambda_edit_ab --http, commit 5d43ead): its result writes share the process.
+        plan = ActorPlan(str(files.root), record, (0, frames), estimated_memory(size[1], size[0], frames), cpus=1)
         actor = ray.remote(JobActor).options(num_cpus=0, max_restarts=0).remote(self._networks_ref(), plan)
         try:
             self._call(actor.open.remote())  # the scene and the checkpoint, loaded in the worker
