@@ -28,15 +28,15 @@ instead of cancelling it (a signed Σw·L² can make the spread negative or arbi
 What it costs. A sample touches 4 (tent) or 16 (Gaussian, Mitchell) pixels × 11 sums. Written as
 one dr.scatter_reduce per channel, Dr.Jit's LLVM backend resolves each channel's conflicts on its
 own: a packet's lanes (one pixel's samples, consecutive) hit up to ~9 different pixels per tap,
-and each distinct address is one trip through a compare-reduce-store loop — ~1.7 µs per sample
-for the Gaussian, more than tracing the path (docs/sampler.md). Instead each tap's 11 sums go out
-as two packets, 8 adjacent float64 (Σw, Σw·L, Σw²·L, Σw²) and 4 (Σw²·L², one unused), which Dr.Jit
-writes as one vector read-add-store per lane into a per-thread copy of the array
-(ReduceMode.Expand): ~10× cheaper, the same sums up to the order of float64 additions. The copies
-cost (threads × the arrays) of memory, so a film too large for EXPAND_BUDGET_BYTES keeps the
-per-channel atomics (and so does CUDA, where Expand does not exist). A uniform pass (every
-pixel's count the same, e.g. the first iteration or `--spp N`) skips the 16 count gathers: n
-cancels from n_q / Σ_p n_p·p_p(x).
+and each distinct address is one trip through a compare-reduce-store loop — ~2 µs per sample for
+the Gaussian, more than tracing a cornell-box path (docs/decisions.md, "The raw image's splat").
+Instead each tap's 11 sums go out as two packets, 8 adjacent float64 (Σw, Σw·L, Σw²·L, Σw²) and 4
+(Σw²·L², one unused), which Dr.Jit writes as one vector read-add-store per lane into a per-thread
+copy of the array (ReduceMode.Expand): ~10× cheaper (~0.2 µs), the same sums up to the order of
+float64 additions. The copies cost (threads × the arrays) of memory, so a film too large for
+EXPAND_BUDGET_BYTES keeps the per-channel atomics (and so does CUDA, where Expand does not
+exist). A uniform pass (every pixel's count the same, e.g. the first iteration or `--spp N`)
+skips the 16 count gathers: n cancels from n_q / Σ_p n_p·p_p(x).
 """
 from __future__ import annotations
 
