@@ -457,7 +457,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "2 with --suite dev, 1 with --quick; later --seeds always run once)")
     parser.add_argument("--methods", nargs="+", default=None, metavar="KEY",
                         help=f"with --loop: only these methods ({', '.join(m.key for m in METHODS)}; must include "
-                             f"{PRODUCT}); '--methods {' '.join(BOUND_METHODS)}' is what the allocation bound needs")
+                             f"{PRODUCT}); the allocation bound needs {' '.join(BOUND_METHODS)}")
     parser.add_argument("--suite", choices=("procedural", "dev", "val"), default="procedural",
                         help="with --loop: 'dev' runs the development suite at its own sizes → benchmarks-dev.md; "
                              "with --denoiser or --references: 'dev' (scenes/dev) or 'val' (scenes/val, "
