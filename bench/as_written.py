@@ -1,6 +1,6 @@
 """`renderloop bench --as-written`: the scenes exactly as published or written, each with its own
 film filter and its film scaled to ~size² (aspect kept), scored against a high-spp `mi.render`
-reference of the same file → docs/as-written.md with `-o docs` (issue 44's "done when" table).
+reference of the same file → docs/as-written.md with `-o docs`.
 
 Per scene and seed, at `spp` samples per pixel: `mi.render` raw (the `hdrfilm` image a user gets),
 `mi.render` + OIDN (albedo and normals from an `aov` integrator, the service's OIDN call) and the

@@ -1,4 +1,4 @@
-"""The repeatable-error ceiling of the calibration report's per-pixel Spearman (issue 43 item 4).
+"""The repeatable-error ceiling of the calibration report's per-pixel Spearman.
 
 One render's true SMAPE map is the scene's repeatable error (where the denoiser struggles) plus
 that render's own leftover noise, which changes with the seed and which no predictor of the
@@ -22,7 +22,8 @@ import numpy as np
 
 from bench.quality_measures import spearman
 
-# issue 43 item 4: the error network's per-pixel Spearman ≥ 90 % of the repeatable ceiling
+# The goal: the error network's per-pixel Spearman ≥ 90 % of the repeatable ceiling, what a
+# perfect predictor of the expected error scores (a fixed 0.7 ignored how much noise a scene has)
 CEILING_GOAL = 0.90
 CEILING_RENDERS = 8  # K: the figure in docs/decisions.md came from 8 renders per scene
 CEILING_RENDER_RANGE = (4, 8)
@@ -101,7 +102,7 @@ def ceiling_bound_line(scores: dict[str, CeilingScore]) -> str:
     renders = next(iter(scores.values())).renders
     verdict = "met" if median.ratio >= CEILING_GOAL else "not met"
     return (f"**Bound: the error network's per-pixel Spearman ≥ {CEILING_GOAL:.0%} of the repeatable ceiling** "
-            f"(issue 43 item 4). At {spp:g} spp, over {renders} renders per scene: median network "
+            f"At {spp:g} spp, over {renders} renders per scene: median network "
             f"{median.network:.2f} / median ceiling {median.ceiling:.2f} = **{median.ratio:.0%}** ({verdict}).")
 
 

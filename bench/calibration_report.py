@@ -30,8 +30,8 @@ from service.render.runtime import active_variant
 REPORT_NAMES = {"dev": "calibration.md", "val": "calibration-val.md"}  # --suite → the report's file
 ITERATIONS = 5  # 16 → 32 → 64 → 128 → 256 spp mean
 TARGETS = (0.01, 0.02, 0.05)
-TRUSTED = 0.25  # issue 14: the true SMAPE at a target-error stop within 25 % of the target
-MEAN_TOLERANCE = 0.20  # issue 14: predicted mean within 20 % of the true mean
+TRUSTED = 0.25  # a target-error stop is trusted when its true SMAPE is within 25 % of the target
+MEAN_TOLERANCE = 0.20  # the goal: predicted mean within 20 % of the true mean
 UNREACHED_TARGET = 1e-9  # a --target-error no scene's prediction reaches within ITERATIONS
 TORCH_THREADS = 1
 
@@ -46,7 +46,7 @@ class IterationScore:
     spp: float
     predicted: float  # the loop's mean: what --target-error stops on
     true: float
-    spearman: float  # per pixel: the figure issue 14 asks ≥ 0.7 of
+    spearman: float  # per pixel: what the allocator ranks by (goal ≥ 0.7)
     block_spearman: float = float("nan")  # of RANKING_BLOCK² tile means
     network: float = float("nan")  # the error network's own mean, before the change calibration
     change: float = float("nan")    # mean SMAPE between this iteration's denoised image and the last one's

@@ -1,4 +1,4 @@
-"""A λ edit at the size users render (issue 43: ~2 MP, 1920×1080): the λ tail from cached
+"""A λ edit at the size users render (~2 MP, 1920×1080): the λ tail from cached
 features on the CPU, and the round trip of `PUT /jobs/{id}/lambda` against a real server.
 
 The tail is what `DenoiseSession.relambda` runs per frame, `to_image(Denoiser.apply(cache, λ))`,

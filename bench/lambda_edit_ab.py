@@ -1,4 +1,4 @@
-"""The λ tail of two trees side by side (issue 43): an earlier commit's and this working tree's,
+"""The λ tail of two trees side by side: an earlier commit's and this working tree's,
 on the same 2 MP input, in alternating fresh processes so the host's load hits both alike.
 
     python -m bench.lambda_edit_ab --before COMMIT [--image RENDER.exr | --size W H] [--rounds 3] [--repeats 5] [--threads 2]

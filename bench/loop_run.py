@@ -97,7 +97,7 @@ METHODS: tuple[LoopMethod, ...] = (
     LoopMethod("d", "error-predicted adaptive + KPCN", "error", "kpcn", True),
     LoopMethod("e", "uniform + OIDN", "uniform", "oidn", False),
     # What (d) would reach with a perfect error network: it separates "the predictor is not good
-    # enough" from "error-driven allocation gains little on this scene" (issue 14).
+    # enough" from "error-driven allocation gains little on this scene".
     LoopMethod("o", "true-error adaptive + KPCN (bound: the reference's error map)", "error", "kpcn", False, oracle=True),
 )
 PRODUCT = "d"
