@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import stat
+import time
 from pathlib import Path
 
 import httpx
@@ -19,6 +20,7 @@ pytestmark = pytest.mark.requires("ray")
 SECRET = "s3cret-token-for-the-ray-wall"
 DB_SECRET = "postgresql://renderloop:hunter2@db.invalid:5432/jobs"
 RAY_STARTUP_SECONDS = 300  # a Ray runtime on a loaded 2-core machine can take minutes
+AGENT_ANSWER_SECONDS = 180  # how long the dashboard agent may take to answer on its HTTP port
 
 
 @pytest.fixture(scope="module")
@@ -105,15 +107,21 @@ def test_local_ray_runs_with_token_auth_from_a_private_token_file(ray_server):
 
 def test_ray_dashboard_agent_refuses_a_request_without_the_token(ray_server):
     server, _ = ray_server
-    agents = [listener for listener in listeners(server.process.pid) if "DashboardAgent" in listener.command]
-    assert agents, "no dashboard agent found"
-    answers = []
-    for listener in agents:
-        try:
-            answers.append(httpx.post(f"http://127.0.0.1:{listener.port}/api/job_agent/jobs/",
-                                      json={"entrypoint": "touch /tmp/pwned-by-ray"}, timeout=10).status_code)
-        except httpx.HTTPError:
-            continue  # a gRPC port
+    answers: list[int] = []
+    # The agent opens its HTTP port some time after the raylet, and on a loaded 2-core machine a
+    # request can time out: ask every agent port again until one answers (or the deadline passes).
+    deadline = time.monotonic() + AGENT_ANSWER_SECONDS
+    while not {401, 403} & set(answers) and time.monotonic() < deadline:
+        agents = [listener for listener in listeners(server.process.pid) if "DashboardAgent" in listener.command]
+        assert agents, "no dashboard agent found"
+        for listener in agents:
+            try:
+                answers.append(httpx.post(f"http://127.0.0.1:{listener.port}/api/job_agent/jobs/",
+                                          json={"entrypoint": "touch /tmp/pwned-by-ray"}, timeout=30).status_code)
+            except httpx.HTTPError:
+                continue  # a gRPC port, or a port not answering yet
+        if not {401, 403} & set(answers):
+            time.sleep(2)
     # The job agent's port answers 401; any other HTTP port of the agent must not run the job either.
     assert {401, 403} & set(answers) and not any(200 <= code < 300 for code in answers), answers
 
