@@ -25,7 +25,6 @@ from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
 from service.jobs.previews import PreviewPublisher
 from service.jobs.record import CANCELED, COMPLETED, FAILED, JobRecord, job_spec
-from service.loop.loop import RenderLoop
 
 LAMBDA_WAIT_SECONDS = 300.0
 
@@ -43,8 +42,11 @@ class LambdaApplied:
 @dataclass(frozen=True)
 class Relambda:
     """A λ re-denoise: the new image per frame, the denoiser work it took, and how to build the
-    result frames from it (None where the loop lives elsewhere and keeps them itself); `results`
-    is called on the writer's thread, after the answer (see `results_of`)."""
+    result frames from it (None where the loop lives elsewhere and keeps them itself). `results`
+    is called on the writer's thread, after the answer, without the loop's lock (building them at
+    2 MP takes longer than the tail and would hold the next edit up): an edit replaces the λ map
+    and the images, never writes into them, and every edit's own write follows its re-denoise,
+    so the file the last write leaves is the last edit's."""
 
     images: list[np.ndarray]
     full_passes: int = 0
@@ -54,15 +56,6 @@ class Relambda:
 
 # The backend's re-denoise of a job with a λ map: None when nothing was rendered yet.
 Relambdas = Callable[[str, JobRecord, np.ndarray], "Relambda | None"]
-
-
-def results_of(loop: RenderLoop) -> Callable[[], list[ExrFrame]]:
-    """The loop's result frames, built on the writer's thread while the next edit may already be
-    re-denoising the same loop. Not under the loop's lock (building them at 2 MP takes longer
-    than the tail and would hold the next edit up): an edit replaces the λ map and the images,
-    never writes into them, and every edit's own write follows its re-denoise, so the file
-    the last write leaves is the last edit's."""
-    return loop.result_frames
 
 
 def require(store, job_id: str) -> JobRecord:

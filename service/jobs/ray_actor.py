@@ -203,7 +203,7 @@ class JobActor:
 
     def save_results_later(self) -> None:
         """save_results on a background thread, the newest edit's winning: the next λ edit runs
-        meanwhile (this actor takes one call at a time; service.jobs.lambda_edits.results_of says
+        meanwhile (this actor takes one call at a time; service.jobs.lambda_edits.Relambda says
         why no lock is needed)."""
         self.results.submit(self.plan.record.id, "results", self.save_results)
 

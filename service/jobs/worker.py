@@ -24,7 +24,7 @@ import numpy as np
 from models.pretrained import Networks
 from service.jobs.artifacts import JobFiles
 from service.jobs.checkpoints import JobCheckpoint
-from service.jobs.lambda_edits import LambdaEdits, LambdaEditsOfRunner, Relambda, require, results_of
+from service.jobs.lambda_edits import LambdaEdits, LambdaEditsOfRunner, Relambda, require
 from service.jobs.previews import PreviewPublisher, state_preview_layers
 from service.jobs.queue_runner import LeaseLost, QueueRunner
 from service.jobs.record import CANCELED, COMPLETED, JobRecord, bundle_scene, job_spec
@@ -266,7 +266,7 @@ class JobWorker(LambdaEditsOfRunner):
         full_before, tail_before = (session.full_calls, session.tail_calls) if session else (0, 0)
         images = loop.set_lambda(lam)
         full, tail = (session.full_calls - full_before, session.tail_calls - tail_before) if session else (0, 0)
-        return Relambda(images, full, tail, results=results_of(loop))
+        return Relambda(images, full, tail, results=loop.result_frames)
 
     def _loop_for_lambda(self, job_id: str, record: JobRecord) -> RenderLoop | None:
         with self._lock:
