@@ -46,7 +46,14 @@ class CheckpointWriter:
         """Start `write` in the background; the previous write must have finished (call `wait`
         first to measure it; otherwise it is waited for here)."""
         self.wait()
-        self._pending = self._executor.submit(write)
+        try:
+            self._pending = self._executor.submit(write)
+        except RuntimeError:
+            # The interpreter is exiting (concurrent.futures refuses new work once the main
+            # thread is gone: a SIGTERM'd server whose render thread finishes its iteration
+            # after the app shut down). Write here, on the job's thread, so the checkpoint the
+            # requeued job resumes from is complete; a failed write still fails the job.
+            write()
 
     def flush(self) -> None:
         """The job ends (complete, cancel, requeue, lease lost): its last write lands first."""

@@ -2,8 +2,11 @@
 the thread worker with a real store and real renders, the checkpoint save made slow or failing."""
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -13,6 +16,7 @@ from service.jobs.worker import JobWorker
 from service.loop.loop import RenderLoop
 from worker_jobs import run_tiny_job, store  # noqa: F401  (store: a fixture)
 
+ROOT = Path(__file__).resolve().parents[2]
 SLOW_SAVE_SECONDS = 2.0  # far longer than a 16² iteration takes, even on a loaded host
 
 
@@ -93,3 +97,27 @@ def test_a_failed_checkpoint_write_fails_the_job_with_the_writes_message(monkeyp
     assert "No space left on device" in (done.error or ""), done.error
     assert done.iteration == 0  # no record claims an iteration whose checkpoint was never written
     assert not worker.files(done.id).checkpoint.exists()
+
+
+def test_a_write_submitted_while_the_interpreter_exits_runs_on_the_callers_thread(tmp_path):
+    """A SIGTERM'd server's render thread may finish its iteration after the main thread is gone;
+    concurrent.futures then refuses new work, and the checkpoint must still land (the requeued job
+    resumes from it) instead of failing the job with a traceback."""
+    written = tmp_path / "written"
+    script = f"""
+import threading, time
+from pathlib import Path
+from service.jobs.checkpoint_writer import CheckpointWriter
+
+def render_thread():
+    writer = CheckpointWriter("exiting")
+    time.sleep(1.0)  # the main thread has returned meanwhile: the interpreter is exiting
+    writer.submit(lambda: Path({str(written)!r}).write_text(threading.current_thread().name))
+    writer.flush()
+
+threading.Thread(target=render_thread, name="render").start()
+"""
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    assert written.read_text() == "render"
