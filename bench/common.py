@@ -133,6 +133,14 @@ def denoiser_settings(denoiser, **changes) -> Iterator[None]:
         denoiser.config = base
 
 
+def shown_path(path: Path) -> str:
+    """A path as the reader would type it: relative to the working directory when inside it."""
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
 # --- networks ---------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -157,7 +165,7 @@ def load_bench_networks(folder: str | Path | None = None) -> BenchNetworks:
         # each value whole, never cut
         summary = "; ".join(f"{key}={extra[key]}" for key in PROVENANCE_KEYS if isinstance(extra.get(key), str))
         parts.append(f"`{name}` sha1 {digest}" + (f" ({summary})" if summary else ""))
-    return BenchNetworks(load_networks(directory), directory, f"{directory}: " + "; ".join(parts))
+    return BenchNetworks(load_networks(directory), directory, f"{shown_path(directory)}: " + "; ".join(parts))
 
 
 # --- references -------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from bench.common import (OIDN_SETTINGS, PROVENANCE_KEYS, fill, fmt, pinned_torch_threads, provenance,
+from bench.common import (OIDN_SETTINGS, PROVENANCE_KEYS, fill, fmt, pinned_torch_threads, provenance, shown_path,
                           sanitize as clean)
 from bench.quality_eval import (FLICKER_SEEDS, FLICKER_SPP, HEADLINE_SPP, LAMBDAS, NOISY, OIDN, PROGRESSIVE_STEPS,
                                 SEQUENCE_SEEDS, BuiltinRenderer, Outputs, builtin_images, builtin_reference,
@@ -144,14 +144,6 @@ def markdown_crops(title: str, files: list[tuple[str, str]], caption: str) -> st
     rule = "|" + "---|" * len(files)
     cells = "| " + " | ".join(f"![{label}]({CROPS_DIR}/{name})" for label, name in files) + " |"
     return f"### {title}\n\n{caption}\n\n{header}\n{rule}\n{cells}\n"
-
-
-def shown_path(path: Path) -> str:
-    """A path as the reader would type it: relative to the working directory when inside it."""
-    try:
-        return str(path.resolve().relative_to(Path.cwd().resolve()))
-    except ValueError:
-        return str(path)
 
 
 def weights_line(model: torch.nn.Module, path: Path) -> str:

@@ -73,3 +73,11 @@ def test_bench_networks_describe_each_checkpoint_by_its_recipe_and_data_hash():
         assert f"recipe={extra['recipe']}" in description and f"data={extra['data']}" in description
         if "calibration" in extra:
             assert f"calibration={extra['calibration']}" in description
+
+
+def test_bench_networks_name_the_shipped_folder_relative_to_the_repository(monkeypatch):
+    """A report's "Weights:" line must not carry this machine's path (it is committed)."""
+    monkeypatch.chdir(SHIPPED_WEIGHTS_DIR.parents[1])
+    description = load_bench_networks(None).description
+    assert description.startswith("models/weights: ")
+    assert str(SHIPPED_WEIGHTS_DIR.parents[1]) not in description
