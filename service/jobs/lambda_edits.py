@@ -8,9 +8,13 @@ crash right after the answer still leaves it for the resumed job; 8 MB at 2 MP) 
 in memory, published as the next preview version. What it does not wait for: writing the preview
 layers and a finished job's result EXRs (about a second at 2 MP, measured: docs/models-speed.md),
 done by the publisher's LatestWriter; a GET of the preview reads the memory until then, a GET of
-the result and a graceful stop flush them (`flush`)."""
+the result and a graceful stop flush them (`flush`). A process killed between the answer and
+those writes leaves a finished job's files one edit behind its saved map; the first read of its
+preview or result in the next process notices (the files' λ layer is not the saved map) and
+applies the saved map again (`_catch_up`)."""
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import dataclass
@@ -19,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 
-from service.exr import ExrFrame
+from service.exr import ExrFrame, read_exr
 from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.latest import LatestWins
@@ -27,6 +31,8 @@ from service.jobs.previews import PreviewPublisher
 from service.jobs.record import CANCELED, COMPLETED, FAILED, JobRecord, job_spec
 
 LAMBDA_WAIT_SECONDS = 300.0
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -77,6 +83,7 @@ class LambdaEdits:
         self._observed = observed  # seconds from a request to the version that shows it
         self._lock = threading.Lock()
         self._mailboxes: dict[str, LatestWins[tuple[np.ndarray, float | None], LambdaApplied]] = {}
+        self._caught_up: set[str] = set()  # finished jobs whose files this process checked or wrote
 
     def files(self, job_id: str) -> JobFiles:
         return JobFiles(self.store.job_dir(job_id))
@@ -93,6 +100,7 @@ class LambdaEdits:
 
     def load_preview(self, job_id: str, frame: int) -> Preview | None:
         """The newest preview of `frame`, a λ edit's included before its files are written."""
+        self._catch_up(job_id)
         return self.previews.load(job_id, self.files(job_id), frame)
 
     def flush(self, job_id: str | None = None) -> None:
@@ -102,6 +110,7 @@ class LambdaEdits:
 
     def result_path(self, job_id: str, frame: int) -> Path:
         """The frame's result EXR, with the job's last λ edit written into it."""
+        self._catch_up(job_id)
         self.flush(job_id)
         return self.files(job_id).result_path(frame)
 
@@ -126,6 +135,24 @@ class LambdaEdits:
         self._observed(time.perf_counter() - started)
         return applied
 
+    def _catch_up(self, job_id: str) -> None:
+        """Once per process and finished job: if its files were written for another λ than the
+        saved map (the process that answered the edit died before writing them), apply the saved
+        map again, so the preview and the result show the edit that was answered with a 200."""
+        with self._lock:
+            if job_id in self._caught_up:
+                return
+            self._caught_up.add(job_id)
+        record = self.store.get(job_id)
+        files = self.files(job_id)
+        lam = files.load_lambda()
+        if record is None or record.state != COMPLETED or lam is None or _files_show(files, lam):
+            return
+        log.info("job %s: its preview and result were written before its last λ edit (the process that "
+                 "answered it stopped first); applying the saved λ map again", job_id)
+        self.set_lambda(job_id, lam, record.lambda_value)
+        self.flush(job_id)
+
     def _mailbox(self, job_id: str) -> LatestWins[tuple[np.ndarray, float | None], LambdaApplied]:
         with self._lock:
             if job_id not in self._mailboxes:
@@ -140,6 +167,8 @@ class LambdaEdits:
         # (a loop that opens reads it after registering: one this edit missed still sees it).
         files = self.files(job_id)
         files.save_lambda(lam)
+        with self._lock:
+            self._caught_up.add(job_id)  # this process writes the files that follow: nothing to catch up
         self.store.set_lambda_value(job_id, value)
         record = require(self.store, job_id)
         done = self._relambda(job_id, record, lam)
@@ -157,6 +186,16 @@ class LambdaEdits:
             build = done.results   # the result follows λ after the run too
             self.previews.writes.submit(job_id, "results", lambda: files.save_results(build()))
         return LambdaApplied(version, done.full_passes, done.tail_passes)
+
+
+def _files_show(files: JobFiles, lam: np.ndarray) -> bool:
+    """Whether frame 0's preview and result (those that exist) were written with λ map `lam`."""
+    preview = files.load_preview(0)
+    if preview is not None and preview.layers.get("lambda") is not None \
+            and not np.array_equal(preview.layers["lambda"], lam):
+        return False
+    result = files.result_path(0)
+    return not result.is_file() or np.array_equal(read_exr(result).lam, lam)
 
 
 class LambdaEditsOfRunner:
