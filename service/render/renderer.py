@@ -25,7 +25,7 @@ from service.render.object_motion import ShapeMotion, previous_position
 from service.render.runtime import mitsuba
 from service.render.scenes import SceneError
 from service.render.splat import FilmSplat
-from service.render.stratified_lanes import digit_group_chunks, group_sampler
+from service.render.stratified_lanes import LaneGroupChunk, digit_group_chunks, sequence_sampler
 from service.render.stratified_sequence import film_bits, is_stratifying, lens_bits, unit_point
 
 # 2^22 lanes ≈ a few hundred MB of Dr.Jit state on the LLVM backend: a 1024² × 64 spp pass
@@ -131,19 +131,18 @@ def independent_sampler(mi, seed: int, lanes: int):
     return sampler
 
 
-def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, sampler, sample_index: np.ndarray | None = None,
-                 lanes_per_pixel: int | None = None) -> tuple[np.ndarray, slice | np.ndarray, int]:
+def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, sampler,
+                 group: LaneGroupChunk | None = None) -> tuple[np.ndarray, slice | np.ndarray, int]:
     """Trace one chunk of lanes (flat pixel indices, ascending, a pixel's lanes consecutive) with
     `sampler` (seeded for len(pixels) lanes) and return per-pixel sums, the flat pixels they
     belong to (a slice, or an index array), and the number of non-finite samples. Columns:
     radiance RGB, radiance² RGB, albedo RGB, normal XYZ, depth (+ motion XY) (+ the integrator's
-    AOVs). `sample_index`: each lane's sample number in its pixel, given when the film and lens
-    samples are stratified; `lanes_per_pixel`: set when every pixel of the chunk has that many
-    lanes (a digit group, stratified_lanes.py)."""
+    AOVs). `group`: set for a stratifying scene's digit group (stratified_lanes.py): each lane's
+    sample number in its pixel, for the film and lens samples, and its pixel's row."""
     n = len(pixels)
     sensor, scene = setup.sensor, setup.scene
     idx = mi.UInt32(aligned(pixels))
-    film_u, lens_u = _stratified_uniforms(mi, setup, idx, sample_index)
+    film_u, lens_u = _stratified_uniforms(mi, setup, idx, None if group is None else group.sample_index)
     # Film position in pixels of the crop window: the box filter's uniform in-pixel offset, or
     # an offset drawn from the film's filter with its weight (filters.py). The sensor's sample
     # space [0, 1]² spans the crop window (Mitsuba builds its projection from film size, crop
@@ -219,7 +218,7 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, sampler, sample_index: n
     # Reduce into per-pixel sums inside the same kernel (dr.scatter_reduce): per-lane values
     # never exist as arrays, so memory stays O(pixels of this chunk).
     stride = len(channels)
-    if lanes_per_pixel is None:
+    if group is None:
         # Lanes are sorted by pixel, so the chunk covers one contiguous pixel range and only that
         # range is summed. The kernel is keyed by the sums array's size and by literals: a chunk's
         # first pixel and span change from chunk to chunk under a non-uniform count map, and each
@@ -230,12 +229,12 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, sampler, sample_index: n
         slot = idx - dr.opaque(mi.UInt32, first)
         rows: slice | np.ndarray = slice(first, first + span)
     else:
-        # A digit group's pixels are a sparse subset of the film, each with lanes_per_pixel
-        # consecutive lanes: its k-th pixel's sums go to row k (lane >> b), not to a span that
-        # could reach across the whole film.
-        span = n // lanes_per_pixel
-        slot = dr.arange(mi.UInt32, n) >> (lanes_per_pixel.bit_length() - 1)
-        rows = pixels[::lanes_per_pixel].astype(np.int64)
+        # A digit group's pixels are a sparse subset of the film, each with its lanes
+        # consecutive: its k-th pixel's sums go to row k (an uploaded lane → row map), not to a
+        # span that could reach across the whole film.
+        span = len(group.rows)
+        slot = mi.UInt32(aligned(group.slot))
+        rows = group.rows
     sums = dr.zeros(mi.Float, sums_capacity(span * stride))
     for c, value in enumerate(channels):
         dr.scatter_reduce(dr.ReduceOp.Add, sums, value, slot * stride + c)
@@ -379,8 +378,8 @@ def _trace_digit_groups(mi, setup: _Setup, buffer: FrameBuffer, counts: np.ndarr
     Returns the number of chunks."""
     chunks = 0
     for chunk in digit_group_chunks(buffer.spp, counts, max_wavefront):
-        sampler = group_sampler(mi, chunk.lanes_per_pixel, pass_seed(seed, buffer.passes, chunks), len(chunk.pixels))
-        traced = _trace_chunk(mi, setup, chunk.pixels, sampler, chunk.sample_index, chunk.lanes_per_pixel)
+        sampler = sequence_sampler(mi, chunk.sequence_length, pass_seed(seed, buffer.passes, chunks), len(chunk.pixels))
+        traced = _trace_chunk(mi, setup, chunk.pixels, sampler, chunk)
         _add_chunk(buffer, traced, setup.prev_projection is not None)
         chunks += 1
         if progress is not None:

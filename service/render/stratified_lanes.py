@@ -13,6 +13,15 @@ sequence length so that each sample's dimensions stay independent of one another
 are exactly its n_p samples. Each group (and each chunk of a group, cut at whole pixels) is
 seeded on its own.
 
+Digits 2k and 2k+1 share one sequence length (4^k: one sequence of it for digit 2k, two for
+digit 2k+1) and so one sampler, and are traced as one group: a pixel gets ((n_p >> 2k) & 3)
+whole sequences of 4^k lanes, consecutive. Each sequence is still a complete sequence of its
+sampler, seeded by (chunk seed, its first lane), so the samples have the distribution the two
+separate groups gave; what changes is half as many traces and launches per pass — each one is
+~30 ms of Python tracing and ~10 ms of kernel assembly on the LLVM backend whatever its size, what
+made an uneven pass at 128² cost ~3× an independent one (docs/sampler.md, "Uneven stratified
+passes").
+
 The film and lens uniforms keep coming from the pixel's own (0,2)-sequence that continues across
 passes (stratified_sequence.py): the lanes of group b take the pass's sample numbers
 ((n_p >> (b+1)) << (b+1)) … + 2^b − 1 after the pixel's prior count — high bits first, so the
@@ -43,41 +52,62 @@ LONG_SEQUENCE_SAMPLER = "multijitter"
 
 @dataclass(frozen=True)
 class LaneGroupChunk:
-    """One wavefront of a digit group: pixel-major lanes, `lanes_per_pixel` per pixel."""
+    """One wavefront of a sequence-length group: pixel-major lanes, each pixel's lanes consecutive
+    and a whole number of sequences of `sequence_length` lanes."""
 
     pixels: np.ndarray          # lane → flat pixel index (uint32, ascending, each repeated)
     sample_index: np.ndarray    # lane → the sample's number in its pixel over the job (uint32)
-    lanes_per_pixel: int        # 2^b: the sampler's samples per wavefront
+    slot: np.ndarray            # lane → its pixel's row in `rows` (uint32)
+    rows: np.ndarray            # the chunk's distinct flat pixels, ascending (int64)
+    sequence_length: int        # 4^k: the sampler's samples per wavefront
 
 
 def digit_group_chunks(prior: np.ndarray, counts: np.ndarray, max_wavefront: int) -> Iterator[LaneGroupChunk]:
-    """The pass's lanes grouped by the binary digits of each pixel's count, highest digit first,
-    each group cut into chunks of whole pixels of at most `max_wavefront` lanes (at least one
-    pixel). Over all chunks, pixel p gets exactly counts[p] lanes numbered prior[p] … + counts[p] − 1."""
+    """The pass's lanes grouped by sequence length (digits 2k and 2k+1 of each pixel's count),
+    longest first, each group cut into chunks of whole pixels of at most `max_wavefront` lanes
+    (at least one pixel). Over all chunks, pixel p gets exactly counts[p] lanes numbered
+    prior[p] … + counts[p] − 1, each digit's run aligned to its 2^b within the pass."""
     flat = np.asarray(counts, dtype=np.int64).ravel()
     if flat.size and flat.min() < 0:
         raise ValueError("sample counts must be >= 0")
     before = np.asarray(prior, dtype=np.int64).ravel()
     top = int(flat.max()).bit_length() if flat.size else 0
-    for bit in reversed(range(top)):
-        lanes_per_pixel = 1 << bit
-        members = np.flatnonzero((flat >> bit) & 1)
-        pixels_per_chunk = max(1, max_wavefront // lanes_per_pixel)
-        for start in range(0, len(members), pixels_per_chunk):
-            chunk = members[start:start + pixels_per_chunk]
+    for low_bit in reversed(range(0, top, 2)):
+        length = 1 << low_bit
+        sequences = (flat >> low_bit) & 3          # 2 for digit 2k+1, 1 for digit 2k
+        members = np.flatnonzero(sequences)
+        lanes = sequences[members] * length
+        for chunk in _cut_at_pixels(lanes, max_wavefront):
+            rows = members[chunk]
             yield LaneGroupChunk(
-                pixels=np.repeat(chunk, lanes_per_pixel).astype(np.uint32),
-                sample_index=group_sample_indices(before[chunk], flat[chunk], bit),
-                lanes_per_pixel=lanes_per_pixel)
+                pixels=np.repeat(rows, lanes[chunk]).astype(np.uint32),
+                sample_index=group_sample_indices(before[rows], flat[rows], low_bit),
+                slot=np.repeat(np.arange(len(rows), dtype=np.uint32), lanes[chunk]),
+                rows=rows,
+                sequence_length=length)
 
 
-def group_sample_indices(prior: np.ndarray, counts: np.ndarray, bit: int) -> np.ndarray:
-    """Lane → sample number for the pixels (prior counts, this pass's counts) of digit group
-    `bit`, pixel-major: each pixel's 2^bit numbers after the higher digits' runs."""
-    lanes_per_pixel = 1 << bit
-    first = np.asarray(prior, dtype=np.int64) + ((np.asarray(counts, dtype=np.int64) >> (bit + 1)) << (bit + 1))
-    within = np.arange(lanes_per_pixel, dtype=np.int64)
-    return (first[:, None] + within[None, :]).ravel().astype(np.uint32)
+def _cut_at_pixels(lanes: np.ndarray, max_wavefront: int) -> Iterator[slice]:
+    """Consecutive runs of pixels (lanes[i] each) of at most max_wavefront lanes, at least one
+    pixel per run."""
+    ends = np.cumsum(lanes)
+    start = 0
+    while start < len(lanes):
+        offset = ends[start - 1] if start else 0
+        stop = max(int(np.searchsorted(ends, offset + max_wavefront, side="right")), start + 1)
+        yield slice(start, stop)
+        start = stop
+
+
+def group_sample_indices(prior: np.ndarray, counts: np.ndarray, low_bit: int) -> np.ndarray:
+    """Lane → sample number for the pixels (prior counts, this pass's counts) of the group of
+    digits low_bit and low_bit + 1, pixel-major: each pixel's ((n >> low_bit) & 3) · 2^low_bit
+    numbers after the higher digits' runs — digit low_bit + 1's run, then digit low_bit's."""
+    counts = np.asarray(counts, dtype=np.int64)
+    first = np.asarray(prior, dtype=np.int64) + ((counts >> (low_bit + 2)) << (low_bit + 2))
+    lanes = ((counts >> low_bit) & 3) << low_bit
+    within = np.arange(int(lanes.sum()), dtype=np.int64) - np.repeat(np.cumsum(lanes) - lanes, lanes)
+    return (np.repeat(first, lanes) + within).astype(np.uint32)
 
 
 def sequence_length(lanes_per_pixel: int) -> int:
@@ -98,7 +128,12 @@ def sequence_sampler_kind(length: int) -> str:
 def group_sampler(mi, lanes_per_pixel: int, seed: int, lanes: int):
     """A Mitsuba sampler seeded for `lanes` pixel-major lanes, `lanes_per_pixel` per pixel, in
     sequences of sequence_length: what mi.render sets up for a uniform spp of that length."""
-    length = sequence_length(lanes_per_pixel)
+    return sequence_sampler(mi, sequence_length(lanes_per_pixel), seed, lanes)
+
+
+def sequence_sampler(mi, length: int, seed: int, lanes: int):
+    """A Mitsuba sampler seeded for `lanes` lanes in sequences of `length` (a power of 4), each
+    sequence `length` consecutive lanes starting at a multiple of `length`."""
     sampler = mi.load_dict({"type": sequence_sampler_kind(length), "sample_count": length})
     sampler.set_samples_per_wavefront(length)
     sampler.seed(seed, lanes)
