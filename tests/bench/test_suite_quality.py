@@ -7,15 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
-from bench.common import load_bench_networks, oidn_denoiser
-from bench.dev_references import DEFAULT_REFERENCE_DIR, dev_scenes, load_reference
 from bench.quality_measures import mean_abs_change
-from bench.suite_quality import CROP, ENERGY_TOLERANCE, STATIC_FRAMES, _hardest_crop, temporal_flicker
+from bench.suite_quality import CROP, ENERGY_TOLERANCE, _hardest_crop
 from bench.suite_quality_report import run_suite_quality_report
-from models.denoiser import Denoiser
-from models.pretrained import Networks
 from required_components import require_component
 
 
@@ -43,43 +38,6 @@ def test_suite_quality_report_scores_noisy_ours_and_oidn_at_every_sample_count(t
     noisy, ours, oidn = (float(c) for c in static.strip("|").split("|")[2:5])
     assert noisy > ours > 0 and noisy > oidn > 0   # a static sequence: every frame its own seed
     assert "Static sequences: ours at most OIDN's flicker on" in text
-
-
-def hard_shadows_flicker(networks) -> dict[str, float]:
-    require_component("pyoidn")
-    scene = dev_scenes(["hard_shadows"])[0]
-    reference, _ = load_reference(DEFAULT_REFERENCE_DIR, scene)
-    return temporal_flicker(scene, [reference] * STATIC_FRAMES, networks, oidn_denoiser()[0])
-
-
-def flicker_failures(result: dict[str, float]) -> list[str]:
-    """Issue 13's flicker guard on a static sequence: steadier than OIDN frame by frame, with no
-    more error than OIDN on the very input our network filtered (the window's pooled samples) —
-    the pooling alone makes any network of the shipped architecture steadier, trained or not."""
-    failures = []
-    if not result["kpcn"] < 0.8 * result["oidn"]:
-        failures.append(f"flicker {result['kpcn']:.5f} not below 0.8 × OIDN's {result['oidn']:.5f}")
-    if not result["smape_kpcn"] <= result["smape_oidn_pooled"]:
-        failures.append(f"SMAPE {result['smape_kpcn']:.5f} above OIDN's on the pooled input {result['smape_oidn_pooled']:.5f}")
-    return failures
-
-
-def test_a_static_sequence_is_denoised_over_its_window_and_flickers_less_than_oidn_per_frame():
-    """Issue 13: flicker on a static sequence ≤ OIDN's. Denoised frame by frame, the shipped
-    network flickered 1 % more than OIDN on hard_shadows (0.00448 vs 0.00444); over its window
-    (models.accumulation) it must flicker less, with no more error. Measured: flicker 0.00185
-    (OIDN 0.00444), SMAPE 0.01202 (OIDN on the pooled input 0.01209)."""
-    result = hard_shadows_flicker(load_bench_networks(None).networks)
-    assert flicker_failures(result) == []
-    assert result["oidn_pooled"] < result["oidn"] < result["noisy"]   # the pooled input itself is steadier
-
-
-def test_an_untrained_network_of_the_shipped_architecture_fails_the_flicker_guard():
-    """Planted: the same flicker (0.00185), but SMAPE 0.01219 against OIDN pooled 0.01209 (seed 0)."""
-    shipped = load_bench_networks(None).networks
-    torch.manual_seed(0)
-    untrained = Networks(Denoiser(shipped.denoiser.config).eval(), shipped.error_predictor)
-    assert [f.split(" ")[0] for f in flicker_failures(hard_shadows_flicker(untrained))] == ["SMAPE"]
 
 
 def test_flicker_is_zero_for_identical_frames_and_the_mean_step_otherwise():
