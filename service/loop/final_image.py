@@ -22,6 +22,13 @@ WINDOW² neighbourhood decide instead, through a steep weight
 (P = 2 would be inverse-variance weighting; P = 8 is close to picking the better image per
 region without a seam). Measured offline on the loop's own images at 128 spp, 128²: lego
 0.0063 → 0.0033, cbox 0.0201 → 0.0199, simple 0.0017 → 0.0016 (docs/fidelity.md).
+
+A window mean dilutes one raw pixel's outlier: a firefly (one rare bright path among a pixel's
+samples, the chrome ball's reflections on scenes/dev dof_desk) has a raw expected error tens of
+times its neighbours', yet under the mean of 81 it was taken at α ≈ 0.8 where the raw image wins
+around it, and three such pixels carried a quarter of dof_desk's relMSE. So a pixel's raw error
+counts as at least its own e_r / OUTLIER_RATIO: ordinary sampling noise in e_r (a few tens of
+per cent at 128 spp) never reaches the ratio, a firefly does.
 """
 from __future__ import annotations
 
@@ -37,6 +44,11 @@ MEAN_ABS_PER_SIGMA = math.sqrt(2.0 / math.pi)
 WINDOW = 9
 # Steepness of the weight: 2 mixes like inverse-variance weighting, large picks one image.
 SHARPNESS = 8
+# How far a pixel's own raw error may exceed its window's mean before it counts on its own: an
+# outlier, not noise in the estimate. Swept 1.5-16 on the loop's saved images, 3 seeds
+# (docs/decisions.md, 'A firefly in the raw fallback'): dof_desk's relMSE 1.037x of mi.render +
+# OIDN at ∞ (the rule off), 0.989x at 1.5, 0.966x at 3, 0.960x at 4, 0.988x at 6, 1.04x from 8 on.
+OUTLIER_RATIO = 4.0
 
 
 def box_mean(values: np.ndarray, size: int = WINDOW) -> np.ndarray:
@@ -63,10 +75,12 @@ def raw_expected_error(raw: np.ndarray, raw_variance: np.ndarray, exposure: floa
 
 
 def raw_weight(denoised_error: np.ndarray, raw_error: np.ndarray, raw_variance: np.ndarray) -> np.ndarray:
-    """(H, W) α, the raw image's share, from the two error maps' neighbourhood means. A raw pixel
-    without a variance estimate (every sample agreed, or too few to tell) gets no share: zero
+    """(H, W) α, the raw image's share, from the two error maps' neighbourhood means, the raw one
+    never below the pixel's own error ÷ OUTLIER_RATIO (a firefly keeps the denoised pixel). A raw
+    pixel without a variance estimate (every sample agreed, or too few to tell) gets no share: zero
     spread among a few samples is no evidence of zero error (a rare light path can miss them all)."""
-    d, r = box_mean(denoised_error), box_mean(raw_error)
+    d = box_mean(denoised_error)
+    r = np.maximum(box_mean(raw_error), raw_error / OUTLIER_RATIO)
     # the ratio first: d^8 underflows for small errors
     ratio = np.divide(r, d, out=np.full_like(d, np.inf), where=d > 0)
     alpha = 1.0 / (1.0 + np.power(np.minimum(ratio, 1e6), SHARPNESS))
