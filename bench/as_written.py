@@ -50,10 +50,25 @@ class SceneResult:
     def mean(self, method: str, metric: str) -> float:
         return statistics.fmean(self.values[method][metric])
 
+    def better_mitsuba(self, metric: str) -> str:
+        """The `mi.render` image with the lower mean of `metric`."""
+        return min((m for m in METHODS if m != "loop"), key=lambda m: self.mean(m, metric))
+
     def ratio(self, metric: str) -> float:
         """The loop's value ÷ the better `mi.render` image's (< 1: the loop ahead)."""
-        best = min(self.mean(m, metric) for m in METHODS if m != "loop")
+        best = self.mean(self.better_mitsuba(metric), metric)
         return self.mean("loop", metric) / best if best > 0 else math.nan
+
+    def seed_ratios(self, metric: str) -> list[float]:
+        """Per seed, the loop's value ÷ that seed's image of the better `mi.render` method (by the
+        mean): how much of `ratio` is one run's luck."""
+        best = self.values[self.better_mitsuba(metric)][metric]
+        return [loop / other if other > 0 else math.nan for loop, other in zip(self.values["loop"][metric], best)]
+
+    @property
+    def wins_every_seed(self) -> bool:
+        """Whether the loop is ahead of the better `mi.render` image on each seed, in both metrics."""
+        return all(r < 1 for metric in METRICS for r in self.seed_ratios(metric))
 
     @property
     def wins(self) -> bool:
@@ -129,6 +144,21 @@ def table(results: list[SceneResult], metric: str) -> str:
     return "\n".join(rows)
 
 
+def spread_section(results: list[SceneResult], seeds: list[int]) -> str:
+    """With several seeds: per scene, the loop ÷ the better `mi.render` image on each seed (the
+    tables above divide the means); empty for one seed."""
+    if len(seeds) < 2:
+        return ""
+    steady = sum(r.wins_every_seed for r in results)
+    rows = [f"| scene (filter) | SMAPE, seeds {', '.join(map(str, seeds))} | relMSE, seeds {', '.join(map(str, seeds))} |",
+            "|---|---|---|"]
+    for r in results:
+        rows.append(f"| {r.source} {r.scene.name} ({r.rfilter}) | " + " | ".join(
+            " ".join(fmt(v, ".2f") for v in r.seed_ratios(metric)) for metric in METRICS) + " |")
+    return ("## The seeds' spread\n\nThe loop ÷ the better `mi.render` image (the one better on the mean), seed by "
+            f"seed: ahead on every seed in both metrics on **{steady} of {len(results)}** scenes.\n\n" + "\n".join(rows) + "\n\n")
+
+
 def report_text(results: list[SceneResult], *, size: int, spp: int, reference_spp: int, seeds: list[int],
                 weights: str, oidn: str, command: str | None = None) -> str:
     wins = [r for r in results if r.wins]
@@ -136,7 +166,7 @@ def report_text(results: list[SceneResult], *, size: int, spp: int, reference_sp
     return fill("as_written.md", provenance=provenance(command or command_line(), active_variant()),
                 size=size, spp=spp, reference_spp=reference_spp, seeds=", ".join(map(str, seeds)),
                 weights=weights, oidn=oidn, smape_table=table(results, "smape"), relmse_table=table(results, "relmse"),
-                parts_table=parts_table(results),
+                parts_table=parts_table(results), spread_section=spread_section(results, seeds),
                 wins=len(wins), total=len(results), behind=behind)
 
 
