@@ -23,12 +23,14 @@ WINDOW² neighbourhood decide instead, through a steep weight
 region without a seam). Measured offline on the loop's own images at 128 spp, 128²: lego
 0.0063 → 0.0033, cbox 0.0201 → 0.0199, simple 0.0017 → 0.0016 (docs/fidelity.md).
 
-A window mean dilutes one raw pixel's outlier: a firefly (one rare bright path among a pixel's
+A window mean dilutes one pixel's outlier. A firefly (one rare bright path among a pixel's
 samples, the chrome ball's reflections on scenes/dev dof_desk) has a raw expected error tens of
 times its neighbours', yet under the mean of 81 it was taken at α ≈ 0.8 where the raw image wins
-around it, and three such pixels carried a quarter of dof_desk's relMSE. So a pixel's raw error
-counts as at least its own e_r / OUTLIER_RATIO: ordinary sampling noise in e_r (a few tens of
-per cent at 128 spp) never reaches the ratio, a firefly does.
+around it, and three such pixels carried a quarter of dof_desk's relMSE. The other way round, the
+edge of a small bright object (scenes/dev point_object) has a predicted denoised error well above
+its dark surroundings', which the mean hid. So each error at a pixel counts as at least the pixel's
+own estimate ÷ a ratio — the raw one's ÷ RAW_OUTLIER_RATIO, the denoised one's ÷
+DENOISED_OUTLIER_RATIO: noise in the per-pixel estimates stays under the ratios, an outlier does not.
 """
 from __future__ import annotations
 
@@ -44,11 +46,13 @@ MEAN_ABS_PER_SIGMA = math.sqrt(2.0 / math.pi)
 WINDOW = 9
 # Steepness of the weight: 2 mixes like inverse-variance weighting, large picks one image.
 SHARPNESS = 8
-# How far a pixel's own raw error may exceed its window's mean before it counts on its own: an
-# outlier, not noise in the estimate. Swept 1.5-16 on the loop's saved images, 3 seeds
-# (docs/decisions.md, 'A firefly in the raw fallback'): dof_desk's relMSE 1.037x of mi.render +
-# OIDN at ∞ (the rule off), 0.989x at 1.5, 0.966x at 3, 0.960x at 4, 0.988x at 6, 1.04x from 8 on.
-OUTLIER_RATIO = 4.0
+# How far a pixel's own expected error may exceed its window's mean before it counts on its own:
+# an outlier, not noise in the estimate. Swept on the loop's saved images of 15 scenes, 3 seeds
+# (docs/decisions.md, 'Outliers in the final image's fallback'): the raw ratio alone (4) took
+# dof_desk's relMSE from 1.037x to 0.960x of mi.render + OIDN but point_object's from 0.84x to
+# 1.37x of mi.render raw; with the denoised ratio 2 beside it, 0.959x and 0.82x (1 hurt cbox).
+RAW_OUTLIER_RATIO = 4.0
+DENOISED_OUTLIER_RATIO = 2.0
 
 
 def box_mean(values: np.ndarray, size: int = WINDOW) -> np.ndarray:
@@ -75,12 +79,12 @@ def raw_expected_error(raw: np.ndarray, raw_variance: np.ndarray, exposure: floa
 
 
 def raw_weight(denoised_error: np.ndarray, raw_error: np.ndarray, raw_variance: np.ndarray) -> np.ndarray:
-    """(H, W) α, the raw image's share, from the two error maps' neighbourhood means, the raw one
-    never below the pixel's own error ÷ OUTLIER_RATIO (a firefly keeps the denoised pixel). A raw
+    """(H, W) α, the raw image's share, from the two error maps' neighbourhood means, each never
+    below the pixel's own error ÷ its outlier ratio (a raw firefly keeps the denoised pixel). A raw
     pixel without a variance estimate (every sample agreed, or too few to tell) gets no share: zero
     spread among a few samples is no evidence of zero error (a rare light path can miss them all)."""
-    d = box_mean(denoised_error)
-    r = np.maximum(box_mean(raw_error), raw_error / OUTLIER_RATIO)
+    d = np.maximum(box_mean(denoised_error), denoised_error / DENOISED_OUTLIER_RATIO)
+    r = np.maximum(box_mean(raw_error), raw_error / RAW_OUTLIER_RATIO)
     # the ratio first: d^8 underflows for small errors
     ratio = np.divide(r, d, out=np.full_like(d, np.inf), where=d > 0)
     alpha = 1.0 / (1.0 + np.power(np.minimum(ratio, 1e6), SHARPNESS))

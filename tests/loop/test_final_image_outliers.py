@@ -40,3 +40,18 @@ def test_ordinary_noise_in_the_raw_error_estimate_keeps_the_windows_decision() -
     sigma = 0.0166 * np.exp(rng.uniform(np.log(1 / 3), np.log(3), size=(H, W, 1)))
     out = compose_final(denoised, raw, np.broadcast_to(sigma**2, (H, W, 3)).copy(), predicted, exposure=1.0)
     np.testing.assert_allclose(out, RAW, atol=1e-3)
+
+
+def test_a_few_pixels_predicted_far_worse_denoised_than_their_neighbours_take_the_raw_image() -> None:
+    # the denoised image wins around them (predicted 0.001 against the raw image's ~0.005), but
+    # the edge of a small bright object is predicted 50× worse on a 2×2 block (point_object)
+    denoised = np.full((H, W, 3), DENOISED, np.float32)
+    raw = np.full((H, W, 3), RAW, np.float32)
+    variance = np.full((H, W, 3), 1.92e-4)
+    predicted = np.full((H, W), 0.001)
+    predicted[10:12, 14:16] = 0.05
+    out = compose_final(denoised, raw, variance, predicted, exposure=1.0)
+    np.testing.assert_allclose(out[10:12, 14:16], RAW, atol=0.01)
+    # their neighbours keep (nearly: the block lifts their window's mean) the denoised image
+    np.testing.assert_allclose(out[10, 13], DENOISED, atol=0.01)
+    np.testing.assert_allclose(out[2, 2], DENOISED, atol=1e-3)
