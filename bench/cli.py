@@ -6,20 +6,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from bench.as_written import add_arguments as add_as_written_arguments, run_as_written_command
+# Only what the parser needs is imported here: each report module (torch, Ray, matplotlib,
+# FastAPI, scipy behind them) is imported by the branch of `run_bench` that runs it, so a
+# `renderloop bench --loop` does not pay for the other reports' imports (seconds per process on
+# a busy host). The three modes below own flags the parser needs, so `--help` stays complete.
+from bench.as_written import add_arguments as add_as_written_arguments
 from bench.calibration_ceiling import CEILING_RENDER_RANGE, CEILING_RENDERS
-from bench.calibration_report import run_calibration_report
-from bench.dev_references import DEFAULT_REFERENCE_DIR, SUITES, VAL_REFERENCE_DIR, scaled_reference_dir, write_references
-from bench.dev_suite_report import run_dev_suite_report
-from bench.loop_report import add_arguments as add_loop_arguments, run_loop_command
-from bench.models_report import main as models_main
-from bench.quality_report import run_quality_report
-from bench.scale_report import run_scale_report
-from bench.raw_image_report import cost_rows, quality_rows, report_fields
-from bench.sampler_report import bench_memory, bench_sampler, write_memory_report, write_sampler_report
-from bench.suite_quality_report import run_suite_quality_report
-from bench.versus_mitsuba import add_arguments as add_versus_mitsuba_arguments, run_versus_mitsuba_command
-from models.pretrained import DENOISER_FILE, weights_dir
+from bench.dev_references import DEFAULT_REFERENCE_DIR, VAL_REFERENCE_DIR
+from bench.loop_report import add_arguments as add_loop_arguments
+from bench.versus_mitsuba import add_arguments as add_versus_mitsuba_arguments
 
 HELP = "measure and write reports (to ./bench-reports; -o docs regenerates the committed ones)"
 
@@ -89,11 +84,12 @@ def main(argv: list[str]) -> int:
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    if args.film_scale < 1:  # --references and --loop
+        print("renderloop bench: error: --film-scale must be >= 1", file=sys.stderr)
+        return 2
     if args.references:
+        from bench.dev_references import SUITES, scaled_reference_dir, write_references
         suite = SUITES["val" if args.suite == "val" else "dev"]
-        if args.film_scale < 1:
-            print("renderloop bench: error: --film-scale must be >= 1", file=sys.stderr)
-            return 2
         default = suite.references if args.film_scale == 1 else scaled_reference_dir(args.cache, args.film_scale)
         folder = args.references_dir or default
         written = write_references(folder, spp=args.reference_spp, only=args.only, root=suite.root,
@@ -110,35 +106,50 @@ def run_bench(args: argparse.Namespace) -> int:
         if args.ceiling_renders != 0 and not low <= args.ceiling_renders <= high:
             print(f"renderloop bench: error: --ceiling-renders takes {low}–{high} (or 0)", file=sys.stderr)
             return 2
+        from bench.calibration_report import run_calibration_report
         report = run_calibration_report(args.out, weights_dir=args.weights, only=args.only, suite=suite,
                                         fit_scale_to=args.fit_scale, seeds=tuple(dict.fromkeys(args.seeds or (0,))),
                                         ceiling_renders=args.ceiling_renders)
         print(f"wrote {report}")
         return 0
     if args.dev_suite:
+        from bench.dev_suite_report import run_dev_suite_report
         print(f"wrote {run_dev_suite_report(args.out, weights_dir=args.weights, only=args.only)}")
         return 0
     if args.loop:
+        from bench.loop_report import run_loop_command
         return run_loop_command(args)
     if args.versus_mitsuba:
+        from bench.versus_mitsuba import run_versus_mitsuba_command
         return run_versus_mitsuba_command(args)
     if args.as_written:
+        from bench.as_written import run_as_written_command
         return run_as_written_command(args)
     if args.scale:
+        from bench.scale_report import run_scale_report
         print(f"wrote {run_scale_report(args.out, weights_dir=args.weights)}")
         return 0
     if args.denoiser and args.suite in ("dev", "val"):
+        from bench.suite_quality_report import run_suite_quality_report
         levels = {} if args.suite_spp is None else {"spp_levels": tuple(args.suite_spp)}
         report = run_suite_quality_report(args.out, weights_dir=args.weights, only=args.only, suite=args.suite,
                                           **levels)
         print(f"wrote {report}")
         return 0
+    return run_measurements(args)
+
+
+def run_measurements(args: argparse.Namespace) -> int:
+    """--memory, --sampler (the default), --models, --denoiser: any of them, in that order."""
     if args.memory:
+        from bench.sampler_report import bench_memory, write_memory_report
         memory = bench_memory()
         print(f"memory: peak RSS {memory.peak_rss_gb:.2f} GB; wrote {write_memory_report(memory, args.out)}")
     if not (args.sampler or args.models or args.denoiser or args.memory):
         args.sampler = True
     if args.sampler:
+        from bench.raw_image_report import cost_rows, quality_rows, report_fields
+        from bench.sampler_report import bench_sampler, write_sampler_report
         results = bench_sampler(args.size or 256, args.spp or 64, args.repeats)
         for r in results:
             print(f"sampler: {r.case.label}: ours {r.ours_msps:.2f} M samples/s, mi.render {r.mi_render_msps:.2f}"
@@ -152,12 +163,15 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.models:
         # The defaults (256² and 512², 2 threads); `python -m bench.models_report --help` has the options.
         # The shipped denoiser's architecture (models/weights/denoiser.pt, or --weights DIR's).
+        from bench.models_report import main as models_main
+        from models.pretrained import DENOISER_FILE, weights_dir
         shipped = weights_dir(args.weights) / DENOISER_FILE
         print(f"wrote {models_main(['--config-from', str(shipped)] if shipped.is_file() else [], out=args.out)}")
     if args.denoiser:
         if args.data is None:
             print("renderloop bench: error: --denoiser needs --data DIR with a held-out split", file=sys.stderr)
             return 2
+        from bench.quality_report import run_quality_report
         weights = {} if args.weights is None else {"weights_dir": args.weights}
         print(f"wrote {run_quality_report(args.data, args.out, **weights)}")
     return 0
