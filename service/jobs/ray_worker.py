@@ -156,11 +156,15 @@ class RayJobWorker(LambdaEditsOfRunner):
             groups = list(self._groups.values())
         for group in groups:
             self._signal_cancel(group)
-        deadline = time.monotonic() + CANCEL_GRACE_SECONDS * 2
-        while self._live_jobs() and time.monotonic() < deadline:
-            time.sleep(0.05)
+        self._wait_for_drivers(CANCEL_GRACE_SECONDS * 2)
+        with self._lock:  # and the groups started meanwhile: a thread that outlived the first look
+            groups = list(self._groups.values())
         for group in groups:
             self._kill(group)
+        # The driver threads end before Ray does: one still running would otherwise call Ray after
+        # ray.shutdown, and an actor created then starts a fresh, unsealed local runtime (Ray
+        # initialises itself on first use).
+        self._wait_for_drivers(CANCEL_GRACE_SECONDS * 2)
         self._lambda_actors.drop_all()
         self._unchain_sigterm()
         if self._runtime is not None:
@@ -168,6 +172,11 @@ class RayJobWorker(LambdaEditsOfRunner):
         elif self._joined:
             ray.shutdown()
         log.info("Ray backend stopped in %.1f s (running jobs requeued)", time.monotonic() - started)
+
+    def _wait_for_drivers(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while self._live_jobs() and time.monotonic() < deadline:
+            time.sleep(0.05)
 
     def _live_jobs(self) -> bool:
         with self._lock:
@@ -390,16 +399,19 @@ class RayJobWorker(LambdaEditsOfRunner):
         width, height = film_size(spec.scene, width=spec.width, height=spec.height, params=spec.params, root=root,
                                   frames=spec.frames)
         gpus = self._gpus
-        group = []
+        group: list = []
         for share in shares(spec.frames, self.settings.workers):
             memory = estimated_memory(width, height, share[1] - share[0])
             plan = ActorPlan(str(files.root), record, share, memory, CPUS_PER_ACTOR)
             actor_class = ray.remote(JobActor).options(
                 num_cpus=CPUS_PER_ACTOR, num_gpus=gpus, memory=int(memory), max_concurrency=ACTOR_THREADS,
                 max_restarts=0, name=None)
-            group.append(actor_class.remote(self._networks_ref, plan))
-        with self._lock:
-            self._groups[job_id] = group
+            with self._lock:  # each actor is started and registered where stop() sees it, never after stop()
+                if self._stopping.is_set():
+                    self._kill(group)
+                    raise IterationInterrupted()  # the job is requeued (_interrupted)
+                group.append(actor_class.remote(self._networks_ref, plan))
+                self._groups[job_id] = group
         return group
 
     # -- λ --------------------------------------------------------------------------------------

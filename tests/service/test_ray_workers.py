@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import signal
 import sqlite3
+import threading
 import time
 from pathlib import Path
 
@@ -20,8 +21,10 @@ from required_components import import_component
 ray = import_component("ray")
 
 from service.exr import read_exr  # noqa: E402  (after the check: these import Ray's backend)
-from service.jobs.ray_worker import RayJobWorker, RaySettings, shares, start_local_ray  # noqa: E402
-from service.jobs.store import CANCELED, COMPLETED, FAILED, RUNNING, JobRecord, JobStore  # noqa: E402
+from service.jobs import ray_worker  # noqa: E402
+from service.jobs.ray_worker import (CANCEL_GRACE_SECONDS, RayJobWorker, RaySettings, shares,  # noqa: E402
+                                     start_local_ray)
+from service.jobs.store import CANCELED, COMPLETED, FAILED, QUEUED, RUNNING, JobRecord, JobStore  # noqa: E402
 from service.loop.loop import RenderLoop  # noqa: E402
 from service.loop.spec import LoopSpec  # noqa: E402
 from service_harness import Server, finished, wait_for  # noqa: E402
@@ -126,6 +129,33 @@ def test_cancel_during_an_iteration_ends_its_worker_within_5_s_and_the_job_as_ca
     record = wait_until(store, job_id, lambda r: r.finished, timeout=60.0)
     assert record.state == CANCELED and record.stop_reason == "canceled", record.error
     assert record.iteration < 11
+
+
+def test_stop_outwaits_a_job_still_starting_its_actors_and_leaves_it_queued(ray_runtime, store, tiny_networks,
+                                                                          monkeypatch):
+    """The race of a SIGTERM'd server: a driver thread still starting its job when stop() ran went
+    on after stop() returned (on a server after ray.shutdown, where the actor it then created
+    would start a fresh, unsealed local Ray). Its start is held here until stop()'s first wait is
+    over; stop() must return only once the thread has left, the job requeued and no actor made."""
+    w = RayJobWorker(store, tiny_networks, RaySettings(workers=WORKERS))
+    starting = threading.Event()
+
+    def film_size_held_past_stops_first_wait(*args, **kwargs):
+        size = real_film_size(*args, **kwargs)
+        starting.set()
+        while w.health_problem() != "the server is stopping":
+            time.sleep(0.02)
+        time.sleep(2 * CANCEL_GRACE_SECONDS + 0.5)
+        return size
+
+    real_film_size = ray_worker.film_size
+    monkeypatch.setattr(ray_worker, "film_size", film_size_held_past_stops_first_wait)
+    w.start()
+    job_id = submit(store, w, slow_job(iterations=2))
+    assert starting.wait(120), store.get(job_id)
+    w.stop()
+    assert store.get(job_id).state == QUEUED  # the thread requeued it before stop() returned
+    assert w.worker_pids(job_id) == []  # and started no actor
 
 
 def test_a_cancel_mid_iteration_saves_the_checkpoints_results_in_a_worker_never_loading_the_scene_here(
