@@ -150,6 +150,7 @@ def run_measurements(args: argparse.Namespace) -> int:
     if args.sampler:
         from bench.raw_image_report import cost_rows, quality_rows, report_fields
         from bench.sampler_report import bench_sampler, write_sampler_report
+        from bench.stratified_pass_report import report_fields as stratified_fields, stratified_pass_rows
         results = bench_sampler(args.size or 256, args.spp or 64, args.repeats)
         for r in results:
             print(f"sampler: {r.case.label}: ours {r.ours_msps:.2f} M samples/s, mi.render {r.mi_render_msps:.2f}"
@@ -159,7 +160,11 @@ def run_measurements(args: argparse.Namespace) -> int:
             print(f"raw image: {q.filter} {q.spp} spp: relMSE ours / mi.render {q.ratio:.3f}x (per-pixel {q.fis_ratio:.2f}x)")
         for c in cost:
             print(f"splat cost: {c.filter} {c.spp} spp: {100 * c.overhead:+.0f} %")
-        print(f"wrote {write_sampler_report(results, args.out, report_fields(quality, cost))}")
+        stratified = stratified_pass_rows(repeats=args.repeats)
+        for s in stratified:
+            print(f"stratified pass: {s.scene} {s.size}² +{s.mean_spp:.0f} spp: {s.ratio:.2f}x the independent pass")
+        fields = {**report_fields(quality, cost), **stratified_fields(stratified)}
+        print(f"wrote {write_sampler_report(results, args.out, fields)}")
     if args.models:
         # The defaults (256² and 512², 2 threads); `python -m bench.models_report --help` has the options.
         # The shipped denoiser's architecture (models/weights/denoiser.pt, or --weights DIR's).

@@ -132,7 +132,8 @@ def sampler_table(results: list[SamplerResult]) -> str:
 
 
 def write_sampler_report(results: list[SamplerResult], out: Path, raw: dict[str, object]) -> Path:
-    """`raw`: the raw-image sections' fields (bench.raw_image_report.report_fields)."""
+    """`raw`: the raw-image and stratified-pass sections' fields (bench.raw_image_report.report_fields,
+    bench.stratified_pass_report.report_fields)."""
     first = results[0]
     path = out / "sampler.md"
     out.mkdir(parents=True, exist_ok=True)
