@@ -42,20 +42,19 @@ UNTRAINED_SEEDS = (0, 1, 2)
 # Measured by `python tests/loop/test_shipped_networks.py` (main, below) on a 2-core AVX2 EPYC
 # (float32 trunk), shipped / untrained of the shipped architecture (seeds 0–2, through the loop) /
 # OIDN alone:
-#   geometric mean of the crops' SMAPE ÷ OIDN's   0.822 / 0.836–0.837 / 1
-#   share of the crops where ours beats OIDN      0.722 / 0.616–0.620 / 0
-#   per scene: hard_shadows 0.998 / 1.008–1.009, metals 0.961 / 1.013–1.014,
-#              glass_box 0.947 / 1.016–1.032, env_object 0.955 / 0.941–0.942
-# (measured at 964ded4, once the final image's fallback stopped taking a raw firefly whose
-# neighbours' raw pixels win: the untrained network's pooled figure fell from 0.845–0.849 to within
-# 0.002 of the old bar 0.834.) Other renders, `main 1` and `main 2` (the loop's seed): pooled
-# 0.8226 / 0.8341–0.8408 and 0.8274 / 0.8411–0.8436, crops won 0.722 / 0.588–0.602 and
-# 0.759 / 0.644–0.653, every scene of the shipped network ≤ 0.989. The bars sit halfway between
-# the shipped network's worst and the untrained networks' best over the three renders (0.0033 and
-# 0.034 either side; 0.0089 and 0.066 from the shipped network at loop seed 0); earlier figures in
-# docs/decisions.md. No scene may end up worse than OIDN.
+#   geometric mean of the crops' SMAPE ÷ OIDN's   0.825 / 0.835–0.838 / 1
+#   share of the crops where ours beats OIDN      0.704 / 0.611–0.630 / 0
+#   per scene: hard_shadows 0.998 / 1.008–1.009, metals 0.956 / 1.007,
+#              glass_box 0.962 / 1.024–1.040, env_object 0.954 / 0.942–0.943
+# (measured at 9722499, the final image's fallback reading outliers on both sides: the untrained
+# network's pooled figure fell from 0.845–0.849 at 1184da7 to within 0.001 of the old bar 0.834.)
+# Other renders, `main 1` and `main 2` (the loop's seed): pooled 0.8226 / 0.8341–0.8354 and
+# 0.8271 / 0.8414–0.8453, crops won 0.722 / 0.597–0.606 and 0.764 / 0.644–0.657, every scene of
+# the shipped network ≤ 0.989. The bars sit halfway between the shipped network's worst and the
+# untrained networks' best over the three renders (0.0031–0.0039 and 0.023 either side); earlier
+# figures in docs/decisions.md. No scene may end up worse than OIDN.
 MAX_CROP_SMAPE_RATIO_TO_OIDN = 0.831
-MIN_SHARE_OF_CROPS_BEATING_OIDN = 0.688
+MIN_SHARE_OF_CROPS_BEATING_OIDN = 0.68
 MAX_SCENE_SMAPE_RATIO_TO_OIDN = 1.005
 CROP = 32
 
@@ -67,16 +66,16 @@ class Guard:
     error_rank: float          # Spearman of the error network's map against the true error
 
 
-# Measured as for the whole-image guard (at 964ded4), kernel cut / rank, shipped (untrained of the
+# Measured as for the whole-image guard (at 9722499), kernel cut / rank, shipped (untrained of the
 # shipped architecture: kernels seed 0 / error networks seeds 0, 1) [best √variance ÷ denoised map
 # over five ways of forming it, see sqrt_variance_maps], loop seed 0, then the shipped rank and the
 # best √variance map at loop seeds 1 and 2:
 #   hard_shadows 4.13 / 0.529  (2.49 / 0.065, 0.025)   [0.089]   seeds 1, 2: 0.547 [0.090], 0.502 [0.084]
-#   metals       3.08 / 0.605  (1.44 / 0.110, −0.054)  [0.180]               0.589 [0.216], 0.604 [0.211]
-#   glass_box    3.02 / 0.662  (0.93 / 0.254, 0.184)   [0.590]               0.647 [0.555], 0.606 [0.589]
+#   metals       3.16 / 0.593  (1.52 / 0.110, −0.054)  [0.189]               0.589 [0.216], 0.622 [0.188]
+#   glass_box    3.02 / 0.663  (0.93 / 0.254, 0.184)   [0.591]               0.647 [0.555], 0.606 [0.589]
 #   env_object   4.17 / 0.836  (1.96 / −0.605, −0.605) [0.698]               0.838 [0.698], 0.832 [0.694]
 # (kernel cuts at loop seeds 1 and 2 within 0.15 of seed 0's.) Rank bars sit between the shipped network and
-# the √variance map over all three loop seeds: glass_box's halfway between the maps' 0.590 and
+# the √variance map over all three loop seeds: glass_box's halfway between the maps' 0.591 and
 # the shipped 0.606 of loop seed 2 (it was 0.626, which that render's shipped network failed).
 GUARDS = {
     "hard_shadows": Guard(kernel_smape_cut=3.8, error_rank=0.45),
@@ -223,9 +222,9 @@ def untrained_whole_image_failures(shipped: Networks, seed: int, runs: dict[str,
 
 
 def test_an_untrained_denoiser_of_the_shipped_architecture_fails_the_whole_image_guard(shipped, dev_runs):
-    # One seed in the default suite: over seeds 0-2 the untrained figures spread by 0.0016 (pooled
-    # 0.8358-0.8374) and 0.004 (crops won 0.616-0.620), a third and a seventeenth of their margins
-    # to the bars (0.831, 0.688); the other seeds run in the slow test below.
+    # One seed in the default suite: over seeds 0-2 the untrained figures spread by 0.004 (pooled
+    # 0.8346-0.8384) and 0.019 (crops won 0.611-0.630), their margins to the bars (0.831, 0.68)
+    # 0.0036 and 0.05; the other seeds run in the slow test below.
     failures = untrained_whole_image_failures(shipped, UNTRAINED_SEEDS[0], dev_runs)
     assert [f.split(":")[0] for f in failures][:2] == ["pooled", "crops"], failures
 
