@@ -19,7 +19,12 @@ from bench.loop_run import METHODS, STAGES, Headline, TrueErrorMap, select_metho
 from bench.loop_seeds import bound_line, gaps, seed_table
 
 
-def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, tiny_weights_dir: Path) -> None:
+def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, tiny_weights_dir: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    # The HTTP λ micro-benchmark's server on the thread backend (RENDERLOOP_CONCURRENCY, read by
+    # service.api.serve.app_from_env in the server process): the report's plumbing is under test,
+    # not Ray, and a local Ray start was most of this test's time (tests/service cover Ray's λ path).
+    monkeypatch.setenv("RENDERLOOP_CONCURRENCY", "1")
     report = run_loop_benchmark(tmp_path / "docs", quick=True, weights_dir=tiny_weights_dir, cache_dir=tmp_path / "cache",
                                 command="renderloop bench --loop --quick")
     text = report.read_text()
