@@ -36,8 +36,8 @@ class LambdaActors:
     """The warm λ actors of finished jobs, newest last. `call` runs a Ray call and raises the
     backend's WorkerDied when the actor's process is gone (service.jobs.ray_worker._call)."""
 
-    def __init__(self, networks_ref: Callable[[], Any], call: Callable[..., list]) -> None:
-        self._networks_ref = networks_ref
+    def __init__(self, networks: Callable[[], Any], call: Callable[..., list]) -> None:
+        self._networks = networks  # passed by value to each actor (why: RayJobWorker._start_group)
         self._call = call
         self._lock = threading.Lock()
         self._actors: OrderedDict[str, Any] = OrderedDict()
@@ -78,7 +78,7 @@ class LambdaActors:
         # p50 21.9-31.2 s instead of 1.8-4.1 s on the loaded host (load 15-24, two rounds of
         # bench.lambda_edit_ab --http, commit 5d43ead): its result writes share the process.
         plan = ActorPlan(str(files.root), record, (0, frames), estimated_memory(size[1], size[0], frames), cpus=1)
-        actor = ray.remote(JobActor).options(num_cpus=0, max_restarts=0).remote(self._networks_ref(), plan)
+        actor = ray.remote(JobActor).options(num_cpus=0, max_restarts=0).remote(self._networks(), plan)
         try:
             self._call(actor.open.remote())  # the scene and the checkpoint, loaded in the worker
         except Exception:

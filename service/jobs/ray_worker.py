@@ -127,8 +127,7 @@ class RayJobWorker(LambdaEditsOfRunner):
         self._joined = False
         self._gpus = 0
         self._unchain_sigterm: Callable[[], None] = lambda: None
-        self._lambda_actors = LambdaActors(lambda: self._networks_ref, _call)
-        self._networks_ref = None
+        self._lambda_actors = LambdaActors(lambda: self.networks, _call)
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -143,7 +142,6 @@ class RayJobWorker(LambdaEditsOfRunner):
         if self._runtime is not None:
             threading.Thread(target=self._watch_runtime, name="ray-watch", daemon=True).start()
         self._gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0  # asked once: the GCS may be gone later
-        self._networks_ref = ray.put(self.networks)  # shipped once; every actor gets it from the store
         self.queue.start()
 
     def stop(self) -> None:
@@ -410,7 +408,12 @@ class RayJobWorker(LambdaEditsOfRunner):
                 if self._stopping.is_set():
                     self._kill(group)
                     raise IterationInterrupted()  # the job is requeued (_interrupted)
-                group.append(actor_class.remote(self._networks_ref, plan))
+                # The networks go by value (~0.2 MB, pickled per actor), never as a ray.put object
+                # the server owns for its life: when Ray's node goes down under the server (a
+                # SIGTERM to the whole process group) the driver tries to recover such an object,
+                # finds the object store gone and Ray ends the process with status 1 (measured:
+                # a kept ray.put ref, raylet SIGTERM'd → driver exit 1; by value → it lives on).
+                group.append(actor_class.remote(self.networks, plan))
                 self._groups[job_id] = group
         return group
 

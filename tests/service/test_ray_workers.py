@@ -274,12 +274,12 @@ def test_lambda_edits_on_a_finished_job_run_in_a_ray_worker_never_loading_the_sc
 def test_a_sequence_fanned_out_over_two_workers_equals_the_single_process_result(worker, store, tiny_networks):
     spec = LoopSpec(scene="cornell-box-orbit", width=24, height=24, frames=3, spp_first=4, max_iterations=4)
     job_id = submit(store, worker, spec)
-    pids = []
+    pids: set[int] = set()
     while not store.get(job_id).finished:
-        pids = pids or worker.worker_pids(job_id)
+        pids |= set(worker.worker_pids(job_id))  # the group's actors start one after the other
         time.sleep(0.02)
     assert store.get(job_id).state == COMPLETED
-    assert len(set(pids)) == 2  # the frames were shared between two worker processes
+    assert len(pids) == 2  # the frames were shared between two worker processes
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as in the workers (one CPU each): the same float sums
     try:
