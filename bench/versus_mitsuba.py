@@ -75,7 +75,7 @@ def measure_versus_mitsuba(*, megapixels: float = DEFAULT_MEGAPIXELS, max_spp: i
                            costs_megapixels: float | None = None) -> Results:
     """Measure every scene (or those named). `threads`: torch intra-op threads (None: probe 1 vs 2
     and take the faster, as `renderloop bench --loop` does). `costs_megapixels`: also the fixed
-    costs of one iteration on the first scene at that size (item 3 at ~2 MP from a small run)."""
+    costs of one iteration on the first scene at that size (the fixed costs at ~2 MP from a small run)."""
     started = time.perf_counter()
     spp_levels(max_spp)  # refuses a max below the first iteration before anything runs
     chosen = suite_scenes(scenes)
