@@ -11,6 +11,7 @@ median of the repeats.
 """
 from __future__ import annotations
 
+import re
 import shutil
 import statistics
 import tempfile
@@ -29,7 +30,6 @@ SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes" / "dev"
 # (scene, film side, prior spp of each pass): the loop's 2nd–4th iterations at 128², its 2nd at 512².
 CASES = (("fine_texture", 128, (16, 32, 64)), ("dof_desk", 128, (16, 32, 64)),
          ("fine_texture", 512, (16,)), ("dof_desk", 512, (16,)))
-STRATIFYING_TYPES = ("multijitter", "stratified", "orthogonal", "ldsampler")
 # Spread of the log error map the counts follow (σ of its log): a map whose hardest pixels hit
 # the allocator's 8× cap, as the loop's error maps do on scenes/dev.
 ERROR_LOG_SPREAD = 1.0
@@ -61,8 +61,7 @@ def independent_copy(scene_xml: Path, folder: Path) -> Path:
     """The scene's folder copied into `folder` with its sampler's type set to `independent`."""
     shutil.copytree(scene_xml.parent, folder, dirs_exist_ok=True)
     text = scene_xml.read_text()
-    for kind in STRATIFYING_TYPES:
-        text = text.replace(f'<sampler type="{kind}"', '<sampler type="independent"')
+    text = re.sub(r'<sampler type="[^"]*"', '<sampler type="independent"', text)
     copy = folder / scene_xml.name
     copy.write_text(text)
     return copy

@@ -110,25 +110,9 @@ def group_sample_indices(prior: np.ndarray, counts: np.ndarray, low_bit: int) ->
     return (np.repeat(first, lanes) + within).astype(np.uint32)
 
 
-def sequence_length(lanes_per_pixel: int) -> int:
-    """The lanes of one sequence in a group of `lanes_per_pixel` (2^b) lanes per pixel: 2^b when
-    b is even; when b is odd, 2^(b−1), two sequences per pixel — the samplers stratify square
-    counts, and a sequence's length must divide the sampler's count."""
-    length = 1
-    while length * 4 <= lanes_per_pixel:
-        length *= 4
-    return length
-
-
 def sequence_sampler_kind(length: int) -> str:
     """Which of Mitsuba's samplers drives sequences of `length` lanes (SEQUENCE_SAMPLERS)."""
     return SEQUENCE_SAMPLERS.get(length, LONG_SEQUENCE_SAMPLER)
-
-
-def group_sampler(mi, lanes_per_pixel: int, seed: int, lanes: int):
-    """A Mitsuba sampler seeded for `lanes` pixel-major lanes, `lanes_per_pixel` per pixel, in
-    sequences of sequence_length: what mi.render sets up for a uniform spp of that length."""
-    return sequence_sampler(mi, sequence_length(lanes_per_pixel), seed, lanes)
 
 
 def sequence_sampler(mi, length: int, seed: int, lanes: int):

@@ -10,7 +10,7 @@ import pytest
 import service.render.renderer as renderer
 from service.render.framebuffer import FrameBuffer
 from service.render.renderer import render_samples
-from service.render.stratified_lanes import digit_group_chunks, group_sampler
+from service.render.stratified_lanes import digit_group_chunks, sequence_sampler
 from service.render.runtime import mitsuba
 from service.render.stratified_sequence import film_bits, lens_bits, reverse_bits, sobol_dim1
 from tests.fidelity.harness import compare_file
@@ -217,13 +217,14 @@ def test_the_dimensions_of_one_sample_are_independent_of_each_other(lanes_per_pi
     # (16 and 32 lanes per pixel) are left out: multijitter's χ² there is 290–480, kept for its
     # variance (stratified_lanes.py says why).
     mi = mitsuba()
-    sampler = group_sampler(mi, lanes_per_pixel, seed=11, lanes=1 << 14)
+    # a digit group's sequences: 2^b lanes for even b, two sequences of 2^(b-1) for odd b
+    length = 4 ** ((lanes_per_pixel.bit_length() - 1) // 2)
+    sampler = sequence_sampler(mi, length, seed=11, lanes=1 << 14)
     u1, u2, u3 = (np.asarray(sampler.next_1d()) for _ in range(3))
     v1, v2 = np.asarray(sampler.next_2d()), np.asarray(sampler.next_2d())
     for a, b in ((u1, u2), (u2, u3), (v1[0], v2[0]), (v1[1], v2[1]), (u1, v1[0])):
         assert pair_chi2(a, b) < 150, pair_chi2(a, b)   # 99.99th percentile of χ²(63): ~120
     # and each dimension alone is stratified over a pixel's sequence (one lane per stratum)
-    length = 4 ** ((lanes_per_pixel.bit_length() - 1) // 2)
     strata = np.floor(u1 * length).astype(int).reshape(-1, length)
     assert all(len(set(row)) == length for row in strata[:64].tolist())
 
