@@ -98,5 +98,6 @@ def write_dev_suite_report(rows: list[SceneScores], out_dir: Path, oidn_note: st
         oidn=oidn_note, weights=weights, table=table, count=len(rows),
         median_noisy=median("noisy16"), median_kpcn=median("kpcn16"), median_oidn=median("oidn16"),
         median_loop=median("loop128"), median_uniform=median("uniform128_oidn"),
-        kpcn_wins=sum(r.kpcn16 < r.oidn16 for r in rows), loop_wins=sum(r.loop128 < r.uniform128_oidn for r in rows)))
+        kpcn_wins=sum(r.kpcn16 < r.oidn16 for r in rows), loop_wins=sum(r.loop128 < r.uniform128_oidn for r in rows),
+        wall_ratio=fmt(statistics.median(r.loop_seconds / r.uniform_oidn_seconds for r in rows), ".2f")))
     return path

@@ -54,6 +54,9 @@ def test_dev_suite_report_scores_every_method_against_the_reference(tmp_path: Pa
     # the summary's medians and counts are this one scene's row, each in its own place
     summary = (rf"16 spp: noisy {cells[0]}, KPCN {cells[1]}, OIDN {cells[2]};\s+128 spp: loop {cells[3]}, "
                rf"uniform \+ OIDN {cells[4]}\. KPCN beats OIDN at 16 spp on\s+1 of 1 scenes; the loop beats "
-               rf"uniform \+ OIDN at 128 spp on 1 of 1\.")
-    assert re.search(summary, text), text
+               rf"uniform \+ OIDN at 128 spp on 1 of 1,\s+taking a median ([0-9.]+)× its wall time")
+    found = re.search(summary, text)
+    assert found, text
+    # the wall-time ratio is this row's seconds divided (the table rounds them to 0.1 s)
+    assert (loop_s - 0.05) / (uniform_s + 0.05) <= float(found.group(1)) <= (loop_s + 0.05) / (uniform_s - 0.05)
     assert "Command:" in text and "Intel Open Image Denoise" in text
