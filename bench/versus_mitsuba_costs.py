@@ -55,6 +55,7 @@ class FixedCosts:
     ms: dict[str, float]  # median milliseconds per stage call ("render": the last iteration's)
     iteration_ms: list[float]  # wall time of each of the loop's iterations (its four stages)
     render_ms: list[float]  # the render stage of each
+    takes_candidate: bool  # whether the denoiser's weights take OIDN's image as an input (its config)
 
     def per_megapixel(self, stage: str) -> float:
         return self.ms[stage] / self.megapixels
@@ -124,4 +125,4 @@ def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCost
     iteration_ms = [1000 * sum(p.stages.values()) for p in run.curve.points]
     render_ms = [1000 * p.stages["render"] for p in run.curve.points]
     height, width = buffer.shape
-    return FixedCosts(label, width * height / 1e6, ms, iteration_ms, render_ms)
+    return FixedCosts(label, width * height / 1e6, ms, iteration_ms, render_ms, denoiser.config.oidn_candidate)

@@ -167,10 +167,17 @@ def oidn_ms_per_mp(run: SceneRun) -> float:
     return 1000 * statistics.median(calls) / run.film.megapixels
 
 
+def candidate_label(scenes: list[SceneRun]) -> str:
+    """The OIDN-candidate row's label, read off the weights that ran (their config's
+    `oidn_candidate`), so the row says whether its figure is an OIDN call or a 0 for none."""
+    if any(run.costs.takes_candidate for run in scenes):
+        return "OIDN candidate inside the denoiser (an OIDN call, quality high: these weights take one)"
+    return "OIDN candidate inside the denoiser (0: these weights take none)"
+
+
 def network_table(scenes: list[SceneRun], probe: CostProbe | None, threads: int) -> str:
     rows = [("denoiser (full pass, without its OIDN call)", lambda r: r.costs.per_megapixel("denoiser")),
-            ("OIDN candidate inside the denoiser (0: these weights take none)",
-             lambda r: r.costs.per_megapixel("oidn_candidate")),
+            (candidate_label(scenes), lambda r: r.costs.per_megapixel("oidn_candidate")),
             ("error network", lambda r: r.costs.per_megapixel("error_network")),
             ("λ tail (from cached features)", lambda r: r.costs.per_megapixel("lambda_tail")),
             ("OIDN alone (`mi.render` + OIDN, quality high)", oidn_ms_per_mp)]

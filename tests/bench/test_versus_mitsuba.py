@@ -78,6 +78,8 @@ def test_fixed_costs_are_the_loops_own_stages_in_ms_and_the_probe_at_its_own_siz
     assert costs.ms["render"] == pytest.approx(costs.render_ms[-1])
     network_ms_within_the_loops_own(costs, points)
     assert len(costs.iteration_ms) == 3 and 0 < costs.stall_share < 1
+    # the tiny weights take no OIDN candidate: read off their config, the row times nothing
+    assert not costs.takes_candidate and costs.ms["oidn_candidate"] == 0
     probe = tiny_results.probe
     assert probe.film.width * probe.film.height == pytest.approx(8000, rel=0.1)
     assert probe.costs.megapixels == pytest.approx(0.008, rel=0.1) and len(probe.costs.iteration_ms) == 1
