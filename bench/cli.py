@@ -58,6 +58,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --calibration --suite val: also write the error network of --weights to DIR with "
                         "the output scale that makes its median predicted ÷ true error 1 on those scenes, and the "
                         "change scale that does the same for the mean calibrated by the image's change")
+    p.add_argument("--lambda-edit", action="store_true",
+                   help="a λ edit at 1920×1080: the tail from cached features, and PUT /jobs/{id}/lambda → the new "
+                        "preview over HTTP on both job backends of a real server, split into parts → lambda-edit.md")
+    p.add_argument("--lambda-requests", type=int, default=20, metavar="N",
+                   help="with --lambda-edit: timed edits per backend (default 20)")
     p.add_argument("--scale", action="store_true",
                    help="Ray workers: 8 jobs on 1 vs 2 workers, Ray vs in-process overhead per iteration, a 5-frame "
                         "sequence on 1 vs 2 workers → scale.md")
@@ -125,6 +130,9 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.as_written:
         from bench.as_written import run_as_written_command
         return run_as_written_command(args)
+    if args.lambda_edit:
+        from bench.lambda_edit import run_lambda_edit_command
+        return run_lambda_edit_command(args)
     if args.scale:
         from bench.scale_report import run_scale_report
         print(f"wrote {run_scale_report(args.out, weights_dir=args.weights)}")

@@ -21,6 +21,7 @@ request that follows at once shares the CPU with them).
 """
 from __future__ import annotations
 
+import argparse
 import os
 import statistics
 import time
@@ -29,8 +30,8 @@ from pathlib import Path
 
 import torch
 
-from bench.common import pinned_torch_threads
-from bench.server import bench_http_lambda
+from bench.common import fill, load_average, load_bench_networks, pinned_torch_threads, provenance
+from bench.server import EDIT_PARTS, bench_http_lambda
 from models.denoiser import Denoiser
 from models.frames import FrameTensors
 from models.lambda_range import LAMBDA_MAX, LAMBDA_MIN
@@ -43,7 +44,7 @@ HTTP_SEED = 0
 # The server's job backends: the default (a local Ray runtime, one worker per core) and the
 # thread backend (`renderloop serve --concurrency 1`), where the λ edit skips the actor hop.
 HTTP_BACKENDS = ("ray", "thread")
-BACKEND_LABELS = {"ray": "its default Ray backend", "thread": "the thread backend (`--concurrency 1`)"}
+BACKEND_LABELS = {"ray": "Ray backend (the default)", "thread": "thread backend (`--concurrency 1`)"}
 PER_PIXEL_CASE = "per-pixel map (a gradient: too many values to fold)"
 
 
@@ -120,6 +121,38 @@ def _http_round_trip(backend: str, width: int, height: int, requests: int, weigh
             os.environ[CONCURRENCY_ENV] = previous
 
 
+def http_table(http: dict[str, dict | str]) -> list[str]:
+    """Per backend: the round trip until the edited preview is readable, and its parts (medians)."""
+    measured = {backend: row for backend, row in http.items() if isinstance(row, dict)}
+    lines = []
+    if measured:
+        any_row = next(iter(measured.values()))
+        lines += [f"`PUT /jobs/{{id}}/lambda` then `GET /jobs/{{id}}/preview?layer=denoised&format=png` at the version it "
+                  f"answered (what the page does), on a finished {any_row['size']}×{any_row['height']} cornell-box job "
+                  f"(one {any_row.get('spp', 16)}-spp iteration), a real `renderloop serve` app; a global value and a "
+                  "painted rectangle (the left half) alternating, back to back after one untimed warm-up edit. The parts "
+                  "are medians of each (so they need not add up to the median total): the server's own Server-Timing "
+                  "headers, the client's wall time for the rest (bench/server.py, EDIT_PARTS).", "",
+                  "| | " + " | ".join(BACKEND_LABELS[b] for b in measured) + " |",
+                  "|---|" + "---:|" * len(measured)]
+        rows = list(measured.values())
+
+        def line(label: str, cell) -> str:
+            return f"| {label} | " + " | ".join(cell(r) for r in rows) + " |"
+
+        lines += [line("**PUT → preview readable, p50 / p95 ms**",
+                       lambda r: "**{:.0f}** / {:.0f}".format(r["readable_p50_ms"], r["readable_p95_ms"])),
+                  line("PUT alone, p50 / p95 ms", lambda r: "{:.0f} / {:.0f}".format(r["p50_ms"], r["p95_ms"])),
+                  line("GET of the preview, p50 ms", lambda r: "{:.0f}".format(r["get_p50_ms"]))]
+        lines += [line(f"… {label}, ms", lambda r, k=key: "{:.0f}".format(r["parts_ms"][k])) for key, label in EDIT_PARTS]
+        lines.append(line("edits timed; whose preview changed; λ-tail / full passes",
+                          lambda r: "{}; {}; {} / {}".format(r["requests"], r["changed"], r["tail_passes"], r["full_passes"])))
+    for backend, row in http.items():
+        if not isinstance(row, dict):
+            lines.append(f"- Over HTTP ({BACKEND_LABELS[backend]}): not measured: {row}")
+    return lines
+
+
 def lambda_edit_section(timing: LambdaEditTiming | None) -> str:
     """The report's markdown for one measurement (empty when none was taken)."""
     if timing is None:
@@ -131,13 +164,33 @@ def lambda_edit_section(timing: LambdaEditTiming | None) -> str:
              "shipped network, random inputs (bench/lambda_edit.py says how), the cases interleaved round by round. "
              f"Load average when it finished: {', '.join(f'{x:.1f}' for x in timing.load_avg)}.", "",
              "| λ input | median wall ms | min | max | repeats |", "|---|---|---|---|---|", rows, ""]
-    for backend, http in timing.http.items():
-        server = f"a real `renderloop serve` app, {BACKEND_LABELS[backend]}"
-        if isinstance(http, dict):
-            lines.append(f"- `PUT /jobs/{{id}}/lambda` over HTTP on a finished {http['size']}×{http['height']} cornell-box "
-                         f"job (one 16-spp iteration; {server}): p50 {http['p50_ms']:.0f} ms, p95 {http['p95_ms']:.0f} ms, "
-                         f"max {http['max_ms']:.0f} ms over {http['requests']} requests (global value and rectangle "
-                         f"alternating; {http['tail_passes']} tail passes, {http['full_passes']} full passes).")
-        else:
-            lines.append(f"- `PUT /jobs/{{id}}/lambda` over HTTP ({server}): not measured: {http}")
+    if timing.http:
+        lines += ["### Over HTTP", "", *http_table(timing.http)]
     return "\n".join(lines) + "\n"
+
+
+REPORT_NAME = "lambda-edit.md"
+
+
+def write_lambda_edit_report(timing: LambdaEditTiming, out: Path, weights: str, load_before: str, seconds: float) -> Path:
+    """OUT/lambda-edit.md: the measurement under the header every report has."""
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / REPORT_NAME
+    path.write_text(fill("lambda_edit.md", provenance=provenance(), weights=weights, load_before=load_before,
+                         load_after=load_average(), minutes=f"{seconds / 60:.1f}", threads=timing.threads,
+                         section=lambda_edit_section(timing)))
+    return path
+
+
+def run_lambda_edit_command(args: argparse.Namespace) -> int:
+    """`renderloop bench --lambda-edit`: the tail at 1920×1080 on the shipped (or --weights)
+    denoiser, 2 torch threads, and --lambda-requests edits over HTTP on each backend."""
+    started, load_before = time.perf_counter(), load_average()
+    nets = load_bench_networks(args.weights)
+    timing = measure_lambda_edit(nets.networks.denoiser, nets.folder, LAMBDA_EDIT_SIZE, max(args.repeats, 7),
+                                 threads=2, http_requests=args.lambda_requests)
+    print(lambda_edit_section(timing))
+    path = write_lambda_edit_report(timing, args.out, nets.description, load_before, time.perf_counter() - started)
+    print(f"wrote {path}")
+    return 0
+

@@ -1,7 +1,9 @@
 """A real uvicorn server in a subprocess, and the λ-over-HTTP latency measured against it.
 
 The server is exactly `service.api.serve.app_from_env`, so the figure includes routing, JSON,
-the job store and the cached λ tail: what a user sees.
+the job store and the cached λ tail: what a user sees. Each edit is a PUT and the GET of the
+preview it made (what the page does); the server's Server-Timing headers split both into
+EDIT_PARTS.
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
@@ -21,6 +24,7 @@ import uvicorn
 
 from models.pretrained import WEIGHTS_DIR_ENV
 from service.api.serve import DATA_DIR_ENV, app_from_env
+from service.api.server_timing import HEADER as SERVER_TIMING, parse_server_timing
 from service.loop.tensors import TORCH_THREADS_ENV
 
 SERVER_STARTUP_SECONDS = 180.0  # importing torch + Mitsuba on a loaded 2-core machine is slow
@@ -88,35 +92,106 @@ def wait_for_job(client, job_id: str, timeout: float = 600.0) -> dict:
     raise TimeoutError(f"job {job_id} did not finish in {timeout:.0f} s")
 
 
+# The parts of one edit, in the order a request meets them (keys of `EditTiming.parts`):
+# the server's own from its Server-Timing headers (service/api/routes.py, LambdaApplied.timings).
+EDIT_PARTS = (
+    ("http", "HTTP, routing, JSON (the PUT's round trip less the server's handling)"),
+    ("map", "λ map built from the request (a painted one over the saved map)"),
+    ("save", "λ map saved (the edit's durable record) + job store"),
+    ("denoise", "re-denoise where the loop lives: the λ tail + the final image"),
+    ("hop", "Ray: the actor calls beyond that (λ map in, images out through the object store)"),
+    ("publish", "new preview version published in memory"),
+    ("other", "the rest of the server's handling (the λ mailbox's hand-over, finding the job's loop)"),
+    ("encode", "GET preview: the 2-D layer tonemapped and PNG-encoded"),
+    ("transfer", "GET preview: the rest (HTTP, the PNG's bytes)"),
+)
+
+
+@dataclass
+class EditTiming:
+    """One λ edit as the page sees it: PUT /jobs/{id}/lambda, then GET of the denoised preview
+    (PNG, as the page reloads it) at the version the PUT answered."""
+
+    put_s: float
+    get_s: float
+    parts: dict[str, float]  # seconds by EDIT_PARTS key
+    changed: bool  # the preview's bytes differ from the edit's before
+
+    @property
+    def readable_s(self) -> float:
+        return self.put_s + self.get_s
+
+
+def edit_parts(put_s: float, get_s: float, put_timing: dict[str, float], get_timing: dict[str, float]) -> dict[str, float]:
+    """EDIT_PARTS from the client's wall times and the server's timings (seconds). They add up to
+    the round trip: "http" is the PUT beyond the server's "total", "other" the server's total
+    beyond its named parts, "transfer" the GET beyond its "encode"."""
+    named = ("map", "save", "denoise", "hop", "publish")
+    parts = {key: put_timing.get(key, 0.0) for key in named}
+    return {"http": put_s - put_timing.get("total", 0.0), **parts,
+            "other": put_timing.get("total", 0.0) - sum(parts.values()),
+            "encode": get_timing.get("encode", 0.0), "transfer": get_s - get_timing.get("encode", 0.0)}
+
+
+def lambda_bodies(width: int, height: int, requests: int) -> list[dict]:
+    """A global value and a painted rectangle (the left half) alternating, each changing the image."""
+    return [{"value": 2.0 + (i % 7)} if i % 2 == 0 else
+            {"rects": [{"x": 0, "y": 0, "w": max(1, width // 2), "h": height, "value": 10.0 - (i % 5)}]}
+            for i in range(requests)]
+
+
+def timed_edit(client: httpx.Client, job_id: str, body: dict, previous_png: bytes | None) -> tuple[EditTiming, dict, bytes]:
+    """One PUT, then the GET that reads its preview: (timing, the PUT's JSON, the PNG)."""
+    started = time.perf_counter()
+    put = client.put(f"/jobs/{job_id}/lambda", json=body)
+    put_s = time.perf_counter() - started
+    put.raise_for_status()
+    version = put.json()["version"]
+    started = time.perf_counter()
+    get = client.get(f"/jobs/{job_id}/preview", params={"layer": "denoised", "format": "png", "v": version})
+    get_s = time.perf_counter() - started
+    get.raise_for_status()
+    if int(get.headers["X-Preview-Version"]) < version:
+        raise RuntimeError(f"the preview after λ edit version {version} is version {get.headers['X-Preview-Version']}")
+    parts = edit_parts(put_s, get_s, parse_server_timing(put.headers.get(SERVER_TIMING)),
+                       parse_server_timing(get.headers.get(SERVER_TIMING)))
+    return EditTiming(put_s, get_s, parts, previous_png is not None and get.content != previous_png), put.json(), get.content
+
+
+def percentile_ms(seconds: list[float], q: float) -> float:
+    return float(np.percentile(np.array(seconds) * 1e3, q))
+
+
 def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, torch_threads: int,
-                      height: int | None = None) -> dict:
+                      height: int | None = None, spp: int = 16) -> dict:
     """p50/p95 of PUT /jobs/{id}/lambda round trips on a finished job (the cached λ tail path),
-    alternating a global value and a painted rectangle so every request changes the image.
-    The job is size² (size wide and `height` high when given), one 16-spp iteration."""
+    alternating a global value and a painted rectangle so every request changes the image, each
+    followed by the GET of its preview (EditTiming), after one untimed warm-up edit. The job is
+    size² (size wide and `height` high when given), one iteration of `spp`."""
+    height = height or size
     with tempfile.TemporaryDirectory(prefix="renderloop-bench-") as tmp:
-        with running_server(Path(tmp) / "data", weights_dir, torch_threads) as url, httpx.Client(base_url=url, timeout=120) as client:
-            created = client.post("/jobs", json={"scene": "cornell-box", "width": size, "height": height or size,
-                                                 "max_iterations": 1, "seed": seed})
+        with running_server(Path(tmp) / "data", weights_dir, torch_threads) as url, httpx.Client(base_url=url, timeout=600) as client:
+            created = client.post("/jobs", json={"scene": "cornell-box", "width": size, "height": height,
+                                                 "max_iterations": 1, "spp_first": spp, "seed": seed})
             created.raise_for_status()
             job_id = created.json()["id"]
-            job = wait_for_job(client, job_id)
+            job = wait_for_job(client, job_id, timeout=3600)
             if job["state"] != "completed":
                 raise RuntimeError(f"benchmark job ended {job['state']}: {job.get('error')}")
-            bodies = [{"value": 2.0 + (i % 7)} if i % 2 == 0 else
-                      {"rects": [{"x": 0, "y": 0, "w": max(1, size // 2), "h": height or size, "value": 10.0 - (i % 5)}]}
-                      for i in range(requests + 1)]
-            seconds, tail, full = [], 0, 0
-            for i, body in enumerate(bodies):
-                t0 = time.perf_counter()
-                response = client.put(f"/jobs/{job_id}/lambda", json=body)
-                elapsed = time.perf_counter() - t0
-                response.raise_for_status()
+            edits, tail, full, png = [], 0, 0, None
+            for i, body in enumerate(lambda_bodies(size, height, requests + 1)):
+                edit, answer, png = timed_edit(client, job_id, body, png)
                 if i == 0:
-                    continue  # warm-up: the first λ may rebuild the cache
-                seconds.append(elapsed)
-                tail += response.json().get("tail_passes", 0)
-                full += response.json().get("full_passes", 0)
-    ms = np.array(seconds) * 1e3
-    return {"size": size, "height": height or size, "requests": len(seconds), "p50_ms": float(np.percentile(ms, 50)),
-            "p95_ms": float(np.percentile(ms, 95)), "max_ms": float(ms.max()), "tail_passes": tail, "full_passes": full}
-
+                    continue  # warm-up: the first λ may rebuild the cache (a Ray λ actor opens the job)
+                edits.append(edit)
+                tail += answer.get("tail_passes", 0)
+                full += answer.get("full_passes", 0)
+    put = [e.put_s for e in edits]
+    return {"size": size, "height": height, "requests": len(edits), "p50_ms": percentile_ms(put, 50),
+            "p95_ms": percentile_ms(put, 95), "max_ms": 1e3 * max(put), "tail_passes": tail, "full_passes": full,
+            "readable_p50_ms": percentile_ms([e.readable_s for e in edits], 50),
+            "readable_p95_ms": percentile_ms([e.readable_s for e in edits], 95),
+            "get_p50_ms": percentile_ms([e.get_s for e in edits], 50),
+            "parts_ms": {key: percentile_ms([e.parts[key] for e in edits], 50) for key, _ in EDIT_PARTS},
+            "changed": sum(e.changed for e in edits), "unchanged": [i for i, e in enumerate(edits) if not e.changed],
+            "spp": spp}

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 from functools import lru_cache
 from typing import Annotated, AsyncIterator
 
@@ -20,6 +21,7 @@ from service.api.metrics import MEDIA_TYPE as METRICS_MEDIA_TYPE, ServiceMetrics
 from service.api.lambda_map import constant, decode_map, paint_rects
 from service.api.links import JobLinks, job_links, request_signer
 from service.api.server_info import ServerInfo, server_info
+from service.api.server_timing import HEADER as SERVER_TIMING, server_timing
 from service.jobs.blobs import BlobStore
 from service.api.schemas import (ErrorBody, Health, ImageFormat, JobCreate, JobCreated, JobList, JobStatus,
                                  LambdaResult, LambdaUpdate, Layer, MAX_SEQUENCE, SEQUENCE_DESCRIPTION, SceneInfo,
@@ -197,9 +199,13 @@ def get_preview(
     headers = {"ETag": etag, "X-Preview-Version": str(preview.version), "Cache-Control": "no-cache"}
     if request.headers.get("if-none-match") == etag:
         return Response(status_code=304, headers=headers)
+    started = time.perf_counter()
     if format == "exr":
-        return Response(imaging.exr_bytes(layer, values), media_type="image/x-exr", headers=headers)
-    return Response(png_bytes(imaging.to_rgb8(layer, values, exposure)), media_type="image/png", headers=headers)
+        body, media_type = imaging.exr_bytes(layer, values), "image/x-exr"
+    else:
+        body, media_type = png_bytes(imaging.to_rgb8(layer, values, exposure)), "image/png"
+    headers[SERVER_TIMING] = server_timing({"encode": time.perf_counter() - started})
+    return Response(body, media_type=media_type, headers=headers)
 
 
 @router.get("/jobs/{job_id}/result.exr", responses={
@@ -223,7 +229,10 @@ def lambda_from_json(worker: JobRunner, job_id: str, update: LambdaUpdate, shape
 
 
 def apply_lambda(store: JobStore, worker: JobRunner, job_id: str, update: LambdaUpdate | None,
-                 upload: bytes | None, sequence: int | None = None) -> LambdaResult:
+                 upload: bytes | None, sequence: int | None = None) -> Response:
+    """The edit's LambdaResult, with the parts it took in a Server-Timing header (seconds →
+    ms: "map" the λ map built from the request, then LambdaApplied.timings, "total" all of it)."""
+    started = time.perf_counter()
     record = require_job(store, job_id)
     if record.state in (FAILED, CANCELED):
         raise JobConflict(f"job is {record.state}: λ cannot change any more")
@@ -233,8 +242,11 @@ def apply_lambda(store: JobStore, worker: JobRunner, job_id: str, update: Lambda
     lam = decode_map(upload, shape) if upload is not None else lambda_from_json(worker, job_id, update, shape)
     if update is not None:
         sequence = update.sequence
+    built = time.perf_counter()
     applied = worker.set_lambda(job_id, lam, update.value if update is not None else None, sequence)
-    return LambdaResult(version=applied.version, full_passes=applied.full_passes, tail_passes=applied.tail_passes)
+    timings = {"map": built - started, **applied.timings, "total": time.perf_counter() - started}
+    result = LambdaResult(version=applied.version, full_passes=applied.full_passes, tail_passes=applied.tail_passes)
+    return Response(result.model_dump_json(), media_type="application/json", headers={SERVER_TIMING: server_timing(timings)})
 
 
 def form_sequence(raw: object) -> int | None:
@@ -247,7 +259,7 @@ def form_sequence(raw: object) -> int | None:
 
 
 @router.put("/jobs/{job_id}/lambda", response_model=LambdaResult, responses=JOB_ERRORS, openapi_extra=LAMBDA_BODY)
-async def put_lambda(job_id: str, request: Request, store: Store, worker: Worker) -> LambdaResult:
+async def put_lambda(job_id: str, request: Request, store: Store, worker: Worker) -> Response:
     """JSON `{"value": 2.5}` or `{"rects": [{"x","y","w","h","value"}]}` (painted over the
     current map), or multipart with a single-channel PNG/EXR `map` whose pixels are λ. An
     optional `sequence` orders one client's edits (see LambdaUpdate)."""

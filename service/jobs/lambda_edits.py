@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -43,6 +43,10 @@ class LambdaApplied:
     version: int
     full_passes: int = 0
     tail_passes: int = 0
+    # Seconds of each part of the edit (`_apply`'s parts and the backend's, Relambda.timings;
+    # "edit": from the request to this version, a wait behind a newer request included): what
+    # the API reports in its Server-Timing header (bench/lambda_edit.py splits the round trip by it).
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -58,6 +62,9 @@ class Relambda:
     full_passes: int = 0
     tail_passes: int = 0
     results: Callable[[], list[ExrFrame]] | None = None
+    # seconds: "denoise" (the loop's re-denoise where it lives: the λ tail and the final image),
+    # "hop" (Ray: the actor calls' round trip beyond that, the maps through the object store)
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 # The backend's re-denoise of a job with a λ map: None when nothing was rendered yet.
@@ -132,8 +139,9 @@ class LambdaEdits:
             raise JobConflict(f"job {job_id} is {record.state}: there is nothing left to re-denoise")
         mailbox = self._mailbox(job_id)
         applied = mailbox.wait(mailbox.submit((lam, value), order=sequence), timeout=LAMBDA_WAIT_SECONDS)
-        self._observed(time.perf_counter() - started)
-        return applied
+        seconds = time.perf_counter() - started
+        self._observed(seconds)
+        return LambdaApplied(applied.version, applied.full_passes, applied.tail_passes, {**applied.timings, "edit": seconds})
 
     def _catch_up(self, job_id: str) -> None:
         """Once per process and finished job: if its files were written for another λ than the
@@ -165,17 +173,21 @@ class LambdaEdits:
         # Persisted here, before the answer and on the one thread that applies this job's λ, so
         # the saved map is always the newest request's; later iterations and restarts read it
         # (a loop that opens reads it after registering: one this edit missed still sees it).
+        started = time.perf_counter()
         files = self.files(job_id)
         files.save_lambda(lam)
         with self._lock:
             self._caught_up.add(job_id)  # this process writes the files that follow: nothing to catch up
         self.store.set_lambda_value(job_id, value)
         record = require(self.store, job_id)
+        saved = time.perf_counter()
         done = self._relambda(job_id, record, lam)
+        denoised = time.perf_counter()
+        timings = {"save": saved - started, "relambda": denoised - saved, **(done.timings if done else {})}
         if done is None:
-            return LambdaApplied(record.preview_version)  # nothing rendered yet: used from iteration 1
+            return LambdaApplied(record.preview_version, timings=timings)  # nothing rendered yet: used from iteration 1
         if not done.images:
-            return LambdaApplied(record.preview_version, done.full_passes, done.tail_passes)
+            return LambdaApplied(record.preview_version, done.full_passes, done.tail_passes, timings)
         frames = []
         for f, image in enumerate(done.images):
             previous = self.previews.load(job_id, files, f)
@@ -185,7 +197,8 @@ class LambdaEdits:
         if done.results is not None and require(self.store, job_id).state == COMPLETED:
             build = done.results   # the result follows λ after the run too
             self.previews.writes.submit(job_id, "results", lambda: files.save_results(build()))
-        return LambdaApplied(version, done.full_passes, done.tail_passes)
+        timings["publish"] = time.perf_counter() - denoised
+        return LambdaApplied(version, done.full_passes, done.tail_passes, timings)
 
 
 def _files_show(files: JobFiles, lam: np.ndarray) -> bool:

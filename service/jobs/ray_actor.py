@@ -213,15 +213,18 @@ class JobActor:
 
     # -- λ -----------------------------------------------------------------------------------
 
-    def set_lambda(self, lam: np.ndarray) -> tuple[dict[int, np.ndarray], int, int]:
-        """Re-denoise the owned frames from the cached features: (images, full, tail passes)."""
+    def set_lambda(self, lam: np.ndarray) -> tuple[dict[int, np.ndarray], int, int, float]:
+        """Re-denoise the owned frames from the cached features: (images, full, tail passes,
+        seconds the re-denoise took here: the caller's wall time beyond it is the hop)."""
         session = self.loop.session
         full, tail = (session.full_calls, session.tail_calls) if session else (0, 0)
+        started = time.perf_counter()
         images = self.loop.set_lambda(lam)
+        seconds = time.perf_counter() - started
         owned = {f: images[f] for f in self.loop.owned} if images else {}
         if session is None:
-            return owned, 0, 0
-        return owned, session.full_calls - full, session.tail_calls - tail
+            return owned, 0, 0, seconds
+        return owned, session.full_calls - full, session.tail_calls - tail, seconds
 
     def memory_peak(self) -> int:
         return self.watch.peak

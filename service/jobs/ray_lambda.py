@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import OrderedDict
 from typing import Any, Callable
 
@@ -46,15 +47,18 @@ class LambdaActors:
                  lam: np.ndarray) -> Relambda:
         """Re-denoise the finished job with `lam` in its λ actor and save its results there."""
         actor = self._actor(job_id, record, files, size)
+        started = time.perf_counter()
         try:
-            images, full, tail = self._call(actor.set_lambda.remote(lam))[0]
+            images, full, tail, seconds = self._call(actor.set_lambda.remote(lam))[0]
             self._call(actor.save_results_later.remote())  # the result follows λ after the answer
         except Exception:
             self.drop(job_id)  # a dead or broken actor: the next edit starts a fresh one
             raise
         # copied out of the object store: the preview keeps them, and a pinned object outlives a
         # SIGTERM'd raylet badly (see ray_worker.owned_report)
-        return Relambda([np.array(images[f]) for f in sorted(images)], full, tail)
+        copies = [np.array(images[f]) for f in sorted(images)]
+        hop = time.perf_counter() - started - seconds  # the λ map in, the images out, the two calls
+        return Relambda(copies, full, tail, timings={"denoise": seconds, "hop": hop})
 
     def save_results(self, job_id: str, record: JobRecord, files: JobFiles, size: tuple[int, int]) -> tuple[int, float]:
         """Write the result EXRs of the job's last checkpoint in a worker (a job canceled mid-

@@ -424,15 +424,17 @@ class RayJobWorker(LambdaEditsOfRunner):
             group = list(self._groups.get(job_id, []))
         if not group:
             return self._relambda_finished(job_id, record, lam)
+        started = time.perf_counter()
         try:
             answers = _call(*[actor.set_lambda.remote(lam) for actor in group])
         except WorkerDied:
             return self._relambda_finished(job_id, require(self.store, job_id), lam)  # it just ended
         images: dict[int, np.ndarray] = {}
-        for owned, _, _ in answers:
+        for owned, *_ in answers:
             images.update({f: np.array(image) for f, image in owned.items()})  # out of the object store (ray_lambda)
-        full, tail = sum(a[1] for a in answers), sum(a[2] for a in answers)
-        return Relambda([images[f] for f in sorted(images)], full, tail)
+        full, tail, seconds = sum(a[1] for a in answers), sum(a[2] for a in answers), max(a[3] for a in answers)
+        hop = time.perf_counter() - started - seconds  # the actors run side by side: the slowest one's
+        return Relambda([images[f] for f in sorted(images)], full, tail, timings={"denoise": seconds, "hop": hop})
 
 
     def _relambda_finished(self, job_id: str, record: JobRecord, lam: np.ndarray) -> Relambda | None:

@@ -264,9 +264,11 @@ class JobWorker(LambdaEditsOfRunner):
             return None
         session = loop.session
         full_before, tail_before = (session.full_calls, session.tail_calls) if session else (0, 0)
+        started = time.perf_counter()
         images = loop.set_lambda(lam)
+        seconds = time.perf_counter() - started
         full, tail = (session.full_calls - full_before, session.tail_calls - tail_before) if session else (0, 0)
-        return Relambda(images, full, tail, results=loop.result_frames)
+        return Relambda(images, full, tail, results=loop.result_frames, timings={"denoise": seconds})
 
     def _loop_for_lambda(self, job_id: str, record: JobRecord) -> RenderLoop | None:
         with self._lock:

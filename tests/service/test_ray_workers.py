@@ -236,6 +236,14 @@ def test_a_job_over_its_memory_share_fails_with_a_clear_message_and_the_next_job
     assert wait_until(store, after, lambda r: r.finished).state == COMPLETED
 
 
+def assert_timed_in_an_actor(applied) -> None:
+    """The edit's timings (the PUT's Server-Timing) split the backend's call into the actor's own
+    re-denoise and the hop around it, both inside the call the edit waited for."""
+    t = applied.timings
+    assert t["denoise"] > 0 and t["hop"] > 0, t
+    assert t["relambda"] >= t["denoise"] + t["hop"] - 1e-3 and t["edit"] >= t["relambda"], t
+
+
 def test_lambda_edits_on_a_running_job_rerun_only_the_cached_tail_in_its_worker(worker, store):
     job_id = submit(store, worker, slow_job())
     record = wait_until(store, job_id, lambda r: r.iteration >= 1)
@@ -244,6 +252,7 @@ def test_lambda_edits_on_a_running_job_rerun_only_the_cached_tail_in_its_worker(
     assert store.get(job_id).state == RUNNING  # answered by the job's actor, not a rebuilt loop
     assert (applied.full_passes, applied.tail_passes) == (0, 1)
     assert applied.version > record.preview_version
+    assert_timed_in_an_actor(applied)
     preview = worker.load_preview(job_id, 0)  # the API's read: a λ edit's from memory until written
     assert preview.version >= applied.version and np.all(preview.layers["lambda"] == 3.0)
     worker.cancel(job_id)
@@ -264,6 +273,7 @@ def test_lambda_edits_on_a_finished_job_run_in_a_ray_worker_never_loading_the_sc
     assert first.full_passes == 1  # the checkpoint reopened in a worker: its features cache rebuilt once
     second = worker.set_lambda(job_id, np.full((32, 32), 5.0, dtype=np.float32), 5.0)
     assert (second.full_passes, second.tail_passes) == (0, 1)  # that worker stayed warm
+    assert_timed_in_an_actor(second)
     assert second.version > first.version > done.preview_version
     preview = worker.load_preview(job_id, 0)  # the API's read: a λ edit's from memory until written
     assert preview.version == second.version and np.all(preview.layers["lambda"] == 5.0)

@@ -1,0 +1,63 @@
+"""The λ edit's HTTP round trip as bench/lambda_edit.py reports it, against a real `renderloop
+serve` process (thread backend, a small film): PUT /jobs/{id}/lambda, then the GET of the preview
+it made, split into parts by the server's Server-Timing headers."""
+from __future__ import annotations
+
+
+import pytest
+
+from bench.lambda_edit import LambdaEditTiming, lambda_edit_section
+from bench.server import EDIT_PARTS, bench_http_lambda, edit_parts
+from models.pretrained import SHIPPED_WEIGHTS_DIR
+from service.api.serve import CONCURRENCY_ENV
+from service.api.server_timing import parse_server_timing, server_timing
+
+REQUESTS = 4
+
+
+@pytest.fixture(scope="module")
+def thread_backend_row() -> dict:
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv(CONCURRENCY_ENV, "1")  # the server subprocess inherits it: the thread backend
+        return bench_http_lambda(48, REQUESTS, SHIPPED_WEIGHTS_DIR, seed=0, torch_threads=1, height=32)
+
+
+def test_every_timed_edit_changes_the_preview_the_page_reads(thread_backend_row) -> None:
+    row = thread_backend_row
+    assert row["requests"] == REQUESTS and row["changed"] == REQUESTS
+    assert (row["tail_passes"], row["full_passes"]) == (REQUESTS, 0)  # the cached tail, never a full pass
+
+
+def test_the_round_trip_holds_the_tail_and_the_preview_read(thread_backend_row) -> None:
+    row, parts = thread_backend_row, thread_backend_row["parts_ms"]
+    assert set(parts) == {key for key, _ in EDIT_PARTS}
+    assert parts["hop"] == 0  # no actor on the thread backend
+    assert 0 < parts["denoise"] <= row["p50_ms"] * 3  # the loop's re-denoise, inside the PUT
+    assert parts["encode"] > 0 and parts["save"] > 0 and parts["map"] >= 0
+    assert row["readable_p50_ms"] >= row["p50_ms"] * 0.5 and row["readable_p50_ms"] > parts["denoise"]
+    assert row["readable_p95_ms"] >= row["readable_p50_ms"]
+
+
+def test_the_parts_add_up_to_the_round_trip() -> None:
+    put = {"map": 0.01, "save": 0.02, "relambda": 0.3, "denoise": 0.25, "hop": 0.04, "publish": 0.005,
+           "edit": 0.33, "total": 0.35}
+    parts = edit_parts(0.4, 0.2, put, {"encode": 0.15})
+    assert sum(parts.values()) == pytest.approx(0.6)
+    assert parts["http"] == pytest.approx(0.05) and parts["transfer"] == pytest.approx(0.05)
+    assert parts["other"] == pytest.approx(0.35 - 0.01 - 0.02 - 0.25 - 0.04 - 0.005)
+
+
+def test_server_timing_round_trips_in_milliseconds() -> None:
+    header = server_timing({"denoise": 0.2504, "hop": 0.0})
+    assert header == "denoise;dur=250.4, hop;dur=0.0"
+    assert parse_server_timing(header) == pytest.approx({"denoise": 0.2504, "hop": 0.0})
+    assert parse_server_timing(None) == {} and parse_server_timing("cache, db;dur=1") == {"db": 0.001}
+
+
+def test_the_section_tables_each_backend_and_says_what_failed(thread_backend_row) -> None:
+    timing = LambdaEditTiming(48, 32, 1, {"uniform map (global λ)": [5.0]},
+                              http={"thread": thread_backend_row, "ray": "RuntimeError: no Ray here"})
+    section = lambda_edit_section(timing)
+    assert "| **PUT → preview readable, p50 / p95 ms** | **" in section
+    assert "thread backend (`--concurrency 1`)" in section and "not measured: RuntimeError: no Ray here" in section
+    assert section.count("| … ") == len(EDIT_PARTS)
