@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 
 from bench.common import fill, load_average, load_bench_networks, pinned_torch_threads, provenance
+from bench.preview_encoding import encoding_line
 from bench.server import EDIT_PARTS, bench_http_lambda
 from models.denoiser import Denoiser
 from models.frames import FrameTensors
@@ -46,6 +47,7 @@ HTTP_SEED = 0
 HTTP_BACKENDS = ("ray", "thread")
 BACKEND_LABELS = {"ray": "Ray backend (the default)", "thread": "thread backend (`--concurrency 1`)"}
 PER_PIXEL_CASE = "per-pixel map (a gradient: too many values to fold)"
+ENCODE_REPEATS = 5
 
 
 @dataclass
@@ -112,7 +114,9 @@ def _http_round_trip(backend: str, width: int, height: int, requests: int, weigh
     if backend == "thread":
         os.environ[CONCURRENCY_ENV] = "1"
     try:
-        return bench_http_lambda(width, requests, weights_dir, HTTP_SEED, threads, height=height)
+        # the PNG side by side once, on the thread backend's last preview
+        return bench_http_lambda(width, requests, weights_dir, HTTP_SEED, threads, height=height,
+                                 encode_repeats=ENCODE_REPEATS if backend == "thread" else 0)
     except Exception as exc:  # the report says what failed instead of losing the table
         return f"{type(exc).__name__}: {exc}"
     finally:
@@ -147,6 +151,7 @@ def http_table(http: dict[str, dict | str]) -> list[str]:
         lines += [line(f"… {label}, ms", lambda r, k=key: "{:.0f}".format(r["parts_ms"][k])) for key, label in EDIT_PARTS]
         lines.append(line("edits timed; whose preview changed; λ-tail / full passes",
                           lambda r: "{}; {}; {} / {}".format(r["requests"], r["changed"], r["tail_passes"], r["full_passes"])))
+    lines += ["", *(encoding_line(row["encoding"]) for row in measured.values() if row.get("encoding"))]
     for backend, row in http.items():
         if not isinstance(row, dict):
             lines.append(f"- Over HTTP ({BACKEND_LABELS[backend]}): not measured: {row}")

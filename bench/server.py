@@ -22,9 +22,11 @@ import httpx
 import numpy as np
 import uvicorn
 
+from bench.preview_encoding import time_preview_encoding
 from models.pretrained import WEIGHTS_DIR_ENV
 from service.api.serve import DATA_DIR_ENV, app_from_env
 from service.api.server_timing import HEADER as SERVER_TIMING, parse_server_timing
+from service.exr import exr_from_bytes
 from service.loop.tensors import TORCH_THREADS_ENV
 
 SERVER_STARTUP_SECONDS = 180.0  # importing torch + Mitsuba on a loaded 2-core machine is slow
@@ -163,11 +165,12 @@ def percentile_ms(seconds: list[float], q: float) -> float:
 
 
 def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, torch_threads: int,
-                      height: int | None = None, spp: int = 16) -> dict:
+                      height: int | None = None, spp: int = 16, encode_repeats: int = 0) -> dict:
     """p50/p95 of PUT /jobs/{id}/lambda round trips on a finished job (the cached λ tail path),
     alternating a global value and a painted rectangle so every request changes the image, each
     followed by the GET of its preview (EditTiming), after one untimed warm-up edit. The job is
-    size² (size wide and `height` high when given), one iteration of `spp`."""
+    size² (size wide and `height` high when given), one iteration of `spp`. With `encode_repeats`,
+    "encoding" is the last preview's PNG cost at two zlib levels (bench.preview_encoding)."""
     height = height or size
     with tempfile.TemporaryDirectory(prefix="renderloop-bench-") as tmp:
         with running_server(Path(tmp) / "data", weights_dir, torch_threads) as url, httpx.Client(base_url=url, timeout=600) as client:
@@ -186,6 +189,11 @@ def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, to
                 edits.append(edit)
                 tail += answer.get("tail_passes", 0)
                 full += answer.get("full_passes", 0)
+            encoding = None
+            if encode_repeats:  # untimed by the edits: after the last one
+                exr = client.get(f"/jobs/{job_id}/preview", params={"layer": "denoised", "format": "exr"})
+                exr.raise_for_status()
+                encoding = time_preview_encoding(exr_from_bytes(exr.content).color, encode_repeats)
     put = [e.put_s for e in edits]
     return {"size": size, "height": height, "requests": len(edits), "p50_ms": percentile_ms(put, 50),
             "p95_ms": percentile_ms(put, 95), "max_ms": 1e3 * max(put), "tail_passes": tail, "full_passes": full,
@@ -194,4 +202,4 @@ def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, to
             "get_p50_ms": percentile_ms([e.get_s for e in edits], 50),
             "parts_ms": {key: percentile_ms([e.parts[key] for e in edits], 50) for key, _ in EDIT_PARTS},
             "changed": sum(e.changed for e in edits), "unchanged": [i for i, e in enumerate(edits) if not e.changed],
-            "spp": spp}
+            "spp": spp, "encoding": encoding}

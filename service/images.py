@@ -46,9 +46,10 @@ def false_colour(values: np.ndarray, vmax: float | None = None) -> np.ndarray:
     return colormap(values, 0.0, top)
 
 
-def png_bytes(rgb8: np.ndarray) -> bytes:
+def png_bytes(rgb8: np.ndarray, compress_level: int = 6) -> bytes:
+    """Lossless PNG; `compress_level` is zlib's (6: Pillow's default, 1: fastest)."""
     out = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(rgb8), mode="RGB").save(out, format="PNG")
+    Image.fromarray(np.ascontiguousarray(rgb8), mode="RGB").save(out, format="PNG", compress_level=compress_level)
     return out.getvalue()
 
 

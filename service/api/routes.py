@@ -28,7 +28,6 @@ from service.api.schemas import (ErrorBody, Health, ImageFormat, JobCreate, JobC
                                  SceneList)
 from service.api.submit import (builtin_job, invalid, is_multipart, json_body, parse_bundle_spec, unpack_bundle,
                                 uploads, validated)
-from service.images import png_bytes
 from service.jobs import bundle
 from service.jobs.errors import JobConflict, JobNotFound
 from service.jobs.record import job_spec
@@ -203,7 +202,7 @@ def get_preview(
     if format == "exr":
         body, media_type = imaging.exr_bytes(layer, values), "image/x-exr"
     else:
-        body, media_type = png_bytes(imaging.to_rgb8(layer, values, exposure)), "image/png"
+        body, media_type = imaging.png_preview(layer, values, exposure), "image/png"
     headers[SERVER_TIMING] = server_timing({"encode": time.perf_counter() - started})
     return Response(body, media_type=media_type, headers=headers)
 

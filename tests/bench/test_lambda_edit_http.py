@@ -3,12 +3,17 @@ serve` process (thread backend, a small film): PUT /jobs/{id}/lambda, then the G
 it made, split into parts by the server's Server-Timing headers."""
 from __future__ import annotations
 
+import io
 
+import numpy as np
 import pytest
+from PIL import Image
 
 from bench.lambda_edit import LambdaEditTiming, lambda_edit_section
+from bench.preview_encoding import DEFAULT_PNG_LEVEL
 from bench.server import EDIT_PARTS, bench_http_lambda, edit_parts
 from models.pretrained import SHIPPED_WEIGHTS_DIR
+from service.api.imaging import PREVIEW_PNG_LEVEL, png_preview, to_rgb8
 from service.api.serve import CONCURRENCY_ENV
 from service.api.server_timing import parse_server_timing, server_timing
 
@@ -19,7 +24,7 @@ REQUESTS = 4
 def thread_backend_row() -> dict:
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv(CONCURRENCY_ENV, "1")  # the server subprocess inherits it: the thread backend
-        return bench_http_lambda(48, REQUESTS, SHIPPED_WEIGHTS_DIR, seed=0, torch_threads=1, height=32)
+        return bench_http_lambda(48, REQUESTS, SHIPPED_WEIGHTS_DIR, seed=0, torch_threads=1, height=32, encode_repeats=1)
 
 
 def test_every_timed_edit_changes_the_preview_the_page_reads(thread_backend_row) -> None:
@@ -61,3 +66,17 @@ def test_the_section_tables_each_backend_and_says_what_failed(thread_backend_row
     assert "| **PUT → preview readable, p50 / p95 ms** | **" in section
     assert "thread backend (`--concurrency 1`)" in section and "not measured: RuntimeError: no Ray here" in section
     assert section.count("| … ") == len(EDIT_PARTS)
+    assert f"PNG at zlib level {DEFAULT_PNG_LEVEL}" in section and f"at level {PREVIEW_PNG_LEVEL}" in section
+
+
+def test_the_last_preview_is_encoded_at_both_png_levels_side_by_side(thread_backend_row) -> None:
+    encoding = thread_backend_row["encoding"]
+    assert (encoding.width, encoding.height) == (48, 32)  # the job's preview, fetched as EXR
+    assert encoding.tonemap_ms > 0 and set(encoding.png_ms) == {DEFAULT_PNG_LEVEL, PREVIEW_PNG_LEVEL}
+    assert min(encoding.png_ms.values()) > 0 and min(encoding.png_mb.values()) > 0
+
+
+def test_the_preview_png_holds_exactly_the_tonemapped_pixels() -> None:
+    radiance = np.random.default_rng(0).random((24, 40, 3), dtype=np.float32) * 2
+    decoded = np.asarray(Image.open(io.BytesIO(png_preview("denoised", radiance, exposure=0.5))))
+    np.testing.assert_array_equal(decoded, to_rgb8("denoised", radiance, 0.5))
