@@ -100,7 +100,8 @@ EDIT_PARTS = (
     ("http", "HTTP, routing, JSON (the PUT's round trip less the server's handling)"),
     ("map", "λ map built from the request (a painted one over the saved map)"),
     ("save", "λ map saved (the edit's durable record) + job store"),
-    ("denoise", "re-denoise where the loop lives: the λ tail + the final image"),
+    ("tail", "the λ tail where the loop lives (Denoiser.apply from cached features, images out)"),
+    ("final", "the final image (converged pixels kept, the blend toward the raw image)"),
     ("hop", "Ray: the actor calls beyond that (λ map in, images out through the object store)"),
     ("publish", "new preview version published in memory"),
     ("other", "the rest of the server's handling (the λ mailbox's hand-over, finding the job's loop)"),
@@ -128,8 +129,9 @@ def edit_parts(put_s: float, get_s: float, put_timing: dict[str, float], get_tim
     """EDIT_PARTS from the client's wall times and the server's timings (seconds). They add up to
     the round trip: "http" is the PUT beyond the server's "total", "other" the server's total
     beyond its named parts, "transfer" the GET beyond its "encode"."""
-    named = ("map", "save", "denoise", "hop", "publish")
+    named = ("map", "save", "tail", "hop", "publish")
     parts = {key: put_timing.get(key, 0.0) for key in named}
+    parts["final"] = put_timing.get("denoise", 0.0) - parts["tail"]
     return {"http": put_s - put_timing.get("total", 0.0), **parts,
             "other": put_timing.get("total", 0.0) - sum(parts.values()),
             "encode": get_timing.get("encode", 0.0), "transfer": get_s - get_timing.get("encode", 0.0)}

@@ -63,7 +63,8 @@ class Relambda:
     tail_passes: int = 0
     results: Callable[[], list[ExrFrame]] | None = None
     # seconds: "denoise" (the loop's re-denoise where it lives: the λ tail and the final image),
-    # "hop" (Ray: the actor calls' round trip beyond that, the maps through the object store)
+    # "tail" (the λ tail within it), "hop" (Ray: the actor calls' round trip beyond "denoise",
+    # the maps through the object store)
     timings: dict[str, float] = field(default_factory=dict)
 
 

@@ -213,18 +213,20 @@ class JobActor:
 
     # -- λ -----------------------------------------------------------------------------------
 
-    def set_lambda(self, lam: np.ndarray) -> tuple[dict[int, np.ndarray], int, int, float]:
+    def set_lambda(self, lam: np.ndarray) -> tuple[dict[int, np.ndarray], int, int, dict[str, float]]:
         """Re-denoise the owned frames from the cached features: (images, full, tail passes,
-        seconds the re-denoise took here: the caller's wall time beyond it is the hop)."""
+        seconds here: "denoise" the loop's re-denoise, "tail" the λ tail within it; the caller's
+        wall time beyond "denoise" is the hop)."""
         session = self.loop.session
-        full, tail = (session.full_calls, session.tail_calls) if session else (0, 0)
+        full, tail, tail_seconds = (session.full_calls, session.tail_calls, session.tail_seconds) if session else (0, 0, 0.0)
         started = time.perf_counter()
         images = self.loop.set_lambda(lam)
-        seconds = time.perf_counter() - started
+        timings = {"denoise": time.perf_counter() - started,
+                   "tail": session.tail_seconds - tail_seconds if session else 0.0}
         owned = {f: images[f] for f in self.loop.owned} if images else {}
         if session is None:
-            return owned, 0, 0, seconds
-        return owned, session.full_calls - full, session.tail_calls - tail, seconds
+            return owned, 0, 0, timings
+        return owned, session.full_calls - full, session.tail_calls - tail, timings
 
     def memory_peak(self) -> int:
         return self.watch.peak

@@ -49,7 +49,7 @@ class LambdaActors:
         actor = self._actor(job_id, record, files, size)
         started = time.perf_counter()
         try:
-            images, full, tail, seconds = self._call(actor.set_lambda.remote(lam))[0]
+            images, full, tail, timings = self._call(actor.set_lambda.remote(lam))[0]
             self._call(actor.save_results_later.remote())  # the result follows λ after the answer
         except Exception:
             self.drop(job_id)  # a dead or broken actor: the next edit starts a fresh one
@@ -57,8 +57,8 @@ class LambdaActors:
         # copied out of the object store: the preview keeps them, and a pinned object outlives a
         # SIGTERM'd raylet badly (see ray_worker.owned_report)
         copies = [np.array(images[f]) for f in sorted(images)]
-        hop = time.perf_counter() - started - seconds  # the λ map in, the images out, the two calls
-        return Relambda(copies, full, tail, timings={"denoise": seconds, "hop": hop})
+        hop = time.perf_counter() - started - timings["denoise"]  # the λ map in, the images out, the two calls
+        return Relambda(copies, full, tail, timings={**timings, "hop": hop})
 
     def save_results(self, job_id: str, record: JobRecord, files: JobFiles, size: tuple[int, int]) -> tuple[int, float]:
         """Write the result EXRs of the job's last checkpoint in a worker (a job canceled mid-

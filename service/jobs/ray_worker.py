@@ -432,9 +432,10 @@ class RayJobWorker(LambdaEditsOfRunner):
         images: dict[int, np.ndarray] = {}
         for owned, *_ in answers:
             images.update({f: np.array(image) for f, image in owned.items()})  # out of the object store (ray_lambda)
-        full, tail, seconds = sum(a[1] for a in answers), sum(a[2] for a in answers), max(a[3] for a in answers)
-        hop = time.perf_counter() - started - seconds  # the actors run side by side: the slowest one's
-        return Relambda([images[f] for f in sorted(images)], full, tail, timings={"denoise": seconds, "hop": hop})
+        full, tail = sum(a[1] for a in answers), sum(a[2] for a in answers)
+        slowest = max((a[3] for a in answers), key=lambda t: t["denoise"])  # the actors run side by side
+        hop = time.perf_counter() - started - slowest["denoise"]
+        return Relambda([images[f] for f in sorted(images)], full, tail, timings={**slowest, "hop": hop})
 
 
     def _relambda_finished(self, job_id: str, record: JobRecord, lam: np.ndarray) -> Relambda | None:

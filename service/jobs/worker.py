@@ -263,12 +263,14 @@ class JobWorker(LambdaEditsOfRunner):
         if loop is None:
             return None
         session = loop.session
-        full_before, tail_before = (session.full_calls, session.tail_calls) if session else (0, 0)
+        full_before, tail_before, seconds_before = (session.full_calls, session.tail_calls, session.tail_seconds) \
+            if session else (0, 0, 0.0)
         started = time.perf_counter()
         images = loop.set_lambda(lam)
-        seconds = time.perf_counter() - started
+        timings = {"denoise": time.perf_counter() - started,
+                   "tail": session.tail_seconds - seconds_before if session else 0.0}
         full, tail = (session.full_calls - full_before, session.tail_calls - tail_before) if session else (0, 0)
-        return Relambda(images, full, tail, results=loop.result_frames, timings={"denoise": seconds})
+        return Relambda(images, full, tail, results=loop.result_frames, timings=timings)
 
     def _loop_for_lambda(self, job_id: str, record: JobRecord) -> RenderLoop | None:
         with self._lock:

@@ -8,6 +8,7 @@ mailbox) while the loop renders.
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import torch
@@ -32,6 +33,7 @@ class DenoiseSession:
         self._frames: dict[int, DenoisedFrame] = {}
         self.full_calls = 0  # full denoiser forward passes (prepare + apply)
         self.tail_calls = 0  # λ-only re-runs from cached features
+        self.tail_seconds = 0.0  # their wall time, images out included (a λ edit's Server-Timing)
         # Frames go where the networks are: CPU, or CUDA on a GPU worker (service.jobs.ray_actor).
         self.device = next(networks.denoiser.parameters()).device
 
@@ -81,6 +83,8 @@ class DenoiseSession:
         """Every owned frame re-denoised with a new λ map from the cached features."""
         lam = lam_tensor(lam_map)
         with self.lock:
+            started = time.perf_counter()
             images = {f: to_image(self.networks.denoiser.apply(frame.cache, lam)) for f, frame in self._frames.items()}
             self.tail_calls += len(images)
+            self.tail_seconds += time.perf_counter() - started
         return images
