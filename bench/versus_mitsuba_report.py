@@ -198,7 +198,9 @@ def network_table(scenes: list[SceneRun], probe: CostProbe | None, threads: int)
     scaled = (f"; scaled linearly to 2 MP: {statistics.median(tails) * 2.0 / mp:.0f} ms" if mp >= 0.5 else
               "; not scaled to 2 MP from so small a film, where per-call overhead dominates")
     lines += ["", f"λ tail per edit at this size (median {mp:.2f} MP): {statistics.median(tails):.0f} ms "
-                  f"(bar at 2 MP: ≤ 300 ms on 2 CPU threads{scaled})."]
+                  f"(bar at 2 MP: ≤ 300 ms on 2 CPU threads{scaled}). A λ edit's whole round trip over HTTP at "
+                  "1920×1080, on both job backends of a real server, with its parts: docs/lambda-edit.md "
+                  "(`renderloop bench --lambda-edit`)."]
     return "\n".join(lines)
 
 

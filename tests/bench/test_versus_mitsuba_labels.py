@@ -41,3 +41,8 @@ def test_weights_without_the_candidate_keep_their_zero_row() -> None:
 def test_the_shipped_denoiser_takes_the_oidn_candidate() -> None:
     """The fixed costs read `takes_candidate` off the loaded denoiser's config; the shipped one's is on."""
     assert load_networks().denoiser.config.oidn_candidate
+
+
+def test_the_network_table_points_to_the_http_round_trip_report() -> None:
+    table = network_table([scene_run(True, 1358.0)], None, 2)
+    assert "docs/lambda-edit.md (`renderloop bench --lambda-edit`)" in table
