@@ -48,6 +48,7 @@ HTTP_BACKENDS = ("ray", "thread")
 BACKEND_LABELS = {"ray": "Ray backend (the default)", "thread": "thread backend (`--concurrency 1`)"}
 PER_PIXEL_CASE = "per-pixel map (a gradient: too many values to fold)"
 ENCODE_REPEATS = 5
+SETTLED_EDITS = 5  # after the back-to-back ones: each once the one before wrote its files
 
 
 @dataclass
@@ -116,7 +117,7 @@ def _http_round_trip(backend: str, width: int, height: int, requests: int, weigh
     try:
         # the PNG side by side once, on the thread backend's last preview
         return bench_http_lambda(width, requests, weights_dir, HTTP_SEED, threads, height=height,
-                                 encode_repeats=ENCODE_REPEATS if backend == "thread" else 0)
+                                 encode_repeats=ENCODE_REPEATS if backend == "thread" else 0, settled=SETTLED_EDITS)
     except Exception as exc:  # the report says what failed instead of losing the table
         return f"{type(exc).__name__}: {exc}"
     finally:
@@ -149,8 +150,13 @@ def http_table(http: dict[str, dict | str]) -> list[str]:
                   line("PUT alone, p50 / p95 ms", lambda r: "{:.0f} / {:.0f}".format(r["p50_ms"], r["p95_ms"])),
                   line("GET of the preview, p50 ms", lambda r: "{:.0f}".format(r["get_p50_ms"]))]
         lines += [line(f"… {label}, ms", lambda r, k=key: "{:.0f}".format(r["parts_ms"][k])) for key, label in EDIT_PARTS]
+        lines += [line("settled: PUT → preview readable, p50 ms (each edit once the one before wrote its files)",
+                       lambda r: "{:.0f}".format(r["settled_readable_p50_ms"])),
+                  line("settled: the edit's files (preview layers, result EXRs) landed after the answer, p50 ms",
+                       lambda r: "{:.0f}".format(r["files_landed_p50_ms"]))]
         lines.append(line("edits timed; whose preview changed; λ-tail / full passes",
-                          lambda r: "{}; {}; {} / {}".format(r["requests"], r["changed"], r["tail_passes"], r["full_passes"])))
+                          lambda r: "{} + {} settled; {}; {} / {}".format(r["requests"], r["settled"], r["changed"],
+                                                                        r["tail_passes"], r["full_passes"])))
     lines += ["", *(encoding_line(row["encoding"]) for row in measured.values() if row.get("encoding"))]
     for backend, row in http.items():
         if not isinstance(row, dict):

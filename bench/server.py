@@ -7,6 +7,7 @@ EDIT_PARTS.
 """
 from __future__ import annotations
 
+import math
 import os
 import socket
 import subprocess
@@ -102,10 +103,10 @@ EDIT_PARTS = (
     ("save", "λ map saved (the edit's durable record) + job store"),
     ("tail", "the λ tail where the loop lives (Denoiser.apply from cached features, images out)"),
     ("final", "the final image (converged pixels kept, the blend toward the raw image)"),
-    ("hop", "Ray: the actor calls beyond that (λ map in, images out through the object store)"),
+    ("hop", "Ray: the actor calls beyond the actor's re-denoise (λ map in, images out through the object store)"),
     ("publish", "new preview version published in memory"),
     ("other", "the rest of the server's handling (the λ mailbox's hand-over, finding the job's loop)"),
-    ("encode", "GET preview: the 2-D layer tonemapped and PNG-encoded"),
+    ("encode", "GET preview: the layer tonemapped and PNG-encoded"),
     ("transfer", "GET preview: the rest (HTTP, the PNG's bytes)"),
 )
 
@@ -162,17 +163,30 @@ def timed_edit(client: httpx.Client, job_id: str, body: dict, previous_png: byte
     return EditTiming(put_s, get_s, parts, previous_png is not None and get.content != previous_png), put.json(), get.content
 
 
+def settled_edit(client: httpx.Client, job_id: str, body: dict, previous_png: bytes | None) -> tuple[EditTiming, float, bytes]:
+    """timed_edit, then GET result.exr, which answers once the edit's files (preview layers,
+    result EXRs) are written: its Server-Timing "flush" is how long that still took. Returns
+    (timing, seconds from the PUT's answer until the files landed, the PNG); the EXR is not read."""
+    edit, _, png = timed_edit(client, job_id, body, previous_png)
+    with client.stream("GET", f"/jobs/{job_id}/result.exr") as result:
+        result.raise_for_status()
+        flush = parse_server_timing(result.headers.get(SERVER_TIMING)).get("flush", 0.0)
+    return edit, edit.get_s + flush, png
+
+
 def percentile_ms(seconds: list[float], q: float) -> float:
     return float(np.percentile(np.array(seconds) * 1e3, q))
 
 
 def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, torch_threads: int,
-                      height: int | None = None, spp: int = 16, encode_repeats: int = 0) -> dict:
+                      height: int | None = None, spp: int = 16, encode_repeats: int = 0, settled: int = 0) -> dict:
     """p50/p95 of PUT /jobs/{id}/lambda round trips on a finished job (the cached λ tail path),
     alternating a global value and a painted rectangle so every request changes the image, each
     followed by the GET of its preview (EditTiming), after one untimed warm-up edit. The job is
-    size² (size wide and `height` high when given), one iteration of `spp`. With `encode_repeats`,
-    "encoding" is the last preview's PNG cost at two zlib levels (bench.preview_encoding)."""
+    size² (size wide and `height` high when given), one iteration of `spp`. Then `settled` edits
+    each once the one before has written its files (settled_edit): the round trip without them,
+    and how long the files took after the answer. With `encode_repeats`, "encoding" is the last
+    preview's PNG cost at two zlib levels (bench.preview_encoding)."""
     height = height or size
     with tempfile.TemporaryDirectory(prefix="renderloop-bench-") as tmp:
         with running_server(Path(tmp) / "data", weights_dir, torch_threads) as url, httpx.Client(base_url=url, timeout=600) as client:
@@ -191,6 +205,11 @@ def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, to
                 edits.append(edit)
                 tail += answer.get("tail_passes", 0)
                 full += answer.get("full_passes", 0)
+            calm, landed = [], []
+            for body in lambda_bodies(size, height, settled):
+                edit, seconds, png = settled_edit(client, job_id, body, png)
+                calm.append(edit)
+                landed.append(seconds)
             encoding = None
             if encode_repeats:  # untimed by the edits: after the last one
                 exr = client.get(f"/jobs/{job_id}/preview", params={"layer": "denoised", "format": "exr"})
@@ -204,4 +223,6 @@ def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, to
             "get_p50_ms": percentile_ms([e.get_s for e in edits], 50),
             "parts_ms": {key: percentile_ms([e.parts[key] for e in edits], 50) for key, _ in EDIT_PARTS},
             "changed": sum(e.changed for e in edits), "unchanged": [i for i, e in enumerate(edits) if not e.changed],
-            "spp": spp, "encoding": encoding}
+            "spp": spp, "encoding": encoding, "settled": len(calm),
+            "settled_readable_p50_ms": percentile_ms([e.readable_s for e in calm], 50) if calm else math.nan,
+            "files_landed_p50_ms": percentile_ms(landed, 50) if landed else math.nan}

@@ -213,10 +213,12 @@ def get_result(record: Job, worker: Worker, frame: int = Query(0, ge=0)) -> File
     check_frame(record, frame)
     if not record.finished:
         raise JobConflict(f"job is {record.state}: result.exr is written when it finishes")
+    started = time.perf_counter()
     path = worker.result_path(record.id, frame)  # the job's λ edits written into it first
     if not path.is_file():
         raise JobConflict(f"job is {record.state} and produced no result")
-    return FileResponse(path, media_type="image/x-exr", filename=f"{record.id}_frame{frame:03d}.exr")
+    return FileResponse(path, media_type="image/x-exr", filename=f"{record.id}_frame{frame:03d}.exr",
+                        headers={SERVER_TIMING: server_timing({"flush": time.perf_counter() - started})})
 
 
 # -- change -------------------------------------------------------------------------------------

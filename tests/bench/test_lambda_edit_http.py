@@ -24,7 +24,8 @@ REQUESTS = 4
 def thread_backend_row() -> dict:
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv(CONCURRENCY_ENV, "1")  # the server subprocess inherits it: the thread backend
-        return bench_http_lambda(48, REQUESTS, SHIPPED_WEIGHTS_DIR, seed=0, torch_threads=1, height=32, encode_repeats=1)
+        return bench_http_lambda(48, REQUESTS, SHIPPED_WEIGHTS_DIR, seed=0, torch_threads=1, height=32, encode_repeats=1,
+                                 settled=1)
 
 
 def test_every_timed_edit_changes_the_preview_the_page_reads(thread_backend_row) -> None:
@@ -41,6 +42,13 @@ def test_the_round_trip_holds_the_tail_and_the_preview_read(thread_backend_row) 
     assert parts["encode"] > 0 and parts["save"] > 0 and parts["map"] >= 0
     assert row["readable_p50_ms"] >= row["p50_ms"] * 0.5 and row["readable_p50_ms"] > parts["tail"]
     assert row["readable_p95_ms"] >= row["readable_p50_ms"]
+
+
+def test_a_settled_edit_times_its_files_landing_after_the_answer(thread_backend_row) -> None:
+    row = thread_backend_row
+    assert row["settled"] == 1 and row["settled_readable_p50_ms"] > 0
+    # the files land after the answer, no sooner than the preview GET that followed it ended
+    assert row["files_landed_p50_ms"] > 0
 
 
 def test_the_parts_add_up_to_the_round_trip() -> None:
