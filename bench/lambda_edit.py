@@ -155,8 +155,10 @@ def http_table(http: dict[str, dict | str]) -> list[str]:
                   line("settled: the edit's files (preview layers, result EXRs) landed after the answer, p50 ms",
                        lambda r: "{:.0f}".format(r["files_landed_p50_ms"]))]
         lines.append(line("edits timed; whose preview changed; λ-tail / full passes",
-                          lambda r: "{} + {} settled; {}; {} / {}".format(r["requests"], r["settled"], r["changed"],
-                                                                        r["tail_passes"], r["full_passes"])))
+                          lambda r: "{} + {} settled; {}{}; {} / {}".format(
+                           r["requests"], r["settled"], r["changed"],
+                           f" (not edits {', '.join(map(str, r['unchanged']))})" if r["unchanged"] else "",
+                           r["tail_passes"], r["full_passes"])))
     lines += ["", *(encoding_line(row["encoding"]) for row in measured.values() if row.get("encoding"))]
     for backend, row in http.items():
         if not isinstance(row, dict):

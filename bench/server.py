@@ -139,10 +139,12 @@ def edit_parts(put_s: float, get_s: float, put_timing: dict[str, float], get_tim
 
 
 def lambda_bodies(width: int, height: int, requests: int) -> list[dict]:
-    """A global value and a painted rectangle (the left half) alternating, each changing the image."""
-    return [{"value": 2.0 + (i % 7)} if i % 2 == 0 else
-            {"rects": [{"x": 0, "y": 0, "w": max(1, width // 2), "h": height, "value": 10.0 - (i % 5)}]}
-            for i in range(requests)]
+    """A global value g (2, 3, … 8, 2, …) and a rectangle over the left half painted at 11 − g
+    alternating: every map differs from the one before it (each value from its neighbours')."""
+    values = [2.0 + (i // 2) % 7 for i in range(requests)]
+    return [{"value": g} if i % 2 == 0 else
+            {"rects": [{"x": 0, "y": 0, "w": max(1, width // 2), "h": height, "value": 11.0 - g}]}
+            for i, g in enumerate(values)]
 
 
 def timed_edit(client: httpx.Client, job_id: str, body: dict, previous_png: bytes | None) -> tuple[EditTiming, dict, bytes]:

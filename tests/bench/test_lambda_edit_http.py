@@ -11,7 +11,7 @@ from PIL import Image
 
 from bench.lambda_edit import LambdaEditTiming, lambda_edit_section
 from bench.preview_encoding import DEFAULT_PNG_LEVEL
-from bench.server import EDIT_PARTS, bench_http_lambda, edit_parts
+from bench.server import EDIT_PARTS, bench_http_lambda, edit_parts, lambda_bodies
 from models.pretrained import SHIPPED_WEIGHTS_DIR
 from service.api.imaging import PREVIEW_PNG_LEVEL, png_preview, to_rgb8
 from service.api.serve import CONCURRENCY_ENV
@@ -59,6 +59,19 @@ def test_the_parts_add_up_to_the_round_trip() -> None:
     assert parts["tail"] == pytest.approx(0.2) and parts["final"] == pytest.approx(0.05)
     assert parts["http"] == pytest.approx(0.05) and parts["transfer"] == pytest.approx(0.05)
     assert parts["other"] == pytest.approx(0.35 - 0.01 - 0.02 - 0.25 - 0.04 - 0.005)
+
+
+def test_every_lambda_map_sent_differs_from_the_one_before() -> None:
+    """Else an edit may leave the preview as it was, and 'changed' counts the requests, not λ."""
+    lam, previous = np.zeros((2, 6)), None
+    for body in lambda_bodies(6, 2, 40):
+        if "value" in body:
+            lam[:] = body["value"]
+        else:
+            rect = body["rects"][0]
+            lam[:, rect["x"]:rect["x"] + rect["w"]] = rect["value"]
+        assert previous is None or not np.array_equal(lam, previous), body
+        previous = lam.copy()
 
 
 def test_server_timing_round_trips_in_milliseconds() -> None:

@@ -112,7 +112,8 @@ def test_the_lambda_edit_reports_the_http_round_trip_against_a_real_server():
         assert http["requests"] == 2 and http["height"] == 32 and http["p50_ms"] > 0
         assert http["tail_passes"] >= 2 and http["full_passes"] == 0
     section = lambda_edit_section(timing)
-    assert section.count("`PUT /jobs/{id}/lambda` over HTTP on a finished 48×32") == 2 and "thread backend" in section
+    assert "on a finished 48×32 cornell-box job" in section
+    assert "| | Ray backend (the default) | thread backend (`--concurrency 1`) |" in section
 
 
 @pytest.mark.slow
