@@ -102,3 +102,12 @@ def test_the_preview_png_holds_exactly_the_tonemapped_pixels() -> None:
     radiance = np.random.default_rng(0).random((24, 40, 3), dtype=np.float32) * 2
     decoded = np.asarray(Image.open(io.BytesIO(png_preview("denoised", radiance, exposure=0.5))))
     np.testing.assert_array_equal(decoded, to_rgb8("denoised", radiance, 0.5))
+
+
+def test_the_tail_is_held_to_its_bar_only_at_2_mp_on_2_threads() -> None:
+    at_bar = LambdaEditTiming(1920, 1080, 2, {"uniform map (global λ)": [250.0], "rectangle map": [310.0, 320.0, 330.0]})
+    assert "250 ms, 320 ms, **not met**" in lambda_edit_section(at_bar)
+    at_bar.ms["rectangle map"] = [290.0]
+    assert "**met**" in lambda_edit_section(at_bar)
+    small = LambdaEditTiming(48, 32, 1, {"uniform map (global λ)": [5.0], "rectangle map": [6.0]})
+    assert "**not comparable (this run: 1 thread(s) at 0.00 MP)**" in lambda_edit_section(small)
