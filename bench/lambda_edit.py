@@ -154,6 +154,8 @@ def http_table(http: dict[str, dict | str]) -> list[str]:
         lines += [line(f"… {label}, ms", lambda r, k=key: "{:.0f}".format(r["parts_ms"][k])) for key, label in EDIT_PARTS]
         lines += [line("settled: PUT → preview readable, p50 ms (each edit once the one before wrote its files)",
                        lambda r: "{:.0f}".format(r["settled_readable_p50_ms"])),
+                  line("settled: … the λ tail where the loop lives, p50 ms (no file writes beside it)",
+                       lambda r: "{:.0f}".format(r["settled_tail_p50_ms"])),
                   line("settled: the edit's files (preview layers, result EXRs) landed after the answer, p50 ms",
                        lambda r: "{:.0f}".format(r["files_landed_p50_ms"]))]
         lines.append(line("edits timed; whose preview changed; λ-tail / full passes",

@@ -168,11 +168,12 @@ def timed_edit(client: httpx.Client, job_id: str, body: dict, previous_png: byte
 def settled_edit(client: httpx.Client, job_id: str, body: dict, previous_png: bytes | None) -> tuple[EditTiming, float, bytes]:
     """timed_edit, then GET result.exr, which answers once the edit's files (preview layers,
     result EXRs) are written: its Server-Timing "flush" is how long that still took. Returns
-    (timing, seconds from the PUT's answer until the files landed, the PNG); the EXR is not read."""
+    (timing, seconds from the PUT's answer until the files landed, the PNG). The EXR is read to
+    its end, so its transfer is over before the next edit starts."""
     edit, _, png = timed_edit(client, job_id, body, previous_png)
-    with client.stream("GET", f"/jobs/{job_id}/result.exr") as result:
-        result.raise_for_status()
-        flush = parse_server_timing(result.headers.get(SERVER_TIMING)).get("flush", 0.0)
+    result = client.get(f"/jobs/{job_id}/result.exr")
+    result.raise_for_status()
+    flush = parse_server_timing(result.headers.get(SERVER_TIMING)).get("flush", 0.0)
     return edit, edit.get_s + flush, png
 
 
@@ -227,4 +228,5 @@ def bench_http_lambda(size: int, requests: int, weights_dir: Path, seed: int, to
             "changed": sum(e.changed for e in edits), "unchanged": [i for i, e in enumerate(edits) if not e.changed],
             "spp": spp, "encoding": encoding, "settled": len(calm),
             "settled_readable_p50_ms": percentile_ms([e.readable_s for e in calm], 50) if calm else math.nan,
+            "settled_tail_p50_ms": percentile_ms([e.parts["tail"] for e in calm], 50) if calm else math.nan,
             "files_landed_p50_ms": percentile_ms(landed, 50) if landed else math.nan}
