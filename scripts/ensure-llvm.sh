@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Dr.Jit's LLVM backend (Mitsuba 3.9 / Dr.Jit 1.5) needs libLLVM >= 17: 15 and 16 abort on
-# `fminimum` (see shared/DESIGN.md). Install Debian 12's libllvm19 when none is present.
+# `fminimum` (docs/design.md, "Runtime facts"). Install Debian 12's libllvm19 when none is present.
 set -euo pipefail
 if [ -n "${DRJIT_LIBLLVM_PATH:-}" ] && [ -f "$DRJIT_LIBLLVM_PATH" ]; then exit 0; fi
 have_llvm() {

@@ -1,0 +1,47 @@
+"""What the code and the README point a reader to exists (issue 46): the code's and scripts'
+references to docs/ name pages in the repository (none names the design notes' old home,
+DESIGN.md, outside it), and the README's Reports table links every report `renderloop bench`
+writes into docs/. tests/test_docs_links.py checks the Markdown pages themselves."""
+from __future__ import annotations
+
+import re
+import subprocess
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+# Where code, set-up and packaging live (tests/ name their own fixtures, docs/ are checked elsewhere).
+CODE_ROOTS = ("service", "models", "bench", "scripts", "docker", "Makefile", "pyproject.toml")
+TEXT_SUFFIXES = {".py", ".sh", ".toml", ".yaml", ".yml", ".html", ".js", ".css", ".md", ""}
+DOCS_PATH = re.compile(r"(?<![\w./-])docs/[\w./-]*\w")
+# A generated report names the command that wrote it near its top (bench/templates/*.md).
+REPORT_COMMAND = re.compile(r"^Command: `renderloop bench", re.MULTILINE)
+
+
+def code_files() -> list[Path]:
+    listed = subprocess.run(["git", "ls-files", "--", *CODE_ROOTS], cwd=REPO, capture_output=True, text=True,
+                            check=True).stdout.split()
+    return [REPO / name for name in listed
+            if (REPO / name).is_file() and (REPO / name).suffix in TEXT_SUFFIXES]
+
+
+def test_every_docs_page_the_code_names_is_in_the_repository():
+    dead = []
+    for path in code_files():
+        text = path.read_text(encoding="utf-8", errors="replace")
+        dead += [f"{path.relative_to(REPO)}: {ref}" for ref in DOCS_PATH.findall(text)
+                 if not (REPO / ref.rstrip(".")).exists()]
+        if "DESIGN.md" in text:
+            dead.append(f"{path.relative_to(REPO)}: DESIGN.md (the design is docs/design.md)")
+    assert dead == []
+
+
+def generated_reports() -> list[str]:
+    return sorted(page.name for page in (REPO / "docs").glob("*.md")
+                  if REPORT_COMMAND.search("\n".join(page.read_text(encoding="utf-8").splitlines()[:6])))
+
+
+def test_the_readme_links_every_report_renderloop_bench_writes_into_docs():
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    reports = generated_reports()
+    assert "val-quality.md" in reports and "design.md" not in reports   # the detection itself
+    assert [name for name in reports if f"](docs/{name})" not in readme] == []
