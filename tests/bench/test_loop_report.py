@@ -14,6 +14,7 @@ import torch
 from bench.common import METRIC_NAMES as METRICS
 from bench.cli import main as bench_main
 from bench.common import true_error_map
+from bench import loop_report
 from bench.loop_report import run_loop_benchmark
 from bench.loop_run import METHODS, STAGES, Headline, TrueErrorMap, select_methods, time_to_reach
 from bench.loop_seeds import bound_line, gaps, seed_table
@@ -25,6 +26,9 @@ def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, tiny_weight
     # service.api.serve.app_from_env in the server process): the report's plumbing is under test,
     # not Ray, and a local Ray start was most of this test's time (tests/service cover Ray's λ path).
     monkeypatch.setenv("RENDERLOOP_CONCURRENCY", "1")
+    # The models micro-benchmark spawns one fresh torch process per case (seconds each): one case
+    # pins its section here; every case runs in tests/bench/test_models_report.py.
+    monkeypatch.setattr(loop_report, "MODEL_CASES", ("lambda-tail",))
     report = run_loop_benchmark(tmp_path / "docs", quick=True, weights_dir=tiny_weights_dir, cache_dir=tmp_path / "cache",
                                 command="renderloop bench --loop --quick")
     text = report.read_text()
@@ -32,7 +36,7 @@ def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, tiny_weight
                    "## Micro-benchmarks", "p50", "ms / megapixel",
                    "sums of per-stage minimums", "marks a time extrapolated", "Measured at the start of this run",
                    "the faster count ran everything",
-                   "cornell-box / path / box", "quality high"):
+                   "cornell-box / path / box", "quality high", "| lambda-tail | 32² |", "λ tail latency"):
         assert needed in text
     assert "$" not in text  # every template field was filled
     assert "Failed:" not in text  # every micro-benchmark ran, the HTTP one against a real server included
@@ -52,8 +56,11 @@ def test_quick_loop_benchmark_writes_a_finite_report(tmp_path: Path, tiny_weight
     assert len(list((tmp_path / "cache" / "references").glob("*.npz"))) == 2
 
 
-def test_development_suite_loop_benchmark_scores_against_the_committed_reference(tmp_path: Path,
-                                                                                tiny_weights_dir: Path) -> None:
+def test_development_suite_loop_benchmark_scores_against_the_committed_reference(
+        tmp_path: Path, tiny_weights_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The thread probe of a suite at each scene's own size runs at THREAD_PROBE_SIZE (256²: about
+    # half of this test's time); a smaller side exercises the same probe and report line.
+    monkeypatch.setattr(loop_report, "THREAD_PROBE_SIZE", 48)
     report = run_loop_benchmark(tmp_path / "docs", weights_dir=tiny_weights_dir, cache_dir=tmp_path / "cache",
                                 suite="dev", only=["point_object"], command="renderloop bench --loop --suite dev",
                                 seeds=(0, 1), methods=["b", "d", "o"])
@@ -63,7 +70,7 @@ def test_development_suite_loop_benchmark_scores_against_the_committed_reference
     assert not (tmp_path / "docs" / "benchmarks-dev.md").exists()
     assert "each scene's own film size" in text and "| point_object |" in text
     assert text.startswith("# What accuracy costs in time: the render loop benchmark at each scene's own film size")
-    assert "one single-frame 256² denoise took" in text and "probe failed" not in text  # threads chosen by measuring
+    assert "one single-frame 48² denoise took" in text and "probe failed" not in text  # threads chosen by measuring
     # the allocation bound over both seeds, and which methods ran
     assert "**Bound: the loop's SMAPE at equal samples within 0.02 of the true-error allocation (o)" in text
     assert "Loop seeds 0, 1 (`--seeds`), only (b), (d), (o)" in text and "| (e) s |" not in text
