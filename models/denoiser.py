@@ -194,13 +194,6 @@ class LambdaModule(nn.Module):
                 logits = logits.addcmul_(torch.bmm(self.delta[r].expand(n * f, -1, -1), flat), s[:, r])
         return logits.view(n, -1, h, w)
 
-    @torch.no_grad()
-    def anchor_at_symmetric_(self) -> None:
-        """Convert weights trained without the s(1) anchor (checkpoint format 1): W₀ += Σ sᵣ(1)ΔWᵣ
-        gives the same W(λ) for every λ under the anchored formula."""
-        s1 = self.mix(self.base.new_zeros(1, 1, 1, 1)).flatten()
-        self.base.add_(torch.einsum("r,rkc->kc", s1, self.delta))
-
 
 # --- the λ-independent state ---------------------------------------------------------------
 

@@ -126,15 +126,6 @@ def path_features(f: FrameTensors) -> list[Tensor]:
     ]
 
 
-def radiance_features(f: FrameTensors) -> list[Tensor]:
-    """The 6 channels for sources without auxiliary buffers (e.g. an EXR of colour + variance);
-    the caller passes albedo = 1 so demodulation is a no-op."""
-    return [
-        log_transform(demodulate(f.color, f.albedo)),
-        log_transform(relative_variance(f.color, f.variance)),
-    ]
-
-
 @dataclass(frozen=True)
 class FeatureSet:
     channels: int
@@ -149,7 +140,6 @@ class FeatureSet:
 
 FEATURE_SETS: dict[str, FeatureSet] = {
     "mitsuba-path": FeatureSet(13, path_features),
-    "radiance-only": FeatureSet(6, radiance_features),
 }
 
 

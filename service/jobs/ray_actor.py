@@ -91,13 +91,11 @@ class MemoryWatch:
         self.share = share
         self.failure_path = failure_path
         self.baseline = resident_bytes()  # Python, Ray, torch, Mitsuba, the networks: not the job's
-        self.peak = 0
         threading.Thread(target=self._watch, name="memory-watch", daemon=True).start()
 
     def _watch(self) -> None:
         while True:
             used = resident_bytes() - self.baseline
-            self.peak = max(self.peak, used)
             if used > self.share:
                 message = (f"the job used {used / 2**30:.2f} GiB, over its memory share of {self.share / 2**30:.2f} GiB "
                            "(the estimate for its image size and frames); its worker was stopped")
@@ -227,6 +225,3 @@ class JobActor:
         if session is None:
             return owned, 0, 0, timings
         return owned, session.full_calls - full, session.tail_calls - tail, timings
-
-    def memory_peak(self) -> int:
-        return self.watch.peak
