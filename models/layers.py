@@ -139,7 +139,7 @@ class Pointwise(nn.Module):
 
 
 class ConvPair(nn.Module):
-    """relu(conv(relu(conv(x)))): two 3×3 convolutions (the source encoder; a U-Net stage)."""
+    """relu(conv(relu(conv(x)))): two 3×3 convolutions (the source encoder)."""
 
     def __init__(self, cin: int, cout: int):
         super().__init__()
