@@ -17,8 +17,8 @@ from required_components import require_component
 def start_server(tmp_path) -> Iterator[Callable[..., Server]]:
     servers: list[Server] = []
 
-    def start(data_dir: Path | None = None, cwd: Path | None = None) -> Server:
-        server = Server(data_dir or tmp_path / "data", tmp_path / f"server{len(servers)}.log",
+    def start(data_dir: Path | None = None, cwd: Path | None = None, env: dict[str, str] | None = None) -> Server:
+        server = Server(data_dir or tmp_path / "data", tmp_path / f"server{len(servers)}.log", env=env,
                         **({} if cwd is None else {"cwd": cwd}))
         servers.append(server)
         return server.start()

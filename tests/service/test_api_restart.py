@@ -7,20 +7,25 @@ import time
 import httpx
 import numpy as np
 
+from iteration_hold import ENV as HOLD, hold_value
 from service.exr import read_exr
 from service_harness import finished, wait_for
 
-ITERATIONS = 7  # 16 → 1024 spp: the late iterations are long enough to be killed inside
+ITERATIONS = 4  # 16 → 128 spp
+SIZE = 32
+# The first server's job holds inside its third iteration's render (iteration_hold.py): it is
+# running at the kill or SIGTERM however fast or slow the machine, and renders nothing meanwhile.
+HELD_AFTER_TWO = {HOLD: hold_value(2)}
 
 
 def test_kill_9_mid_job_resumes_from_its_checkpoint(start_server, tmp_path):
-    first = start_server()
+    first = start_server(env=HELD_AFTER_TWO)
     with httpx.Client(base_url=first.url, timeout=60) as client:
-        body = {"scene": "cornell-box", "width": 64, "height": 64, "max_iterations": ITERATIONS}
+        body = {"scene": "cornell-box", "width": SIZE, "height": SIZE, "max_iterations": ITERATIONS}
         job_id = client.post("/jobs", json=body).json()["id"]
         queued_id = client.post("/jobs", json={**body, "width": 16, "height": 16, "max_iterations": 2}).json()["id"]
         wait_for(client, job_id, lambda job: job["iteration"] >= 2)
-        rects = {"rects": [{"x": 0, "y": 0, "w": 32, "h": 64, "value": 3.0}]}
+        rects = {"rects": [{"x": 0, "y": 0, "w": SIZE // 2, "h": SIZE, "value": 3.0}]}
         assert client.put(f"/jobs/{job_id}/lambda", json=rects).status_code == 200
         at_kill = client.get(f"/jobs/{job_id}").json()
     first.kill()
@@ -34,8 +39,8 @@ def test_kill_9_mid_job_resumes_from_its_checkpoint(start_server, tmp_path):
         # Resumed where the last checkpoint left it (never from scratch), with its λ map.
         assert final["resumed_from"] is not None and final["resumed_from"] >= at_kill["iteration"] >= 2
         assert final["started_at"] == at_kill["started_at"]
-        expected = np.ones((64, 64), np.float32)
-        expected[:, :32] = 3.0
+        expected = np.ones((SIZE, SIZE), np.float32)
+        expected[:, :SIZE // 2] = 3.0
         result = tmp_path / "result.exr"
         result.write_bytes(client.get(f"/jobs/{job_id}/result.exr").content)
         frame = read_exr(result)
@@ -77,34 +82,36 @@ def test_finished_jobs_survive_a_restart(start_server):
 
 
 def test_sigterm_requeues_a_running_job_exits_fast_and_the_next_start_completes_it(start_server):
-    first = start_server()
+    # Held inside a render: the shutdown stops it through the loop's per-chunk check (a real
+    # render's interruption by SIGTERM: tests/service/test_shutdown.py, `renderloop serve` itself).
+    first = start_server(env=HELD_AFTER_TWO)
     with httpx.Client(base_url=first.url, timeout=60) as client:
-        body = {"scene": "cornell-box", "width": 128, "height": 128, "max_iterations": 6}
+        body = {"scene": "cornell-box", "width": SIZE, "height": SIZE, "max_iterations": ITERATIONS}
         job_id = client.post("/jobs", json=body).json()["id"]
-        at_term = wait_for(client, job_id, lambda job: job["iteration"] >= 3)
+        at_term = wait_for(client, job_id, lambda job: job["iteration"] >= 2)
         with client.stream("GET", f"/jobs/{job_id}/events") as events:  # an open stream must not hold shutdown
             next(events.iter_lines())
             started = time.monotonic()
             first.process.send_signal(signal.SIGTERM)
             first.process.wait(30)
     exit_seconds = time.monotonic() - started
-    assert at_term["state"] == "running" and at_term["iteration"] < 6, "job ended before SIGTERM"
+    assert at_term["state"] == "running" and at_term["iteration"] < ITERATIONS, "job ended before SIGTERM"
     assert exit_seconds < 15, f"shutdown took {exit_seconds:.1f} s"
 
     second = start_server(first.data_dir)
     with httpx.Client(base_url=second.url, timeout=60) as client:
         final = wait_for(client, job_id, finished, timeout=300)
-        assert final["state"] == "completed" and final["iteration"] == 6
+        assert final["state"] == "completed" and final["iteration"] == ITERATIONS
         # Resumed from a checkpoint, never from scratch: at most the in-flight iteration was redone.
         assert final["resumed_from"] is not None and final["resumed_from"] >= at_term["iteration"]
-        assert final["spp"] == 16 * 2 ** 5
+        assert final["spp"] == 16 * 2 ** (ITERATIONS - 1)
     second.stop()
 
 
 def test_delete_cancels_a_running_job_and_removes_its_record_and_files(start_server):
-    server = start_server()
+    server = start_server(env={HOLD: hold_value(1)})
     with httpx.Client(base_url=server.url, timeout=60) as client:
-        body = {"scene": "cornell-box", "width": 128, "height": 128, "max_iterations": 6}
+        body = {"scene": "cornell-box", "width": SIZE, "height": SIZE, "max_iterations": ITERATIONS}
         job_id = client.post("/jobs", json=body).json()["id"]
         wait_for(client, job_id, lambda job: job["iteration"] >= 1)
         assert client.delete(f"/jobs/{job_id}").status_code == 204
