@@ -173,12 +173,8 @@ class RayJobWorker(LambdaEditsOfRunner):
 
     def _wait_for_drivers(self, seconds: float) -> None:
         deadline = time.monotonic() + seconds
-        while self._live_jobs() and time.monotonic() < deadline:
+        while self._claimed() and time.monotonic() < deadline:
             time.sleep(0.05)
-
-    def _live_jobs(self) -> bool:
-        with self._lock:
-            return bool(self._groups)
 
     def _is_live(self, job_id: str) -> bool:
         with self._lock:
