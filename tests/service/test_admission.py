@@ -12,11 +12,14 @@ from typing import Iterator
 import httpx
 import pytest
 
+from iteration_hold import ENV as HOLD, hold_value
 from service_harness import Server, finished, wait_for, zip_bytes
 
-# Long enough (up to 16 → 8192 spp at 64², minutes) to hold the one render thread while a test
-# fills the queue behind it, however slow the uploads; canceled at the end of each test.
-BLOCKER = {"scene": "cornell-box", "width": 64, "height": 64, "max_iterations": 10}
+# Holds the one render thread while a test fills the queue behind it, however slow the uploads:
+# its seed is the one the servers here hold inside its first render (iteration_hold.py), rendering
+# nothing meanwhile; canceled at the end of each test (the cancel ends the hold).
+BLOCKER_SEED = 7
+BLOCKER = {"scene": "cornell-box", "width": 16, "height": 16, "max_iterations": 2, "seed": BLOCKER_SEED}
 SMALL = {"scene": "cornell-box", "width": 16, "height": 16, "max_iterations": 1, "denoise": False,
          "allocator": "uniform"}
 TINY_SCENE = ('<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm"><integer name="width" '
@@ -29,7 +32,8 @@ def serve(tmp_path) -> Iterator:
     servers: list[Server] = []
 
     def start(**env: str) -> Server:
-        server = Server(tmp_path / "data", tmp_path / f"server{len(servers)}.log", env=env)
+        server = Server(tmp_path / "data", tmp_path / f"server{len(servers)}.log",
+                        env={HOLD: hold_value(0, BLOCKER_SEED), **env})
         servers.append(server)
         return server.start()
 
