@@ -18,8 +18,8 @@ both explains (lighting changed: a moving light, a shadow passing) — the rejec
 temporal accumulation in real-time denoisers (Schied et al. 2017, SVGF §4.1), with the rendered
 variance as the noise scale. Every output pixel stays a convex combination of sample means
 (bilinear taps included). The rule was chosen on validation material (`python -m
-bench.experiments.accumulation_rules`, docs/models.md): pooling moved pixels too, and guides
-tested against the center's 3×3 range, won there.
+bench.experiments.accumulation_rules`; docs/decisions.md, "`accumulate=False`, removed"):
+pooling moved pixels too, and guides tested against the center's 3×3 range, won there.
 """
 from __future__ import annotations
 

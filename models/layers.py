@@ -171,7 +171,7 @@ def trunk_in_bfloat16(x: Tensor) -> bool:
     inference on a CPU with native bf16 (AVX512-BF16/AMX), where oneDNN runs them faster (one
     512² frame through the shipped denoiser 564 → 508 ms incl. its OIDN call), at 0.5 % relative
     error in the features and no measurable change in the denoised image on the validation
-    scenes (docs/models.md).
+    scenes (docs/decisions.md, "Speed on the CPU").
     Training (autograd) and CPUs without it keep float32: emulated bf16 would be slower."""
     return not torch.is_grad_enabled() and x.device.type == "cpu" and cpu_has_native_bfloat16()
 
