@@ -11,10 +11,12 @@ import httpx
 import psycopg
 import pytest
 
+from iteration_hold import ENV as HOLD, hold_value
 from service_harness import Server, finished, wait_for
 
 LEASE_SECONDS = 2  # renewed every 2/3 s; a dead server's job is requeued within ~3 s
-ITERATIONS = 8  # 16 → 2048 spp at 64²: still running after the second server's start-up
+ITERATIONS = 8  # 16 → 2048 spp at 64²: still running after the second server's start-up (the stall test)
+HELD_ITERATIONS = 4  # the kill -9 test's job, held by the first server inside its third render
 FINISH_SECONDS = 240  # generous: a loaded 2-core machine
 
 
@@ -22,11 +24,13 @@ def test_a_job_whose_server_is_killed_is_resumed_by_the_other_server_from_its_ch
     env = {"RENDERLOOP_DB": postgres_url, "RENDERLOOP_LEASE_SECONDS": str(LEASE_SECONDS),
            "RENDERLOOP_CONCURRENCY": "1"}
     data = tmp_path / "data"
-    first = Server(data, tmp_path / "first.log", env=env).start()
+    # The first server holds the job inside its third render (iteration_hold.py): still running at
+    # the kill however fast the machine, and no rendering meanwhile; the second one renders as written.
+    first = Server(data, tmp_path / "first.log", env={**env, HOLD: hold_value(2)}).start()
     second = Server(data, tmp_path / "second.log", env=env)
     try:
         with fresh_client(first) as a:
-            body = {"scene": "cornell-box", "width": 64, "height": 64, "max_iterations": ITERATIONS}
+            body = {"scene": "cornell-box", "width": 32, "height": 32, "max_iterations": HELD_ITERATIONS}
             job_id = a.post("/jobs", json=body).json()["id"]
             wait_for(a, job_id, lambda job: job["iteration"] >= 1)
         owner, expires = lease(postgres_url, job_id)
@@ -42,7 +46,7 @@ def test_a_job_whose_server_is_killed_is_resumed_by_the_other_server_from_its_ch
             final = wait_for(b, job_id, finished, timeout=FINISH_SECONDS)
             took = time.monotonic() - killed_at
             assert final["state"] == "completed", final
-            assert final["iteration"] == ITERATIONS and final["spp"] == 16 * 2 ** (ITERATIONS - 1)
+            assert final["iteration"] == HELD_ITERATIONS and final["spp"] == 16 * 2 ** (HELD_ITERATIONS - 1)
             # Resumed where the dead server's last checkpoint left it, never from scratch.
             assert final["resumed_from"] is not None and final["resumed_from"] >= at_kill["iteration"] >= 2
             assert final["started_at"] == at_kill["started_at"]
