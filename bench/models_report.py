@@ -131,10 +131,11 @@ def denoise_ms_by_threads(denoiser: Denoiser, size: int, thread_counts: tuple[in
     report runs every timed network call with the faster count (bench.loop_report.choose_torch_threads)."""
     gen = torch.Generator().manual_seed(0)
     window = [_frame(size, size, gen)]
-    # a denoiser with the OIDN candidate takes OIDN's image as an input: computed once, untimed
-    candidate = oidn_tensor(window[0]) if denoiser.config.oidn_candidate else None
     times: dict[int, list[float]] = {t: [] for t in thread_counts}
     with torch.inference_mode():
+        # a denoiser with the OIDN candidate takes OIDN's image as an input: fetched once by the
+        # one denoise path (service.loop.denoise_frame), untimed
+        candidate = prepare_frame(denoiser, window, 0).candidate
         for threads in thread_counts:  # warm-up per count: oneDNN builds primitives per thread count
             with pinned_torch_threads(threads):
                 denoiser(window, 0, 1.0, candidate)
@@ -155,8 +156,8 @@ def versus_oidn(config: DenoiserConfig, size: int = 512, repeats: int = 7, threa
     gen = torch.Generator().manual_seed(0)
     frame = _frame(size, size, gen)
     model = Denoiser(replace(config, temporal=False)).eval()
-    candidate = oidn_tensor(frame) if config.oidn_candidate else None
-    cache = model.prepare([frame], 0, candidate)
+    prepared = prepare_frame(model, [frame], 0)   # the candidate it needs, fetched by the one denoise path
+    candidate, cache = prepared.candidate, prepared.cache
     cases = {
         "oidn": lambda: oidn_tensor(frame),
         "denoise (with its OIDN call)": lambda: denoise_frame(model, [frame], 0),
