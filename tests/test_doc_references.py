@@ -5,23 +5,24 @@ writes into docs/. tests/test_docs_links.py checks the Markdown pages themselves
 from __future__ import annotations
 
 import re
-import subprocess
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 # Where code, set-up and packaging live (tests/ name their own fixtures, docs/ are checked elsewhere).
 CODE_ROOTS = ("service", "models", "bench", "scripts", "docker", "Makefile", "pyproject.toml")
-TEXT_SUFFIXES = {".py", ".sh", ".toml", ".yaml", ".yml", ".html", ".js", ".css", ".md", ""}
+TEXT_SUFFIXES = {".py", ".sh", ".toml", ".yaml", ".yml", ".html", ".js", ".css", ".md", ".cpu", ".cuda", ""}
 DOCS_PATH = re.compile(r"(?<![\w./-])docs/[\w./-]*\w")
 # A generated report names the command that wrote it near its top (bench/templates/*.md).
 REPORT_COMMAND = re.compile(r"^Command: `renderloop bench", re.MULTILINE)
 
 
 def code_files() -> list[Path]:
-    listed = subprocess.run(["git", "ls-files", "--", *CODE_ROOTS], cwd=REPO, capture_output=True, text=True,
-                            check=True).stdout.split()
-    return [REPO / name for name in listed
-            if (REPO / name).is_file() and (REPO / name).suffix in TEXT_SUFFIXES]
+    """The text files under CODE_ROOTS (no git needed: a source archive is checked the same)."""
+    files = []
+    for root in (REPO / name for name in CODE_ROOTS):
+        candidates = [root] if root.is_file() else sorted(root.rglob("*"))
+        files += [p for p in candidates if p.is_file() and p.suffix in TEXT_SUFFIXES and "__pycache__" not in p.parts]
+    return files
 
 
 def test_every_docs_page_the_code_names_is_in_the_repository():
