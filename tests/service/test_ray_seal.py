@@ -1,7 +1,8 @@
 """The Ray wall: a `renderloop serve` on the Ray backend (a real local Ray runtime) listens only
 on loopback — every process it started, GCS, raylet, agents, workers included — runs Ray with
 token auth (the token file 0600, never ~/.ray/auth_token), keeps its own secrets out of the Ray
-processes, and refuses to join a cluster without token auth unless told --insecure-ray."""
+processes, and refuses to join a cluster without token auth unless told --insecure-ray. The same
+server (two Ray workers, one Ray start for the module) runs two submitted jobs at once."""
 from __future__ import annotations
 
 import os
@@ -23,22 +24,27 @@ RAY_STARTUP_SECONDS = 300  # a Ray runtime on a loaded 2-core machine can take m
 AGENT_ANSWER_SECONDS = 180  # how long the dashboard agent may take to answer on its HTTP port
 
 
+WORKERS = 2
+
+
 @pytest.fixture(scope="module")
 def ray_server(tmp_path_factory):
-    """One Ray-backed server for the module, with a finished job (so Ray workers exist)."""
+    """One Ray-backed server for the module (two workers), with two jobs submitted at once and
+    finished (so Ray workers exist); (server, its HOME, the finished jobs' records)."""
     root = tmp_path_factory.mktemp("ray_seal")
     home = root / "home"
     home.mkdir()
-    env = {"RENDERLOOP_CONCURRENCY": "", "RENDERLOOP_WORKERS": "1", "RENDERLOOP_TOKEN": SECRET,
+    env = {"RENDERLOOP_CONCURRENCY": "", "RENDERLOOP_WORKERS": str(WORKERS), "RENDERLOOP_TOKEN": SECRET,
            "PGPASSWORD": "hunter2", "HOME": str(home), "RAY_AUTH_MODE": "disabled"}
     server = Server(root / "data", root / "server.log", env=env, startup_seconds=RAY_STARTUP_SECONDS).start()
     try:
         headers = {"authorization": f"Bearer {SECRET}"}
         with httpx.Client(base_url=server.url, timeout=60, headers=headers) as client:
-            body = {"scene": "cornell-box", "width": 16, "height": 16, "max_iterations": 1}
-            job = wait_for(client, client.post("/jobs", json=body).json()["id"], finished, timeout=300)
-        assert job["state"] == "completed", server.log()
-        yield server, home
+            body = {"scene": "cornell-box", "width": 32, "height": 32, "spp_first": 16, "max_iterations": 3}
+            ids = [client.post("/jobs", json=body).json()["id"] for _ in range(WORKERS)]
+            jobs = [wait_for(client, job_id, finished, timeout=300) for job_id in ids]
+        assert [job["state"] for job in jobs] == ["completed"] * WORKERS, server.log()
+        yield server, home, jobs
     finally:
         server.stop()
 
@@ -64,8 +70,13 @@ def ray_processes(server: Server) -> list[int]:
             if pid != server.process.pid and ("/ray/" in command_of(pid) or command_of(pid).startswith("ray::"))]
 
 
+def test_serve_with_two_ray_workers_runs_two_submitted_jobs_at_once(ray_server):
+    _, _, (a, b) = ray_server
+    assert a["started_at"] < b["finished_at"] and b["started_at"] < a["finished_at"]
+
+
 def test_every_port_of_a_ray_backed_server_listens_on_loopback_only(ray_server):
-    server, _ = ray_server
+    server, _, _ = ray_server
     found = listeners(server.process.pid)
     ray_ports = [listener for listener in found if listener.pid != server.process.pid]
     # GCS, raylet (node manager, object manager), agents, a worker: the test sees Ray's ports.
@@ -75,7 +86,7 @@ def test_every_port_of_a_ray_backed_server_listens_on_loopback_only(ray_server):
 
 
 def test_ray_processes_inherit_none_of_the_service_secrets(ray_server):
-    server, _ = ray_server
+    server, _, _ = ray_server
     assert environ_of(server.process.pid).get("RENDERLOOP_TOKEN") == SECRET  # the test reads environments
     pids = ray_processes(server)
     assert pids, "no Ray processes under the server"
@@ -87,7 +98,7 @@ def test_ray_processes_inherit_none_of_the_service_secrets(ray_server):
 
 
 def test_local_ray_runs_with_token_auth_from_a_private_token_file(ray_server):
-    server, home = ray_server
+    server, home, _ = ray_server
     # Ray's agents are started by the raylet with an environment of its making (seen with and
     # without RAY_AUTH_MODE); their refusal is pinned by the dashboard-agent test below.
     pids = [pid for pid in ray_processes(server) if "Agent" not in command_of(pid)]
@@ -106,7 +117,7 @@ def test_local_ray_runs_with_token_auth_from_a_private_token_file(ray_server):
 
 
 def test_ray_dashboard_agent_refuses_a_request_without_the_token(ray_server):
-    server, _ = ray_server
+    server, _, _ = ray_server
     answers: list[int] = []
     # The agent opens its HTTP port some time after the raylet, and on a loaded 2-core machine a
     # request can time out: ask every agent port again until one answers (or the deadline passes).

@@ -1,7 +1,8 @@
 """The Ray backend on a real local Ray runtime with two workers: real actors in their own
-processes, real Mitsuba renders at tiny sizes, the real job store. Most tests drive the worker
-(service.jobs.ray_worker.RayJobWorker) directly, so they can find and kill its processes; one
-runs `renderloop serve`'s app on uvicorn with RENDERLOOP_WORKERS=2."""
+processes, real Mitsuba renders at tiny sizes, the real job store. The tests drive the worker
+(service.jobs.ray_worker.RayJobWorker) directly, so they can find and kill its processes; a served
+app on uvicorn with RENDERLOOP_WORKERS=2 running two jobs at once is in test_ray_seal.py (whose
+Ray-backed server it shares)."""
 from __future__ import annotations
 
 import os
@@ -11,7 +12,6 @@ import threading
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 import pytest
 import torch
@@ -27,7 +27,6 @@ from service.jobs.ray_worker import (CANCEL_GRACE_SECONDS, RayJobWorker, RaySett
 from service.jobs.store import CANCELED, COMPLETED, FAILED, QUEUED, RUNNING, JobRecord, JobStore  # noqa: E402
 from service.loop.loop import RenderLoop  # noqa: E402
 from service.loop.spec import LoopSpec  # noqa: E402
-from service_harness import Server, finished, wait_for  # noqa: E402
 
 WORKERS = 2
 
@@ -311,17 +310,3 @@ def test_a_sequence_fanned_out_over_two_workers_equals_the_single_process_result
             np.testing.assert_allclose(getattr(got, layer), getattr(want, layer), rtol=1e-5, atol=1e-6,
                                        err_msg=f"frame {f} {layer}")
 
-
-def test_serve_with_two_ray_workers_runs_two_submitted_jobs_at_once(tmp_path):
-    server = Server(tmp_path / "data", tmp_path / "server.log",
-                    env={"RENDERLOOP_CONCURRENCY": "", "RENDERLOOP_WORKERS": str(WORKERS)}).start()
-    try:
-        with httpx.Client(base_url=server.url, timeout=60) as client:
-            body = {"scene": "cornell-box", "width": 32, "height": 32, "spp_first": 16, "max_iterations": 3}
-            ids = [client.post("/jobs", json=body).json()["id"] for _ in range(2)]
-            jobs = [wait_for(client, job_id, finished) for job_id in ids]
-    finally:
-        server.stop()
-    assert [job["state"] for job in jobs] == ["completed", "completed"], server.log()
-    a, b = jobs
-    assert a["started_at"] < b["finished_at"] and b["started_at"] < a["finished_at"]
