@@ -57,25 +57,37 @@ DENOISED_OUTLIER_RATIO = 2.0
 
 def box_mean(values: np.ndarray, size: int = WINDOW) -> np.ndarray:
     """(H, W) mean over each pixel's size² window, the film's edge pixels standing in beyond it
-    (separable running sums)."""
+    (separable running sums, float64: a float32 running sum over a 1920-pixel row loses ~1e-5 of
+    a window's mean to cancellation). Each pass writes into its padded copy and its difference
+    in place: at 2 MP the temporaries cost as much as the sums."""
     radius = size // 2
-    out = values.astype(np.float64)
+    out = np.asarray(values, dtype=np.float64)
     for axis in (0, 1):
         pad = [(radius + 1, radius) if a == axis else (0, 0) for a in range(2)]
         padded = np.pad(out, pad, mode="edge")
-        padded = np.moveaxis(padded, axis, 0).copy()
-        padded[0] = 0.0  # the running sum starts at zero
-        sums = np.cumsum(padded, axis=0)
-        out = np.moveaxis((sums[size:] - sums[:-size]) / size, 0, axis)
+        np.moveaxis(padded, axis, 0)[0] = 0.0  # the running sum starts at zero
+        np.cumsum(padded, axis=axis, out=padded)
+        sums = np.moveaxis(padded, axis, 0)
+        out = np.moveaxis(np.subtract(sums[size:], sums[:-size]), 0, axis)
+        out /= size
     return out
 
 
 def raw_expected_error(raw: np.ndarray, raw_variance: np.ndarray, exposure: float) -> np.ndarray:
     """(H, W) expected SMAPE of the raw image at the networks' exposure: per channel
-    √(2/π)·σ / (2|r| + ε), the mean over channels (as the error map is)."""
-    sigma = np.sqrt(np.maximum(raw_variance.astype(np.float64), 0.0)) * exposure
-    magnitude = 2.0 * np.abs(raw.astype(np.float64)) * exposure
-    return (MEAN_ABS_PER_SIGMA * sigma / (magnitude + SMAPE_EPS)).mean(axis=-1)
+    √(2/π)·σ / (2|r| + ε), the mean over channels (as the error map is). float64, in place."""
+    sigma = raw_variance.astype(np.float64)
+    np.maximum(sigma, 0.0, out=sigma)
+    np.sqrt(sigma, out=sigma)
+    sigma *= exposure
+    magnitude = raw.astype(np.float64)
+    np.abs(magnitude, out=magnitude)
+    magnitude *= 2.0
+    magnitude *= exposure
+    magnitude += SMAPE_EPS
+    sigma *= MEAN_ABS_PER_SIGMA
+    sigma /= magnitude
+    return sigma.mean(axis=-1)
 
 
 def raw_weight(denoised_error: np.ndarray, raw_error: np.ndarray, raw_variance: np.ndarray) -> np.ndarray:
