@@ -4,7 +4,7 @@ on the CPU, layout copies), the allocation, and what the job worker writes after
 (checkpoint, previews).
 
 Measured on a finished loop's final state, by calling the very functions the loop and the worker
-call (`DenoiseSession.denoise / predict_error / relambda`, `frame_tensors`, `LoopState.snapshot`,
+call (`DenoiseSession.denoise / predict_error / relambda`, `frame_tensors`, `RenderLoop.denoised`, `LoopState.snapshot`,
 `checkpoint_format.write_state`, `JobFiles.save_preview(preview_layers(…))`), each `repeats`
 times, the median kept. The thread backend's worker (service/jobs/worker.py) copies the state
 on the loop's thread (the snapshot: time the render waits) and writes the checkpoint and the
@@ -25,7 +25,7 @@ from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.checkpoint_format import write_state
 from service.jobs.previews import preview_layers
 from service.loop.allocate import iteration_budget
-from service.loop.loop import next_counts
+from service.loop.loop import RenderLoop, next_counts
 from service.loop.oidn import oidn_tensor
 from service.loop.tensors import frame_tensors, to_image
 
@@ -39,6 +39,8 @@ STAGES = (
     ("denoiser", "denoiser full pass (prepare + apply at λ, without its OIDN call)", True),
     ("error_network", "error network", True),
     ("to_host", "denoised image → host array (device → host on a GPU)", True),
+    ("final_image", "final image (raw image + its variance, its share by window means, blend; first read "
+                    "after each denoise)", True),
     ("lambda_tail", "λ tail from cached features (a λ edit)", True),
     ("snapshot", "state snapshot on the loop's thread (LoopState.snapshot, into the last one's arrays)", True),
     ("checkpoint", "checkpoint write (checkpoint_format.write_state, atomic; background thread)", True),
@@ -92,6 +94,13 @@ def _median_ms(call: Callable[[], object], repeats: int) -> float:
     return 1000 * statistics.median(times)
 
 
+def _compose_final_anew(loop: RenderLoop) -> list:
+    """The final images as the loop composes them once per iteration (service/loop/final_image.py):
+    the kept raw image and share forgotten, as new samples or a new error map forget them."""
+    loop._forget_final()
+    return loop.denoised()
+
+
 def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCosts:
     loop, record = run.loop, run.last
     session = loop.session
@@ -111,6 +120,7 @@ def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCost
         "denoiser": _median_ms(lambda: session.denoise(loop.state.buffers, lam), repeats),
         "error_network": _median_ms(lambda: session.predict_error(images), repeats),
         "to_host": _median_ms(lambda: to_image(images[0]), repeats),
+        "final_image": _median_ms(lambda: _compose_final_anew(loop), repeats),
         "lambda_tail": _median_ms(lambda: session.relambda(lam), repeats),
     }
     ms["denoiser"] = max(0.0, ms["denoiser"] - ms["oidn_candidate"] - ms["to_tensors"])

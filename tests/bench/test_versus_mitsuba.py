@@ -200,3 +200,17 @@ def test_command_refuses_an_unknown_scene_and_a_max_below_16(capsys) -> None:
 def test_renderloop_bench_dispatches_the_versus_mitsuba_mode(capsys) -> None:
     assert bench_main(["--versus-mitsuba", "--scenes", "no_such_scene"]) == 2  # bench/cli.py → this mode
     assert "unknown scene(s) no_such_scene" in capsys.readouterr().err
+
+
+def test_the_final_images_composition_is_a_row_of_the_fixed_costs_with_a_plausible_figure(tiny_results,
+                                                                                          tmp_path: Path) -> None:
+    # it times RenderLoop.denoised after forgetting the kept share: the raw image, its variance, the
+    # window means and the blend, a few numpy passes over the film (measured 0.8 s at 2 MP before
+    # issue 43's cuts): more than nothing, less than the loop's own network passes plus 1 s
+    run = tiny_results.scenes[0]
+    costs, points = run.costs, run.curves[LOOP].points
+    network_ms = max(1000 * (p.stages["denoise"] + p.stages["error"]) for p in points)
+    assert 0 < costs.ms["final_image"] < network_ms + 1000, (costs.ms["final_image"], network_ms)
+    text = write_report(tiny_results, tmp_path).read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| final image (raw image"))
+    assert float(row.split("|")[3]) == pytest.approx(costs.ms["final_image"], abs=0.051), row
