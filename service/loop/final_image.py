@@ -73,6 +73,15 @@ def box_mean(values: np.ndarray, size: int = WINDOW) -> np.ndarray:
     return out
 
 
+def channel_sum(values: np.ndarray) -> np.ndarray:
+    """(H, W, 3) → (H, W): the channels added as numpy's sum over the last axis adds them,
+    (c0 + c1) + c2, so bitwise the same; that reduction over a length-3 axis took ~23 ms at 2 MP,
+    these two adds 2-4 ms."""
+    total = values[..., 0] + values[..., 1]
+    total += values[..., 2]
+    return total
+
+
 def raw_expected_error(raw: np.ndarray, raw_variance: np.ndarray, exposure: float) -> np.ndarray:
     """(H, W) expected SMAPE of the raw image at the networks' exposure: per channel
     √(2/π)·σ / (2|r| + ε), the mean over channels (as the error map is). float64, in place."""
@@ -87,7 +96,9 @@ def raw_expected_error(raw: np.ndarray, raw_variance: np.ndarray, exposure: floa
     magnitude += SMAPE_EPS
     sigma *= MEAN_ABS_PER_SIGMA
     sigma /= magnitude
-    return sigma.mean(axis=-1)
+    mean = channel_sum(sigma)
+    mean /= sigma.shape[-1]  # as ndarray.mean divides its sum
+    return mean
 
 
 def raw_weight(denoised_error: np.ndarray, raw_error: np.ndarray, raw_variance: np.ndarray) -> np.ndarray:
@@ -95,12 +106,17 @@ def raw_weight(denoised_error: np.ndarray, raw_error: np.ndarray, raw_variance: 
     below the pixel's own error ÷ its outlier ratio (a raw firefly keeps the denoised pixel). A raw
     pixel without a variance estimate (every sample agreed, or too few to tell) gets no share: zero
     spread among a few samples is no evidence of zero error (a rare light path can miss them all)."""
-    d = np.maximum(box_mean(denoised_error), denoised_error / DENOISED_OUTLIER_RATIO)
-    r = np.maximum(box_mean(raw_error), raw_error / RAW_OUTLIER_RATIO)
-    # the ratio first: d^8 underflows for small errors
-    ratio = np.divide(r, d, out=np.full_like(d, np.inf), where=d > 0)
-    alpha = 1.0 / (1.0 + np.power(np.minimum(ratio, 1e6), SHARPNESS))
-    return np.where((raw_variance.sum(axis=-1) > 0) & (d > 0), alpha, 0.0)
+    d = box_mean(denoised_error)  # a new array: the steps below write into it and its kin
+    np.maximum(d, denoised_error / DENOISED_OUTLIER_RATIO, out=d)
+    r = box_mean(raw_error)
+    np.maximum(r, raw_error / RAW_OUTLIER_RATIO, out=r)
+    # the ratio first: d^8 underflows for small errors; then α = 1 / (1 + min(ratio, 1e6)^P) in place
+    alpha = np.divide(r, d, out=np.full_like(d, np.inf), where=d > 0)
+    np.minimum(alpha, 1e6, out=alpha)
+    np.power(alpha, SHARPNESS, out=alpha)
+    alpha += 1.0
+    np.divide(1.0, alpha, out=alpha)
+    return np.where((channel_sum(raw_variance) > 0) & (d > 0), alpha, 0.0)
 
 
 def raw_share(raw: np.ndarray, raw_variance: np.ndarray, predicted_error: np.ndarray, exposure: float) -> np.ndarray:

@@ -31,7 +31,8 @@ def reference_raw(buffer) -> tuple[np.ndarray, np.ndarray]:
     spread = buffer.splat_sq_radiance_sq - 2 * raw * buffer.splat_sq_radiance + raw**2 * weight_sq
     n_eff = np.where((weight > 0) & (weight_sq > 0), weight**2 / np.where(weight_sq > 0, weight_sq, 1.0), 0.0)
     safe = np.where(n_eff > 1, n_eff, 2.0)
-    variance = np.where(n_eff > 1, np.maximum(spread, 0.0) / weight**2 * safe / (safe - 1), 0.0)
+    denominator = np.where(n_eff > 1, weight, 1.0) ** 2
+    variance = np.where(n_eff > 1, np.maximum(spread, 0.0) / denominator * safe / (safe - 1), 0.0)
     return raw.astype(np.float32), variance.astype(np.float32)
 
 
@@ -71,6 +72,18 @@ def test_the_raw_image_and_its_variance_match_the_formulas_written_out(small_run
     np.testing.assert_allclose(variance, expected_variance, rtol=1e-5, atol=1e-12)
     np.testing.assert_array_equal(raw, buffer.raw)
     np.testing.assert_array_equal(variance, buffer.raw_variance)
+
+
+def test_a_pixel_no_splat_reached_keeps_its_own_samples_mean_in_the_raw_image(small_run) -> None:
+    buffer = small_run.state.buffers[0].copy()
+    for name in ("splat_weight", "splat_radiance", "splat_sq_radiance", "splat_sq_radiance_sq", "splat_weight_sq"):
+        getattr(buffer, name)[5:9, 10:20] = 0.0  # as where a sparse first pass landed no weight
+    raw, variance = buffer.raw_and_variance()
+    expected_raw, expected_variance = reference_raw(buffer)
+    np.testing.assert_allclose(raw, expected_raw, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(variance, expected_variance, rtol=1e-5, atol=1e-12)
+    own = buffer.radiance_sum[5:9, 10:20] / buffer.spp[5:9, 10:20, None]
+    np.testing.assert_allclose(raw[5:9, 10:20], own, rtol=1e-6)
 
 
 def test_the_loops_final_image_matches_the_reference_composition_to_1e5(small_run) -> None:
