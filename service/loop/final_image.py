@@ -55,6 +55,14 @@ RAW_OUTLIER_RATIO = 4.0
 DENOISED_OUTLIER_RATIO = 2.0
 
 
+def _cumsum_rows(values: np.ndarray) -> None:
+    """np.cumsum(values, axis=0) in place, one whole row at a time: the same additions per column
+    in the same order (bitwise equal), ~2 ms at 2 MP where cumsum's strided walk down the columns
+    took ~20 ms."""
+    for row in range(1, values.shape[0]):
+        np.add(values[row - 1], values[row], out=values[row])
+
+
 def box_mean(values: np.ndarray, size: int = WINDOW) -> np.ndarray:
     """(H, W) mean over each pixel's size² window, the film's edge pixels standing in beyond it
     (separable running sums, float64: a float32 running sum over a 1920-pixel row loses ~1e-5 of
@@ -66,7 +74,10 @@ def box_mean(values: np.ndarray, size: int = WINDOW) -> np.ndarray:
         pad = [(radius + 1, radius) if a == axis else (0, 0) for a in range(2)]
         padded = np.pad(out, pad, mode="edge")
         np.moveaxis(padded, axis, 0)[0] = 0.0  # the running sum starts at zero
-        np.cumsum(padded, axis=axis, out=padded)
+        if axis == 0:
+            _cumsum_rows(padded)
+        else:
+            np.cumsum(padded, axis=1, out=padded)
         sums = np.moveaxis(padded, axis, 0)
         out = np.moveaxis(np.subtract(sums[size:], sums[:-size]), 0, axis)
         out /= size
