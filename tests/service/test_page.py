@@ -3,7 +3,6 @@ watch the preview follow the events, steer λ with the slider and the brush, can
 download, and the token field. Small jobs (32², the shipped networks) keep it to seconds each."""
 from __future__ import annotations
 
-import time
 import zipfile
 
 import httpx
@@ -133,8 +132,9 @@ def test_the_exr_button_downloads_the_result(page, api, driver, tmp_path):
     wait_until(lambda: page.finds(f'tr[data-job-id="{job["id"]}"] [data-action="download"]'), "the EXR button")
     page.row_action(job["id"], "download")
     path = wait_until(lambda: next(iter(tmp_path.glob("*.exr")), None), "the downloaded EXR")
-    time.sleep(0.2)  # the browser renames the file once complete; the bytes are all there then
-    assert path.read_bytes() == api.get(f"/jobs/{job['id']}/result.exr").content
+    expected = api.get(f"/jobs/{job['id']}/result.exr").content
+    # Polled rather than read once after a fixed pause: a slow browser may still be writing it.
+    wait_until(lambda: path.read_bytes() == expected, "the downloaded EXR to equal result.exr")
 
 
 def test_a_zipped_scene_folder_chosen_in_the_drop_zone_is_uploaded_and_rendered(page, api, tmp_path):

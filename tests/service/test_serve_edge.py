@@ -111,8 +111,13 @@ def test_beyond_the_connection_cap_requests_get_503(server):
         # Uploads in progress are real work: never evicted, so they fill the cap.
         for _ in range(MAX_CONNECTIONS - 1):
             stack.enter_context(raw_socket(server, upload_headers))
-        time.sleep(1.0)
+        # Polled, not read once after a fixed pause: on a loaded machine the server may not have
+        # taken in every upload yet (a 200 then); once it has, a request must get 503.
+        deadline = time.monotonic() + 30
         response = httpx.get(server.url + "/healthz", timeout=30)
+        while response.status_code == 200 and time.monotonic() < deadline:
+            time.sleep(0.2)
+            response = httpx.get(server.url + "/healthz", timeout=30)
         assert response.status_code == 503, response.text
     assert get_within(server.url + "/healthz", 30).status_code == 200  # the slots come back
 
