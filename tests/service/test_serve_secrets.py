@@ -12,7 +12,7 @@ import pytest
 
 from cli_server import CliServer
 from service.api.signing import UrlSigner
-from service_harness import renderloop_cli
+from service_harness import renderloop_clis
 
 TOKEN = "file-token-7c1e2b"
 
@@ -60,15 +60,16 @@ def test_the_access_log_never_shows_the_token_or_a_signature(server):
 
 
 def test_token_on_the_command_line_warns_that_ps_shows_it(tmp_path):
-    # --max-bundle-mb 0 stops the command right after the token is read, before it serves.
-    result = renderloop_cli("serve", "--token", TOKEN, "--max-bundle-mb", "0")
-    assert result.returncode == 2 and "--token is visible" in result.stderr and "--token-file" in result.stderr
-    shared = renderloop_cli("serve", "--token-file", str(token_file(tmp_path, 0o644)), "--max-bundle-mb", "0")
-    assert "readable by other users" in shared.stderr and TOKEN not in shared.stderr + shared.stdout
-    missing = renderloop_cli("serve", "--token-file", str(tmp_path / "missing"))
-    assert missing.returncode == 2 and "token file" in missing.stderr and "Traceback" not in missing.stderr
     (tmp_path / "empty").write_text("\n")
-    empty = renderloop_cli("serve", "--token-file", str(tmp_path / "empty"))
+    # --max-bundle-mb 0 stops the command right after the token is read, before it serves.
+    result, shared, missing, empty = renderloop_clis(
+        ["serve", "--token", TOKEN, "--max-bundle-mb", "0"],
+        ["serve", "--token-file", str(token_file(tmp_path, 0o644)), "--max-bundle-mb", "0"],
+        ["serve", "--token-file", str(tmp_path / "missing")],
+        ["serve", "--token-file", str(tmp_path / "empty")])
+    assert result.returncode == 2 and "--token is visible" in result.stderr and "--token-file" in result.stderr
+    assert "readable by other users" in shared.stderr and TOKEN not in shared.stderr + shared.stdout
+    assert missing.returncode == 2 and "token file" in missing.stderr and "Traceback" not in missing.stderr
     assert empty.returncode == 2 and "is empty" in empty.stderr
 
 
