@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.render.runtime import mitsuba
+from service.render.runtime import holding_jit_lock, mitsuba
 from service.render.scenes import LoadedScene, SceneError, check_sequence, load_scene_info
 
 # Mitsuba's own default max_depth (unbounded; Russian roulette ends paths): what a scene that
@@ -110,6 +110,7 @@ def inspect_frames(loaded: list[LoadedScene]) -> SceneEffects:
     )
 
 
+@holding_jit_lock
 def inspect_scene(
     source: str | Path,
     *,

@@ -22,7 +22,7 @@ from service.render.filters import PixelFilter
 from service.render.framebuffer import FrameBuffer
 from service.render.integrators import instance_refusal, sample_lane, to_rgb
 from service.render.object_motion import ShapeMotion, previous_position
-from service.render.runtime import mitsuba
+from service.render.runtime import JIT_LOCK, mitsuba
 from service.render.scenes import SceneError
 from service.render.splat import FilmSplat
 from service.render.stratified_lanes import LaneGroupChunk, digit_group_chunks, sequence_sampler
@@ -322,9 +322,28 @@ def render_samples(
     total = int(counts.sum())
     if prev_sensor is not None and buffer.motion_sum is None:
         buffer.motion_sum = np.zeros((height, width, 2))
+    with JIT_LOCK:  # runtime.JIT_LOCK: the pass's Dr.Jit objects, then one chunk at a time
+        setup = _prepare(mi, scene, sensor, integrator, buffer, counts, aov_names, total, seed,
+                         prev_sensor, prev_shapes, splat)
+    if setup.sequence_seed is None:
+        chunks = _trace_independent(mi, setup, buffer, counts, seed, max_wavefront, progress)
+    else:
+        chunks = _trace_digit_groups(mi, setup, buffer, counts, seed, max_wavefront, progress)
+    if setup.splat is not None:
+        with JIT_LOCK:
+            buffer.add_splat(setup.splat.host())
+    buffer.spp += counts.astype(np.int64)
+    buffer.passes += 1
+    return RenderPass(samples=total, chunks=chunks, seconds=perf_counter() - start)
+
+
+def _prepare(mi, scene, sensor, integrator, buffer: FrameBuffer, counts: np.ndarray, aov_names: tuple,
+             total: int, seed: int, prev_sensor, prev_shapes: ShapeMotion | None, splat: bool) -> _Setup:
+    """What every chunk of the pass shares: the film's filter and splat, the sensor, the seeds."""
+    height, width = buffer.shape
     film = sensor.film()
     pixel_filter = PixelFilter(mi, film.rfilter(), width, height, film.sample_border())
-    setup = _Setup(
+    return _Setup(
         scene=scene, integrator=integrator, sensor=sensor,
         prev_projection=film_projection(mi, prev_sensor) if prev_sensor is not None else None,
         pixel_filter=pixel_filter,
@@ -337,15 +356,6 @@ def render_samples(
         splat=None if pixel_filter.uniform or not total or not splat else FilmSplat(mi, pixel_filter, counts),
         sequence_seed=seed if is_stratifying(sensor.sampler()) else None,
     )
-    if setup.sequence_seed is None:
-        chunks = _trace_independent(mi, setup, buffer, counts, seed, max_wavefront, progress)
-    else:
-        chunks = _trace_digit_groups(mi, setup, buffer, counts, seed, max_wavefront, progress)
-    if setup.splat is not None:
-        buffer.add_splat(setup.splat.host())
-    buffer.spp += counts.astype(np.int64)
-    buffer.passes += 1
-    return RenderPass(samples=total, chunks=chunks, seconds=perf_counter() - start)
 
 
 def _add_chunk(buffer: FrameBuffer, traced: tuple[np.ndarray, slice | np.ndarray, int], motion: bool) -> None:
@@ -364,8 +374,9 @@ def _trace_independent(mi, setup: _Setup, buffer: FrameBuffer, counts: np.ndarra
     chunks = -(-len(lanes) // max_wavefront)
     for chunk in range(chunks):
         pixels = lanes[chunk * max_wavefront:(chunk + 1) * max_wavefront]
-        sampler = independent_sampler(mi, pass_seed(seed, buffer.passes, chunk), len(pixels))
-        _add_chunk(buffer, _trace_chunk(mi, setup, pixels, sampler), setup.prev_projection is not None)
+        with JIT_LOCK:
+            sampler = independent_sampler(mi, pass_seed(seed, buffer.passes, chunk), len(pixels))
+            _add_chunk(buffer, _trace_chunk(mi, setup, pixels, sampler), setup.prev_projection is not None)
         if progress is not None:
             progress(len(pixels))
     return chunks
@@ -378,9 +389,9 @@ def _trace_digit_groups(mi, setup: _Setup, buffer: FrameBuffer, counts: np.ndarr
     Returns the number of chunks."""
     chunks = 0
     for chunk in digit_group_chunks(buffer.spp, counts, max_wavefront):
-        sampler = sequence_sampler(mi, chunk.sequence_length, pass_seed(seed, buffer.passes, chunks), len(chunk.pixels))
-        traced = _trace_chunk(mi, setup, chunk.pixels, sampler, chunk)
-        _add_chunk(buffer, traced, setup.prev_projection is not None)
+        with JIT_LOCK:
+            sampler = sequence_sampler(mi, chunk.sequence_length, pass_seed(seed, buffer.passes, chunks), len(chunk.pixels))
+            _add_chunk(buffer, _trace_chunk(mi, setup, chunk.pixels, sampler, chunk), setup.prev_projection is not None)
         chunks += 1
         if progress is not None:
             progress(len(chunk.pixels))

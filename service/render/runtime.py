@@ -10,7 +10,7 @@ import glob
 import os
 import re
 import threading
-from functools import lru_cache
+from functools import lru_cache, wraps
 from pathlib import Path
 
 # Dr.Jit 1.5 aborts inside LLVM 15/16 on `fminimum` (measured; docs/design.md, "Runtime facts").
@@ -62,6 +62,25 @@ def choose_variant() -> str:
     if configured:
         return configured
     return "cuda_ad_rgb" if cuda_available() else "llvm_ad_rgb"
+
+
+# Dr.Jit keeps the state of a symbolic recording (a traced loop, a virtual call) where another
+# thread's Mitsuba work reads it: loading the built-in scenes (the page's GET /scenes) in one
+# thread while another rendered failed 8 of 40 renders of a 32² cornell box ('jit_var_sub(r3654,
+# r0): operands have incompatible sizes', 'cannot gather from a symbolic variable'), and a job
+# submitted while another renders loads its scene for the submit check. So Mitsuba work in a
+# process takes this lock: a scene load or inspection whole, a render one chunk at a time (a
+# load waits for one chunk, not a pass). Re-entrant: a render thread loads its scene under it too.
+JIT_LOCK = threading.RLock()
+
+
+def holding_jit_lock(function):
+    """`function` run under JIT_LOCK (a scene load or inspection, whole)."""
+    @wraps(function)
+    def locked(*args, **kwargs):
+        with JIT_LOCK:
+            return function(*args, **kwargs)
+    return locked
 
 
 # lru_cache alone lets two threads (two jobs' drivers) import Mitsuba at once, and the second

@@ -30,7 +30,7 @@ import drjit as dr
 from service.render.builtin import BUILTIN_BY_NAME, BUILTIN_SCENES
 from service.render.flatten import FlatScene, FlattenError, MissingFile, flatten_scene
 from service.render.integrators import film_refusal, integrator_refusal, sensor_refusal
-from service.render.runtime import mitsuba
+from service.render.runtime import holding_jit_lock, mitsuba
 from service.render.sandbox import run_walled
 from service.render.unreferenced import unreferenced_message
 
@@ -87,6 +87,7 @@ def load_scene(
     return load_scene_info(source, width=width, height=height, frame=frame, params=params, root=root).scene
 
 
+@holding_jit_lock
 def load_scene_info(
     source: str | Path,
     *,
@@ -122,6 +123,7 @@ def check_scene(source: str | Path, *, width: int | None = None, height: int | N
     load_scene_info(source, width=width, height=height, params=params, root=root)
 
 
+@holding_jit_lock
 def film_size(source: str | Path, *, width: int | None = None, height: int | None = None,
               params: dict[str, str] | None = None, root: str | Path | None = None, frames: int = 1) -> tuple[int, int]:
     """(width, height) the scene renders at — the request's size, else its film's — read from
@@ -147,6 +149,7 @@ def film_size(source: str | Path, *, width: int | None = None, height: int | Non
     return crop[0], crop[1]
 
 
+@holding_jit_lock
 def scene_sample_count(source: str | Path, *, params: dict[str, str] | None = None,
                        root: str | Path | None = None) -> int | None:
     """The `sample_count` of the scene's own `<sampler>` (after `params`), read from the parsed
