@@ -215,13 +215,6 @@ class JobActor:
         """Re-denoise the owned frames from the cached features: (images, full, tail passes,
         seconds here: "denoise" the loop's re-denoise, "tail" the λ tail within it; the caller's
         wall time beyond "denoise" is the hop)."""
-        session = self.loop.session
-        full, tail, tail_seconds = (session.full_calls, session.tail_calls, session.tail_seconds) if session else (0, 0, 0.0)
-        started = time.perf_counter()
-        images = self.loop.set_lambda(lam)
-        timings = {"denoise": time.perf_counter() - started,
-                   "tail": session.tail_seconds - tail_seconds if session else 0.0}
-        owned = {f: images[f] for f in self.loop.owned} if images else {}
-        if session is None:
-            return owned, 0, 0, timings
-        return owned, session.full_calls - full, session.tail_calls - tail, timings
+        done = self.loop.counted_set_lambda(lam)
+        owned = {f: done.images[f] for f in self.loop.owned} if done.images else {}
+        return owned, done.full_passes, done.tail_passes, done.timings

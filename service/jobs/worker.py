@@ -262,15 +262,8 @@ class JobWorker(LambdaEditsOfRunner):
         loop = self._loop_for_lambda(job_id, record)
         if loop is None:
             return None
-        session = loop.session
-        full_before, tail_before, seconds_before = (session.full_calls, session.tail_calls, session.tail_seconds) \
-            if session else (0, 0, 0.0)
-        started = time.perf_counter()
-        images = loop.set_lambda(lam)
-        timings = {"denoise": time.perf_counter() - started,
-                   "tail": session.tail_seconds - seconds_before if session else 0.0}
-        full, tail = (session.full_calls - full_before, session.tail_calls - tail_before) if session else (0, 0)
-        return Relambda(images, full, tail, results=loop.result_frames, timings=timings)
+        done = loop.counted_set_lambda(lam)
+        return Relambda(done.images, done.full_passes, done.tail_passes, results=loop.result_frames, timings=done.timings)
 
     def _loop_for_lambda(self, job_id: str, record: JobRecord) -> RenderLoop | None:
         with self._lock:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -71,6 +72,16 @@ def _scene_label(scene: str, scene_root: Path | None) -> str:
         return Path(scene).resolve().relative_to(Path(scene_root).resolve()).as_posix()
     except ValueError:
         return Path(scene).name
+
+
+@dataclass(frozen=True)
+class LambdaPass:
+    """One λ edit applied to a loop: the final images, the network passes it ran, and seconds:
+    "denoise" the whole re-denoise (the λ tail and the final image), "tail" the λ tail within it."""
+    images: list[np.ndarray]
+    full_passes: int
+    tail_passes: int
+    timings: dict[str, float]
 
 
 class RenderLoop:
@@ -340,6 +351,17 @@ class RenderLoop:
                 self.denoise_step({})  # after a restart the features are rebuilt once
             self._keep_converged(self.session.relambda(lam_map))
             return self.denoised()
+
+    def counted_set_lambda(self, lam_map: np.ndarray) -> "LambdaPass":
+        """`set_lambda`, with the network passes it ran and its seconds (what a λ edit reports)."""
+        session = self.session
+        before = (session.full_calls, session.tail_calls, session.tail_seconds) if session else (0, 0, 0.0)
+        started = time.perf_counter()
+        images = self.set_lambda(lam_map)
+        seconds = time.perf_counter() - started
+        after = (session.full_calls, session.tail_calls, session.tail_seconds) if session else before
+        return LambdaPass(images, after[0] - before[0], after[1] - before[1],
+                          {"denoise": seconds, "tail": after[2] - before[2]})
 
     def _keep_converged(self, images: dict[int, np.ndarray]) -> None:
         """Store the owned frames' denoised images. Pixels whose samples all agreed

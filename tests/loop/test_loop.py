@@ -83,6 +83,15 @@ def test_a_denoised_job_splats_too_and_its_networks_read_the_per_pixel_estimate(
     np.testing.assert_array_equal(frame_tensors(buffer).color[0].permute(1, 2, 0).numpy(), buffer.mean)
 
 
+def test_a_counted_lambda_edit_reports_its_passes_and_its_tail_within_its_seconds(tiny_networks):
+    loop = make_loop(tiny_networks, max_iterations=1)
+    list(loop.run())
+    done = loop.counted_set_lambda(np.full((SIZE, SIZE), 4.0, np.float32))
+    assert (done.full_passes, done.tail_passes) == (0, 1)
+    assert 0 < done.timings["tail"] <= done.timings["denoise"]
+    np.testing.assert_array_equal(done.images[0], loop.denoised()[0])
+
+
 def test_lambda_change_uses_cached_features_and_changes_the_image(tiny_networks):
     loop = make_loop(tiny_networks, max_iterations=1)
     list(loop.run())
