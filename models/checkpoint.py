@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 import torch.nn as nn
@@ -21,6 +21,14 @@ DATA_KEY = "data"       # extra[...]: "sha256:<hex>" of the data sets' manifests
 MODEL_KINDS: dict[str, tuple[type[nn.Module], type]] = {
     Denoiser.kind: (Denoiser, DenoiserConfig),
     ErrorPredictor.kind: (ErrorPredictor, ErrorPredictorConfig),
+}
+
+# Config fields that checkpoints written before an option was removed still store (the shipped
+# ones among them), each with the value the code now always builds, as a function of the rest of
+# the config: a file that stores that value loads as before; any other value was trained for a
+# path that is gone, and fails (docs/decisions.md, "Model options removed").
+RETIRED_FIELDS: dict[str, dict[str, Callable[[Any], Any]]] = {
+    ErrorPredictor.kind: {"sample_count_input": lambda config: True},
 }
 
 
@@ -62,6 +70,29 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return ckpt
 
 
+def stored_config(ckpt: dict[str, Any], path: str | Path = "checkpoint") -> Any:
+    """The config a checkpoint dict (read_checkpoint) stores, as its config class: each retired
+    field checked against the value the code now builds, then left out."""
+    kind = ckpt.get("kind")
+    if kind not in MODEL_KINDS:
+        raise CheckpointError(f"{path} holds unknown model kind {kind!r}; known: {sorted(MODEL_KINDS)}")
+    _, config_cls = MODEL_KINDS[kind]
+    retired = RETIRED_FIELDS.get(kind, {})
+    current = {name: value for name, value in ckpt["config"].items() if name not in retired}
+    unknown = set(current) - {f.name for f in dataclasses.fields(config_cls)}
+    if unknown:
+        raise CheckpointError(f"{path}: config fields {sorted(unknown)} unknown to {config_cls.__name__}")
+    try:
+        config = config_cls(**current)
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{path}: cannot build {kind} from its config: {e}") from e
+    for name, built in retired.items():
+        if name in ckpt["config"] and ckpt["config"][name] != built(config):
+            raise CheckpointError(f"{path}: {kind} trained with {name}={ckpt['config'][name]!r}, an option this "
+                                  f"code no longer has (it builds {name}={built(config)!r}; docs/decisions.md)")
+    return config
+
+
 def load_checkpoint(path: str | Path, expected_kind: str | None = None, device: str | torch.device = "cpu") -> nn.Module:
     """Rebuild the model from its stored config and load the weights (eval mode).
     The stored `extra` dict is attached as model.checkpoint_extra."""
@@ -71,13 +102,10 @@ def load_checkpoint(path: str | Path, expected_kind: str | None = None, device: 
         raise CheckpointError(f"{path} holds unknown model kind {kind!r}; known: {sorted(MODEL_KINDS)}")
     if expected_kind is not None and kind != expected_kind:
         raise CheckpointError(f"{path} holds a {kind!r} model, expected {expected_kind!r}")
-    model_cls, config_cls = MODEL_KINDS[kind]
-    fields = {f.name for f in dataclasses.fields(config_cls)}
-    unknown = set(ckpt["config"]) - fields
-    if unknown:
-        raise CheckpointError(f"{path}: config fields {sorted(unknown)} unknown to {config_cls.__name__}")
+    model_cls, _ = MODEL_KINDS[kind]
+    config = stored_config(ckpt, path)
     try:
-        model = model_cls(config_cls(**ckpt["config"]))
+        model = model_cls(config)
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: cannot build {kind} from its config: {e}") from e
     try:

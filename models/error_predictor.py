@@ -1,15 +1,16 @@
 """Error predictor (Vogels et al. 2018 §7): per-pixel SMAPE of the denoised image, estimated
 without a reference, so the adaptive sampler can send samples where the error is.
 
-    [encoder features of the noisy frame, log demodulated denoised (, log2 samples per pixel)
+    [encoder features of the noisy frame, log demodulated denoised, log2 samples per pixel
      (, √ the kernels/candidate disagreement)] → conv3x3 → 6 residual blocks → conv3x3
      → softplus (errors are ≥ 0)
 
-The sample-count channel (`sample_count_input`) tells the network how far each pixel has
-converged under the loop's non-uniform counts; relative variance is already among the encoder
-features. The disagreement channel (`disagreement_input`) is where the denoiser's kernels' image
-and its OIDN candidate differ (models/kernel_disagreement.py). The shipped network reads both (the defaults below are its
-configuration, tests/models/test_shipped_config.py).
+The sample-count channel tells the network how far each pixel has converged under the loop's
+non-uniform counts; relative variance is already among the encoder features. The disagreement
+channel (`disagreement_input`) is where the denoiser's kernels' image and its OIDN candidate
+differ (models/kernel_disagreement.py); a denoiser without a candidate (the temporal KPCN) has
+none to give. The defaults below are the shipped network's configuration
+(tests/models/test_shipped_config.py).
 
 Trained with L1 against models.losses.smape_map(denoised, reference).
 """
@@ -30,13 +31,14 @@ from models.frames import FrameTensors
 from models.kernel_disagreement import disagreement_feature
 from models.layers import cat_channels_last, conv3x3, res_blocks, trunk_in_bfloat16
 
+SAMPLE_COUNT_CHANNELS = 1   # log2(1 + spp) per pixel (models.features.sample_count_feature)
+
 
 @dataclass
 class ErrorPredictorConfig:
     source: str = "mitsuba-path"  # render source → input features (models.features.FEATURE_SETS)
     width: int = 16               # narrow: it runs every sampling iteration, and only has to rank pixels
     blocks: int = 6               # paper: six residual blocks
-    sample_count_input: bool = True   # + log2(1 + spp) per pixel (weights trained on the loop's own counts)
     disagreement_input: bool = True   # + √D, D = the kernels' image against the candidate's (needs a candidate)
     # Calibration: the prediction times this. Procedural training scenes are easier for the
     # denoiser than hand-written ones, so the mean prediction runs low on them by a roughly
@@ -64,10 +66,11 @@ class ErrorPredictor(nn.Module):
     @property
     def input_channels(self) -> int:
         cfg = self.config
-        return self.features.channels + 3 + int(cfg.sample_count_input) + int(cfg.disagreement_input)
+        return self.features.channels + 3 + SAMPLE_COUNT_CHANNELS + int(cfg.disagreement_input)
 
     def forward(self, frame: FrameTensors, denoised: Tensor, disagreement: Tensor | None = None) -> Tensor:
-        """frame: the noisy input; denoised (N,3,H,W) → (N,1,H,W) predicted SMAPE ≥ 0.
+        """frame: the noisy input, with its per-pixel sample counts (`spp`); denoised (N,3,H,W)
+        → (N,1,H,W) predicted SMAPE ≥ 0.
         disagreement (N,1,H,W): models.kernel_disagreement's D, read only by a network with
         `disagreement_input` (and then required)."""
         # Both images in the noisy frame's exposure (models.exposure), like the denoiser's inputs:
@@ -75,11 +78,9 @@ class ErrorPredictor(nn.Module):
         exposure = Exposure.of(frame.color)
         f, _ = sanitize_frame(exposure.forward_frame(frame))
         d, _ = sanitize(exposure.forward(denoised.float()), 0.0, HDR_MAX)
-        inputs = [*self.features.planes(f), log_transform(demodulate(d, f.albedo))]
-        if self.config.sample_count_input:
-            if f.spp is None:
-                raise ValueError("this error network reads the per-pixel sample count: the frame has no spp map")
-            inputs.append(sample_count_feature(f.spp))
+        if f.spp is None:
+            raise ValueError("the error network reads the per-pixel sample count: the frame has no spp map")
+        inputs = [*self.features.planes(f), log_transform(demodulate(d, f.albedo)), sample_count_feature(f.spp)]
         if self.config.disagreement_input:
             if disagreement is None:
                 raise ValueError("this error network reads the kernels/candidate disagreement: none was given")

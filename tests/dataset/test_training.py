@@ -71,7 +71,7 @@ def test_the_recipes_stages_chain_into_the_shipped_configuration_with_recipe_and
     assert denoiser.checkpoint_extra["init"].startswith("sha1:") and str(tmp_path) not in str(denoiser.checkpoint_extra)
     train(*data, "--stage", "error", "-o", str(tmp_path / "final"))
     error_net = load_checkpoint(tmp_path / "final/error_predictor.pt", expected_kind="error_predictor")
-    assert error_net.config.disagreement_input and error_net.config.sample_count_input
+    assert error_net.config.disagreement_input
     assert error_net.config.output_scale == 1.0 and error_net.config.change_scale is None   # fitted afterwards
     assert error_net.checkpoint_extra["denoiser"].startswith("sha1:")
 

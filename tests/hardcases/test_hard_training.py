@@ -23,7 +23,8 @@ def hdr_frame(gen: torch.Generator, motion: bool) -> FrameTensors:
     color[:, :, 8:10, 8:12] = 3e3  # an emitter seen directly
     variance = r(3) * color.square() / 16  # the variance of such a mean is huge too
     return FrameTensors(color=color, variance=variance, albedo=r(3) * (r(1) > 0.2), normal=r(3) * 2 - 1,
-                        depth=r(1) * 10, motion=(r(2) - 0.5) * 8 if motion else None)
+                        depth=r(1) * 10, motion=(r(2) - 0.5) * 8 if motion else None,
+                        spp=torch.full((N, 1, H, W), 16.0))  # the error network reads sample counts
 
 
 def finite_step(model: torch.nn.Module, optimiser: torch.optim.Optimizer, loss: torch.Tensor) -> None:

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from models import pretrained
-from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, stored_config
 from models.denoiser import Denoiser
 from models.error_predictor import ErrorPredictor, ErrorPredictorConfig
 from tests.models.conftest import TINY, make_frame
@@ -74,3 +74,27 @@ def test_a_format_1_checkpoint_is_refused_by_name(tmp_path):
     torch.save(ckpt, path)
     with pytest.raises(CheckpointError, match="format 1"):
         load_checkpoint(path, expected_kind="denoiser")
+
+
+def _with_stored_field(path, name, value) -> None:
+    ckpt = torch.load(path, weights_only=True)
+    ckpt["config"] = {**ckpt["config"], name: value}
+    torch.save(ckpt, path)
+
+
+def test_a_checkpoint_storing_a_retired_field_at_the_value_the_code_builds_loads_as_before(tmp_path):
+    """Files written before an option was removed (the shipped error network stores
+    sample_count_input=True) load to the same network: the field is checked, then dropped."""
+    ep = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1)).eval()
+    path = save_checkpoint(tmp_path / "e.pt", ep)
+    _with_stored_field(path, "sample_count_input", True)
+    back = load_checkpoint(path, expected_kind="error_predictor")
+    assert back.config == ep.config
+    assert stored_config(torch.load(path, weights_only=True), path) == ep.config
+
+
+def test_a_checkpoint_trained_for_a_removed_option_is_refused_by_name(tmp_path):
+    path = save_checkpoint(tmp_path / "e.pt", ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1)))
+    _with_stored_field(path, "sample_count_input", False)
+    with pytest.raises(CheckpointError, match="sample_count_input=False"):
+        load_checkpoint(path)

@@ -11,7 +11,6 @@ from tests.models.conftest import TINY, make_frame
 
 CANDIDATE = replace(TINY, temporal=False, oidn_candidate=True)
 
-
 def test_disagreement_is_zero_where_the_denoisers_agree_and_bounded_where_they_do_not():
     image = torch.rand(1, 3, 12, 9) * 4
     assert kernel_disagreement(image, image).abs().max() == 0
@@ -50,8 +49,8 @@ def test_apply_for_error_network_computes_the_disagreement_only_when_asked_and_n
 
 
 def test_an_error_network_reading_the_disagreement_requires_it_and_responds_to_it():
-    net = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, sample_count_input=False))
-    frame, denoised = make_frame(8, 8), torch.rand(1, 3, 8, 8)
+    net = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1))
+    frame, denoised = make_frame(8, 8, spp=16), torch.rand(1, 3, 8, 8)
     assert net.reads_disagreement and not ErrorPredictor(ErrorPredictorConfig(width=4, disagreement_input=False)).reads_disagreement
     with pytest.raises(ValueError, match="disagreement"):
         net(frame, denoised)
@@ -63,8 +62,8 @@ def test_an_error_network_reading_the_disagreement_requires_it_and_responds_to_i
 
 def test_error_predictor_loss_with_the_disagreement_input_trains_every_weight():
     denoiser = Denoiser(CANDIDATE).eval()
-    net = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1, sample_count_input=False))
-    frame, reference, candidate = make_frame(16, 16), torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16)
+    net = ErrorPredictor(ErrorPredictorConfig(width=4, blocks=1))
+    frame, reference, candidate = make_frame(16, 16, spp=16), torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16)
     loss = error_predictor_loss(net, denoiser, frame, reference, candidate)
     loss.backward()
     assert net.head.weight.grad[:, -1].abs().sum() > 0   # the disagreement channel gets a gradient
