@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 # Only what the parser needs is imported here: each report module (torch, Ray, matplotlib,
@@ -159,19 +160,25 @@ def run_measurements(args: argparse.Namespace) -> int:
         from bench.raw_image_report import cost_rows, quality_rows, report_fields
         from bench.sampler_report import bench_sampler, write_sampler_report
         from bench.stratified_pass_report import report_fields as stratified_fields, stratified_pass_rows
+        mode_started = time.perf_counter()
         results = bench_sampler(args.size or 256, args.spp or 64, args.repeats)
         for r in results:
             print(f"sampler: {r.case.label}: ours {r.ours_msps:.2f} M samples/s, mi.render {r.mi_render_msps:.2f}"
                   f" → ratio {r.ratio:.2f}x")
-        quality, cost = quality_rows(), cost_rows(repeats=args.repeats)
+        quality_started = time.perf_counter()
+        quality = quality_rows()
+        quality_s = time.perf_counter() - quality_started
+        cost = cost_rows(repeats=args.repeats)
         for q in quality:
-            print(f"raw image: {q.filter} {q.spp} spp: relMSE ours / mi.render {q.ratio:.3f}x (per-pixel {q.fis_ratio:.2f}x)")
+            print(f"raw image: {q.filter} {q.spp} spp: relMSE ours / mi.render {q.ratio:.3f} ± {q.ratio_se:.3f}x "
+                  f"({q.verdict}; per-pixel {q.fis_ratio:.2f}x)")
         for c in cost:
             print(f"splat cost: {c.filter} {c.spp} spp: {100 * c.overhead:+.0f} %")
         stratified = stratified_pass_rows(repeats=args.repeats)
         for s in stratified:
             print(f"stratified pass: {s.scene} {s.size}² +{s.mean_spp:.0f} spp: {s.ratio:.2f}x the independent pass")
-        fields = {**report_fields(quality, cost), **stratified_fields(stratified)}
+        fields = {**report_fields(quality, cost, quality_s), **stratified_fields(stratified),
+                  "mode_minutes": f"{(time.perf_counter() - mode_started) / 60:.1f}"}
         print(f"wrote {write_sampler_report(results, args.out, fields)}")
     if args.models:
         # The defaults (256² and 512², 2 threads); `python -m bench.models_report --help` has the options.
