@@ -24,7 +24,7 @@ import torch
 
 from bench.common import fill, pinned_torch_threads, provenance
 from bench.lambda_edit import LAMBDA_EDIT_SIZE, LambdaEditTiming, lambda_edit_section, measure_lambda_edit
-from models.checkpoint import load_checkpoint, read_checkpoint
+from models.checkpoint import load_checkpoint, read_checkpoint, stored_config
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
 from service.loop.denoise_frame import denoise_frame, prepare_frame
@@ -51,11 +51,11 @@ def _case(name: str, size: int, repeats: int, threads: int, queue, base: Denoise
     torch.manual_seed(0)
     gen = torch.Generator().manual_seed(0)
     # The temporal cases time the checkpoint's architecture with its temporal extractor on, also
-    # when the checkpoint is a single-frame network (speed does not depend on trained weights);
-    # candidate features are single-frame only (a neighbour has no candidate), so off there.
+    # when the checkpoint is a single-frame network (speed does not depend on trained weights;
+    # candidate features are single-frame only, DenoiserConfig.candidate_features).
     cfg = {"single-frame": replace(base, temporal=False, multiscale=False),
            "multi-scale": replace(base, temporal=False), "window-3": base}.get(
-        name, replace(base, temporal=True, candidate_features=False))
+        name, replace(base, temporal=True))
     model = Denoiser(cfg).eval()
     window = [_frame(size, size, gen) for _ in range(3 if cfg.temporal or name == "window-3" else 1)]
     center = len(window) // 2
@@ -197,7 +197,7 @@ def main(argv: list[str] | None = None, out: Path | None = None) -> Path | None:
     args = parser.parse_args(argv)
     config = DenoiserConfig(width=args.width, spatial_blocks=args.spatial_blocks)
     if args.config_from is not None:
-        config = DenoiserConfig(**read_checkpoint(args.config_from)["config"])
+        config = stored_config(read_checkpoint(args.config_from), args.config_from)
     if args.versus_oidn:
         for size in args.sizes:
             for name, ms in versus_oidn(config, size, args.repeats, args.threads).items():

@@ -28,7 +28,9 @@ MODEL_KINDS: dict[str, tuple[type[nn.Module], type]] = {
 # the config: a file that stores that value loads as before; any other value was trained for a
 # path that is gone, and fails (docs/decisions.md, "Model options removed").
 RETIRED_FIELDS: dict[str, dict[str, Callable[[Any], Any]]] = {
-    ErrorPredictor.kind: {"sample_count_input": lambda config: True},
+    Denoiser.kind: {"source": lambda config: "mitsuba-path",
+                    "candidate_features": lambda config: config.candidate_features},
+    ErrorPredictor.kind: {"source": lambda config: "mitsuba-path", "sample_count_input": lambda config: True},
 }
 
 

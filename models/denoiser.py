@@ -2,7 +2,7 @@
 
 Per pyramid level, every frame of the window goes through
 
-    source encoder (2 conv3x3)  →  spatial feature extractor (residual blocks)
+    encoder (2 conv3x3)  →  spatial feature extractor (residual blocks)
     neighbours only: warp to the center frame → temporal feature extractor (3 residual blocks)
     pre-λ kernel head (conv1x1)                                     ── prepare() stops here
     λ-module: kernel head with λ-dependent weights → k² logits/frame ── apply() starts here
@@ -27,8 +27,8 @@ from models.accumulation import accumulate_window
 from models.candidate import CandidateGate, blend, clamp_around
 from models.energy import SampleEnergy, measure_energy, restore_energy
 from models.exposure import Exposure
-from models.features import (HDR_MAX, demodulate, demodulation_albedo, feature_set, log_transform, remodulate, sanitize,
-                             sanitize_frame)
+from models.features import (HDR_MAX, PATH_FEATURES, demodulate, demodulation_albedo, log_transform, remodulate,
+                             sanitize, sanitize_frame)
 from models.frames import FrameTensors
 from models.kernels import filter_padded, pad_for_kernel, unnormalised_weights
 from models.layers import ConvPair, Pointwise, cat_channels_last, res_blocks, trunk_in_bfloat16
@@ -46,7 +46,6 @@ class DenoiserConfig:
     a width-16 single-frame multi-scale KPCN whose window's neighbours only add samples, with the
     OIDN candidate in every level's joint softmax and read by the trunk, and the settings chosen
     after training on the validation scenes. The temporal KPCN is `temporal_config()`."""
-    source: str = "mitsuba-path"   # render source → encoder input (models.features.FEATURE_SETS)
     width: int = 16                # feature channels everywhere between encoder and kernel head
     spatial_blocks: int = 2        # residual blocks of the spatial feature extractor
     temporal_blocks: int = 3       # residual blocks of the temporal feature extractor (paper: 3)
@@ -60,10 +59,6 @@ class DenoiserConfig:
     multiscale: bool = True        # False: finest level only, no compositing (the first training stage)
     oidn_candidate: bool = True    # an external denoiser's image joins every level's joint softmax (models.candidate)
     gate_width: int = 8            # hidden channels of the candidate gate
-    # The trunk also reads the candidate (log of its demodulated image at each level): kernels
-    # predicted with a clean estimate of the image in view, as a cross-bilateral filter is
-    # guided by one. Single-frame only (a neighbour frame has no candidate of its own).
-    candidate_features: bool = True
     # --- post-training settings (POST_TRAINING_SETTINGS): chosen on the validation scenes for
     # given weights; training runs without them (NEUTRAL_SETTINGS). Figures: docs/models.md.
     energy_tolerance: float = 0.03  # τ of models.energy: > 0 pulls the image's total towards the samples'; 0 = off
@@ -90,6 +85,14 @@ class DenoiserConfig:
         weights) off: what a fine-tuning run starts from and trains through."""
         return dataclasses.replace(self, **NEUTRAL_SETTINGS)
 
+    @property
+    def candidate_features(self) -> bool:
+        """The trunk also reads the candidate (log of its demodulated image at each level): kernels
+        predicted with a clean estimate of the image in view, as a cross-bilateral filter is
+        guided by one. Every single-frame network with a candidate does; a temporal one cannot
+        (a neighbour frame has no candidate of its own)."""
+        return self.oidn_candidate and not self.temporal
+
     def level_gate_offset(self, level: int) -> float:
         """The logit offset of pyramid level `level` (0 = finest)."""
         return self.gate_offset if level == 0 or self.coarse_gate_offset is None else self.coarse_gate_offset
@@ -114,8 +117,7 @@ def temporal_config(**fields) -> DenoiserConfig:
     """The temporal multi-scale KPCN (Vogels et al. 2018: one kernel per warped frame of the
     2M+1 window, all jointly softmax-normalised), the product's named design, not shipped yet:
     the shipped sizes, the temporal extractor on, no candidate, no post-training settings."""
-    return DenoiserConfig(**{"temporal": True, "oidn_candidate": False, "candidate_features": False,
-                             **NEUTRAL_SETTINGS, **fields})
+    return DenoiserConfig(**{"temporal": True, "oidn_candidate": False, **NEUTRAL_SETTINGS, **fields})
 
 
 # The config fields chosen after training, on validation scenes, for given weights (above).
@@ -144,7 +146,7 @@ def folded_if_uniform(code: Tensor) -> Tensor:
 # --- modules ------------------------------------------------------------------------------
 
 class Encoder(ConvPair):
-    """Source-specific: two 3×3 convs from that source's features to the shared width."""
+    """Two 3×3 convs from the frame's features (models.features.PATH_FEATURES) to the shared width."""
 
 
 class TemporalExtractor(nn.Module):
@@ -223,10 +225,7 @@ class Denoiser(nn.Module):
     def __init__(self, config: DenoiserConfig | None = None):
         super().__init__()
         self.config = cfg = config or DenoiserConfig()
-        self.features = feature_set(cfg.source)              # unknown source fails here
-        if cfg.candidate_features and not (cfg.oidn_candidate and not cfg.temporal):
-            raise ValueError("candidate_features reads the OIDN candidate of a single-frame network: "
-                             "it needs oidn_candidate=True and temporal=False")
+        self.features = PATH_FEATURES
         cin = self.features.channels + (CANDIDATE_CHANNELS if cfg.candidate_features else 0)
         self.encoder = Encoder(cin, cfg.width)
         self.spatial = res_blocks(cfg.width, cfg.spatial_blocks)

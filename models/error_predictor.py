@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from models.exposure import Exposure
-from models.features import (HDR_MAX, demodulate, feature_set, log_transform, sample_count_feature, sanitize,
+from models.features import (HDR_MAX, PATH_FEATURES, demodulate, log_transform, sample_count_feature, sanitize,
                              sanitize_frame)
 from models.frames import FrameTensors
 from models.kernel_disagreement import disagreement_feature
@@ -36,7 +36,6 @@ SAMPLE_COUNT_CHANNELS = 1   # log2(1 + spp) per pixel (models.features.sample_co
 
 @dataclass
 class ErrorPredictorConfig:
-    source: str = "mitsuba-path"  # render source → input features (models.features.FEATURE_SETS)
     width: int = 16               # narrow: it runs every sampling iteration, and only has to rank pixels
     blocks: int = 6               # paper: six residual blocks
     disagreement_input: bool = True   # + √D, D = the kernels' image against the candidate's (needs a candidate)
@@ -58,7 +57,7 @@ class ErrorPredictor(nn.Module):
     def __init__(self, config: ErrorPredictorConfig | None = None):
         super().__init__()
         self.config = cfg = config or ErrorPredictorConfig()
-        self.features = feature_set(cfg.source)              # unknown source fails here
+        self.features = PATH_FEATURES
         self.head = conv3x3(self.input_channels, cfg.width)
         self.blocks = res_blocks(cfg.width, cfg.blocks)
         self.out = conv3x3(cfg.width, 1)

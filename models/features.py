@@ -111,7 +111,7 @@ def normalize_depth(depth: Tensor) -> Tensor:
     return depth / (peak + DEPTH_EPS)
 
 
-# --- encoder inputs, one builder per render source ----------------------------------------
+# --- encoder inputs ------------------------------------------------------------------------
 
 def path_features(f: FrameTensors) -> list[Tensor]:
     """The 13 encoder input channels for the Mitsuba path tracer from an already sanitised frame,
@@ -138,20 +138,6 @@ class FeatureSet:
         return torch.cat(self.planes(frame), dim=1)
 
 
-FEATURE_SETS: dict[str, FeatureSet] = {
-    "mitsuba-path": FeatureSet(13, path_features),
-}
-
-
-class UnknownSourceError(KeyError):
-    def __str__(self) -> str:  # KeyError would quote the whole message
-        return str(self.args[0])
-
-
-def feature_set(source: str) -> FeatureSet:
-    """Look up a render source's feature set; unknown names fail here, at construction."""
-    try:
-        return FEATURE_SETS[source]
-    except KeyError:
-        known = ", ".join(sorted(FEATURE_SETS))
-        raise UnknownSourceError(f"unknown render source {source!r}; known sources: {known}") from None
+# The encoder inputs of both networks: the renderer's buffers (service.render) are Mitsuba's path
+# tracer's, the one render source there is.
+PATH_FEATURES = FeatureSet(13, path_features)

@@ -61,8 +61,7 @@ def test_denoise_and_predict_fetches_the_candidate_and_hands_the_error_network_t
 
 @torch.no_grad()
 def test_a_denoiser_without_oidn_candidate_gets_no_candidate():
-    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=False,
-                                       candidate_features=False)).eval()
+    denoiser = Denoiser(DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=False)).eval()
     frame = random_frame(16)
     prepared = prepare_frame(denoiser, [frame], 0)
     assert prepared.candidate is None

@@ -8,7 +8,7 @@ from models.frames import FrameTensors
 # post-training setting; the error network without the disagreement and uncalibrated, reading the
 # frame, the denoised image and the sample counts). **PLAIN_DENOISER with temporal=… and a width
 # gives such a network.
-PLAIN_DENOISER = {"oidn_candidate": False, "candidate_features": False, **NEUTRAL_SETTINGS}
+PLAIN_DENOISER = {"oidn_candidate": False, **NEUTRAL_SETTINGS}
 PLAIN_ERROR_NETWORK = {"disagreement_input": False, "output_scale": 1.0, "change_scale": None}
 # A tiny temporal KPCN (the named design); tests of the shipped shape replace its switches.
 TINY = temporal_config(width=8, spatial_blocks=1, temporal_blocks=1, kernel_size=3, lambda_width=4, composite_width=4)

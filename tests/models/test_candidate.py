@@ -182,23 +182,24 @@ def test_box_mean_equals_pooling_over_in_image_pixels(shape, k):
     torch.testing.assert_close(box_mean(x, k), expected)
 
 
-GUIDED = dataclasses.replace(CANDIDATE, temporal=False, candidate_features=True)
+GUIDED = dataclasses.replace(CANDIDATE, temporal=False)   # single frame with a candidate: the trunk reads it
 
 
-@pytest.mark.parametrize("changes", [{"oidn_candidate": False}, {"temporal": True}])
-def test_candidate_features_need_a_single_frame_network_with_a_candidate(changes):
-    with pytest.raises(ValueError, match="candidate_features"):
-        Denoiser(dataclasses.replace(GUIDED, **changes))
+def test_every_single_frame_network_with_a_candidate_reads_it_in_its_trunk_and_no_other_does():
+    features = Denoiser(GUIDED).features.channels
+    assert Denoiser(GUIDED).encoder.conv1.in_channels == features + CANDIDATE_CHANNELS
+    for other in (CANDIDATE, dataclasses.replace(GUIDED, oidn_candidate=False)):   # temporal; no candidate
+        assert not other.candidate_features and Denoiser(other).encoder.conv1.in_channels == features
 
 
 @torch.no_grad()
 def test_candidate_features_reach_the_kernels_through_the_trunk():
     model = Denoiser(GUIDED).eval()
-    assert model.encoder.conv1.in_channels == model.features.channels + CANDIDATE_CHANNELS
     frame = make_frame(H, W, motion=False)
     saturate_gate(model, -40.0)             # the candidate's own share at its floor (4.5e-5): kernels alone
-    plain = Denoiser(dataclasses.replace(GUIDED, candidate_features=False)).eval()
-    saturate_gate(plain, -40.0)
+    plain = Denoiser(GUIDED).eval()         # the same network with the trunk's candidate channels cut
+    plain.load_state_dict(model.state_dict())
+    plain.encoder.conv1.weight[:, -CANDIDATE_CHANNELS:] = 0.0
 
     def change(net: Denoiser) -> float:   # how far the output moves when only the candidate changes
         first, second = (net.apply(net.prepare([frame], 0, candidate_image(seed)), 1.0) for seed in (1, 2))

@@ -101,11 +101,6 @@ def test_bad_lambda_map_shape_is_a_clear_error():
         den(window(1), 0, torch.ones(1, 1, 5, 5))
 
 
-def test_unknown_source_fails_at_construction_listing_known_sources():
-    with pytest.raises(KeyError, match="known sources: mitsuba-path"):
-        Denoiser(replace(TINY, source="nope"))
-
-
 def test_single_scale_single_frame_output_lies_in_convex_hull_of_neighbourhood():
     cfg = replace(TINY, temporal=False, multiscale=False, kernel_size=3)
     den = Denoiser(cfg).eval()

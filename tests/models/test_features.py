@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from models.features import (FEATURE_SETS, HDR_MAX, demodulate, feature_set, sanitize_frame, inverse_log_transform,
+from models.features import (HDR_MAX, PATH_FEATURES, demodulate, sanitize_frame, inverse_log_transform,
                              log_transform, path_features, remodulate, sanitize)
 from tests.models.conftest import make_frame
 
@@ -35,15 +35,10 @@ def test_network_input_is_finite_with_hostile_buffers():
     f.variance[0, 1, 1, 1] = float("inf")
     f.albedo.zero_()
     f.depth.zero_()
-    x = FEATURE_SETS["mitsuba-path"].build(sanitize_frame(f)[0])
+    x = PATH_FEATURES.build(sanitize_frame(f)[0])
     assert torch.equal(x, torch.cat(path_features(sanitize_frame(f)[0]), 1))
-    assert x.shape == (1, FEATURE_SETS["mitsuba-path"].channels, 12, 16)
+    assert x.shape == (1, PATH_FEATURES.channels, 12, 16)
     assert x.isfinite().all()
-
-
-def test_unknown_source_lists_known_ones():
-    with pytest.raises(KeyError, match="mitsuba-path"):
-        feature_set("blender-cycles")
 
 
 def test_albedo_is_clamped_to_a_reflectance_before_demodulation():
