@@ -2,7 +2,7 @@
 "The gate's offsets and the compositor's caps")
 
 The gate was trained on procedural scenes, where the kernels hold their own against OIDN; on
-hand-written scenes they are 1.1–5× worse at 16 spp (docs/decisions.md, "The candidate gate"), so a gate
+hand-written scenes they are 1.1–5× worse at 16 spp (docs/decisions.md, "The kernels lose at 16 spp"), so a gate
 that trusts them as much as in training mixes in too much of them. One logit offset b added to
 the finest level's gate logit (DenoiserConfig.gate_offset), and one bc to the coarser levels'
 (coarse_gate_offset), move the gate towards the candidate (> 0) without retraining. Per scene,
