@@ -36,9 +36,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--weights", type=Path, metavar="DIR",
                    help="networks that drive --loop-branch (default: the shipped ones)")
     p.add_argument("--layout", choices=DATASET_LAYOUTS, default="mixed",
-                   help="scene layout: mixed (each seed draws room or ground, the default), or one for every "
-                        "scene; window: closed rooms lit only by sun and sky through an opening; shaded: closed rooms lit only "
-                        "by a tiny, very bright bulb inside an opaque lampshade (fireflies)")
+                   help="scene layout: mixed (each seed draws a room open at the front or open ground, the "
+                        "default), or for every scene window: closed rooms lit only by sun and sky through an "
+                        "opening; shaded: closed rooms lit only by a tiny, very bright bulb inside an opaque "
+                        "lampshade (fireflies)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
     return p

@@ -33,8 +33,9 @@ LAYOUTS = ("room", "ground")   # the default mix, drawn per seed
 WINDOW_LAYOUT = "window"        # only on request (sample_spec's `layout`)
 SHADED_LAYOUT = "shaded"        # likewise
 CLOSED_LAYOUTS = (WINDOW_LAYOUT, SHADED_LAYOUT)   # rooms closed on all four sides
-# What a data set may ask for (`renderloop dataset --layout`): "mixed" is the seeds' own draw.
-DATASET_LAYOUTS = ("mixed", *LAYOUTS, *CLOSED_LAYOUTS)
+# What a data set may ask for (`renderloop dataset --layout`): "mixed" is the seeds' own draw of
+# LAYOUTS; the closed layouts are the recipe's extra data sets (scripts/train-weights.sh).
+DATASET_LAYOUTS = ("mixed", *CLOSED_LAYOUTS)
 SHAPES = ("sphere", "cube", "cylinder", "rectangle", "disk")
 MATERIALS = ("diffuse", "textured", "roughplastic", "roughconductor", "conductor", "dielectric")
 LIGHTS = ("area_rect", "area_sphere", "point", "spot", "constant", "sky", "firefly")

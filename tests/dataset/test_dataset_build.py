@@ -103,4 +103,4 @@ def test_a_manifest_from_before_layouts_were_recorded_resumes_as_the_default_mix
     (still_dataset / MANIFEST).write_text(json.dumps(manifest))
     build_dataset(still_dataset, scenes=2, frames=1, split="heldout", **tiny)   # no DatasetError
     with pytest.raises(DatasetError, match="layout=mixed"):
-        build_dataset(still_dataset, scenes=2, frames=1, split="heldout", layout="room", **tiny)
+        build_dataset(still_dataset, scenes=2, frames=1, split="heldout", layout="window", **tiny)

@@ -23,6 +23,15 @@ def test_parser_reads_every_option(tmp_path):
     assert parse(["dataset", "-o", str(tmp_path), "--layout", "window"]).layout == "window"
 
 
+@pytest.mark.parametrize("open_layout", ["room", "ground"])
+def test_the_open_layouts_come_only_in_the_default_mix(tmp_path, open_layout, capsys):
+    """A data set of rooms open at the front alone, or of ground alone, is no recipe step's: those
+    layouts are what each seed of the default `mixed` draws (issue 46)."""
+    with pytest.raises(SystemExit):
+        parse(["dataset", "-o", str(tmp_path), "--layout", open_layout])
+    assert "invalid choice" in capsys.readouterr().err
+
+
 def test_train_reads_several_data_sets_and_trains_on_all_of_them():
     parser = argparse.ArgumentParser(prog="renderloop")
     add_train_parser(parser.add_subparsers(dest="command", required=True))
