@@ -26,10 +26,12 @@ def _shipped_fields(name: str, kind: str) -> dict:
 
 def test_default_denoiser_config_equals_the_shipped_checkpoints_config():
     assert dataclasses.asdict(DenoiserConfig()) == _shipped_fields(DENOISER_FILE, Denoiser.kind)
+    assert stored_config(read_checkpoint(SHIPPED_WEIGHTS_DIR / DENOISER_FILE)) == DenoiserConfig()
 
 
 def test_default_error_predictor_config_equals_the_shipped_checkpoints_config():
     assert dataclasses.asdict(ErrorPredictorConfig()) == _shipped_fields(ERROR_PREDICTOR_FILE, ErrorPredictor.kind)
+    assert stored_config(read_checkpoint(SHIPPED_WEIGHTS_DIR / ERROR_PREDICTOR_FILE)) == ErrorPredictorConfig()
 
 
 def test_default_networks_take_the_shipped_weights_exactly():
