@@ -60,7 +60,7 @@ def test_the_sampler_page_fills_every_field_with_the_seeds_and_the_standard_erro
     fields = {**report_fields(rows, [], 90.0), **stratified_fields([]), "mode_minutes": "9.5"}
     page = " ".join(write_sampler_report([timing], tmp_path, fields).read_text().split())
     assert seeds_text({"box": 8, "tent": 8, "mitchell": 16}) == "8 seeds (box, tent) and 16 (mitchell)"
-    assert "8 seeds (box, tent, gaussian) and 16 (mitchell) for ours" in page
+    assert "6 seeds (box, tent, gaussian) and 24 (mitchell) for ours" in page
     assert "**1.000 ± 0.008×** | within |" in page
     assert "whole `--sampler` mode: 9.5 min" in page and "This section took 1.5 min" in page
     assert "a true 1.05 reads 1.047 there" in page  # the reference's 2048 spp beside 128
