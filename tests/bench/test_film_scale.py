@@ -1,5 +1,5 @@
-"""The development suite at K× its film size (`--film-scale K`; K = 2, about 512², is the setting
-of docs/benchmarks-dev-x2.md): references rendered at that size into the cache and found by it,
+"""The development suite at K× its film size (`--film-scale K`; K = 2, about 512², writes
+benchmarks-dev-x2.md): references rendered at that size into the cache and found by it,
 and the loop run at it."""
 from __future__ import annotations
 
