@@ -120,7 +120,19 @@ def _import_mitsuba():
     except Exception as exc:  # e.g. cuda_* without a working GPU/driver
         detail = " ".join(str(exc).split())
         raise RuntimeSetupError(f"Mitsuba variant {variant!r} is not available here: {detail}") from exc
+    _start_thread_pool()
     return mi
+
+
+def _start_thread_pool() -> None:
+    """Start Dr.Jit's worker pool now, on an unrestricted thread. The pool starts lazily, and a
+    Landlock domain passes to the threads a restricted thread starts: born inside the first walled
+    scene load (service/render/sandbox.py), its workers would read only that scene's folder for
+    the rest of the process, and a later parallel load's texture task that lands on one fails
+    with 'Permission denied' (tests/render/test_walled_load_threads.py)."""
+    import drjit as dr
+
+    dr.set_thread_count(dr.thread_count())
 
 
 def active_variant() -> str:
