@@ -1,6 +1,6 @@
 """What the code and the README point a reader to exists (issue 46): the code's and scripts'
 references to docs/ name pages in the repository (none names the design notes' old home,
-DESIGN.md, outside it), and the README's Reports table links every report `renderloop bench`
+DESIGN.md, outside it), every `docs/decisions.md, "title"` citation names a paragraph there, and the README's Reports table links every report `renderloop bench`
 writes into docs/. tests/test_docs_links.py checks the Markdown pages themselves."""
 from __future__ import annotations
 
@@ -46,3 +46,22 @@ def test_the_readme_links_every_report_renderloop_bench_writes_into_docs():
     reports = generated_reports()
     assert "val-quality.md" in reports and "design.md" not in reports   # the detection itself
     assert [name for name in reports if f"](docs/{name})" not in readme] == []
+
+
+# `docs/decisions.md, "A paragraph's title"` (the title may wrap, code comments may put '#' at a
+# line start): the way code and pages cite the decision behind them.
+DECISION_CITATION = re.compile(r'decisions\.md,\s+"([^"]{5,200})"')
+
+
+def squeeze(text: str) -> str:
+    return re.sub(r"\s+", " ", re.sub(r"\n\s*#", "\n", text))
+
+
+def test_every_cited_decision_is_a_paragraph_of_the_decisions_page():
+    decisions = squeeze((REPO / "docs" / "decisions.md").read_text(encoding="utf-8"))
+    citing = code_files() + sorted((REPO / "docs").glob("*.md")) + [REPO / "README.md"]
+    missing = [f"{path.relative_to(REPO)}: {title}"
+               for path in citing
+               for title in map(squeeze, DECISION_CITATION.findall(path.read_text(encoding="utf-8", errors="replace")))
+               if title.rstrip(".,") not in decisions]
+    assert missing == []
