@@ -126,10 +126,22 @@ def temporal_flicker(scene: DevScene, references: list[np.ndarray], networks: Ne
     still scene given copies of its one reference is a static sequence (every frame its own
     seed). Also each method's mean SMAPE over the sequence (key `smape_<method>`): steadier
     must not mean worse."""
+    return sequence_flicker(render_sequence(scene, len(references), networks, spp), references, networks, oidn)
+
+
+def render_sequence(scene: DevScene, frames: int, networks: Networks, spp: int = SPP_LEVELS[0]) -> list[FrameBuffer]:
+    """The sequence temporal_flicker scores: the scene's frames, or a still scene's one frame
+    rendered `frames` times with seeds SEED + f. One uniform iteration: the samples do not
+    depend on the networks, so one render serves every network scored on it."""
     if scene.frames > 1:
-        buffers = uniform_render(scene, spp, networks, frames=len(references)).buffers
-    else:   # the service refuses frames > 1 without $frame: one render per seed, one sequence
-        buffers = [uniform_render(scene, spp, networks, seed=SEED + f).buffers[0] for f in range(len(references))]
+        return uniform_render(scene, spp, networks, frames=frames).buffers
+    # the service refuses frames > 1 without $frame: one render per seed, one sequence
+    return [uniform_render(scene, spp, networks, seed=SEED + f).buffers[0] for f in range(frames)]
+
+
+def sequence_flicker(buffers: list[FrameBuffer], references: list[np.ndarray], networks: Networks,
+                     oidn: OidnDenoise) -> dict[str, float]:
+    """temporal_flicker's scores of a rendered sequence (render_sequence) denoised by `networks`."""
     per_frame = sequence_images(buffers, networks, oidn)
     out = {}
     for method in FLICKER_METHODS:
