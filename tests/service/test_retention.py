@@ -8,7 +8,8 @@ import httpx
 
 from service.jobs.retention import Retention, folder_bytes, sweep
 from service.jobs.store import COMPLETED, FAILED, JobStore
-from service_harness import Server, finished, wait_for
+from service.loop.spec import LoopSpec
+from service_harness import Server
 
 
 def finished_job(store: JobStore, state: str = COMPLETED, size: int = 0) -> str:
@@ -47,23 +48,24 @@ def test_no_policy_removes_nothing(tmp_path, db_url):
 
 
 def test_a_server_started_with_keep_days_removes_finished_jobs_past_it(tmp_path):
-    first = Server(tmp_path / "data", tmp_path / "first.log").start()
+    # The finished job is written into the data dir's store as a server leaves one (its spec, its
+    # folder with a result file): a first server rendering it cost a server start and a render.
+    store = JobStore(tmp_path / "data")
+    spec = LoopSpec(scene="cornell-box", width=8, height=8, max_iterations=1, denoise=False, allocator="uniform")
+    job_id = store.create(spec.to_stored(), spec.lam).id
+    store.claim(job_id)
+    store.finish(job_id, COMPLETED, stop_reason="max_iterations")
+    job_dir = store.job_dir(job_id)
+    (job_dir / "result.exr").write_bytes(b"x" * 1000)
+    store.close()
+    time.sleep(1.5)  # older than one second by the time the server sweeps
+    server = Server(tmp_path / "data", tmp_path / "server.log", env={"RENDERLOOP_KEEP_DAYS": str(1 / 86400)}).start()
     try:
-        with httpx.Client(base_url=first.url, timeout=60) as client:
-            body = {"scene": "cornell-box", "width": 8, "height": 8, "max_iterations": 1, "denoise": False,
-                    "allocator": "uniform"}
-            job_id = client.post("/jobs", json=body).json()["id"]
-            wait_for(client, job_id, finished)
-    finally:
-        first.stop()
-    time.sleep(1.5)  # older than one second by the time the next server sweeps
-    second = Server(tmp_path / "data", tmp_path / "second.log", env={"RENDERLOOP_KEEP_DAYS": str(1 / 86400)}).start()
-    try:
-        with httpx.Client(base_url=second.url, timeout=60) as client:
+        with httpx.Client(base_url=server.url, timeout=60) as client:
             deadline = time.monotonic() + 30
             while client.get(f"/jobs/{job_id}").status_code != 404 and time.monotonic() < deadline:
                 time.sleep(0.2)
             assert client.get(f"/jobs/{job_id}").status_code == 404
-        assert not (tmp_path / "data" / "jobs" / job_id).exists()
+        assert not job_dir.exists() and job_dir.parent.is_dir()
     finally:
-        second.stop()
+        server.stop()
