@@ -11,6 +11,7 @@ import httpx
 import pytest
 
 from cli_server import CliServer
+from service.cli import CliError, build_parser, serve_security
 from service.api.signing import UrlSigner
 from service_harness import renderloop_clis
 
@@ -73,12 +74,14 @@ def test_token_on_the_command_line_warns_that_ps_shows_it(tmp_path):
     assert empty.returncode == 2 and "is empty" in empty.stderr
 
 
-def test_the_token_file_can_come_from_the_environment(tmp_path):
-    server = CliServer(tmp_path / "data", tmp_path / "server.log", [],
-                       env={"RENDERLOOP_TOKEN_FILE": str(token_file(tmp_path))}).start()
-    try:
-        assert httpx.get(server.url + "/jobs", timeout=30).status_code == 401
-        authorised = httpx.get(server.url + "/jobs", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30)
-        assert authorised.status_code == 200
-    finally:
-        server.stop()
+def test_the_token_file_can_come_from_the_environment(tmp_path, monkeypatch):
+    """$RENDERLOOP_TOKEN_FILE gives `renderloop serve` its token as --token-file does: the serve
+    command's security settings (serve_security, which the serve handler hands the server) carry
+    the file's token. That a server enforces the token it is given is the module server's test
+    above; a second server started only for this cost a `renderloop serve` start-up."""
+    monkeypatch.delenv("RENDERLOOP_TOKEN", raising=False)
+    monkeypatch.setenv("RENDERLOOP_TOKEN_FILE", str(token_file(tmp_path)))
+    assert serve_security(build_parser().parse_args(["serve"])).token == TOKEN
+    monkeypatch.setenv("RENDERLOOP_TOKEN_FILE", str(tmp_path / "missing"))
+    with pytest.raises(CliError, match="token file"):
+        serve_security(build_parser().parse_args(["serve"]))
