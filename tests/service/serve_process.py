@@ -11,9 +11,11 @@ from pathlib import Path
 
 import httpx
 
+import iteration_hold
 from service_harness import REPO, free_port
 
 RAY_STARTUP_SECONDS = 300  # a Ray runtime on a loaded 2-core machine can take minutes
+HOLD_SITE = Path(__file__).with_name("hold_site")  # its sitecustomize installs iteration_hold in every process
 BACKENDS = {"threads": ["--concurrency", "1"], "ray": ["--workers", "1"]}
 
 
@@ -40,14 +42,20 @@ def start_serve(args: list[str], url: str, log_path: Path, env: dict[str, str], 
 class ServeProcess:
     """`renderloop serve` itself (the console script's code path, not the test launcher)."""
 
-    def __init__(self, data_dir: Path, log_path: Path, backend: list[str]) -> None:
-        self.data_dir, self.log_path, self.backend = data_dir, log_path, backend
+    def __init__(self, data_dir: Path, log_path: Path, backend: list[str], hold: str | None = None) -> None:
+        """`hold` (iteration_hold.hold_value): the server's jobs hold inside a render, in the
+        server's process and in its Ray workers alike (hold_site/sitecustomize.py)."""
+        self.data_dir, self.log_path, self.backend, self.hold = data_dir, log_path, backend, hold
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.process: subprocess.Popen | None = None
 
     def start(self) -> "ServeProcess":
-        env = {k: v for k, v in os.environ.items() if k not in ("RENDERLOOP_TOKEN", "RENDERLOOP_CONCURRENCY")}
+        env = {k: v for k, v in os.environ.items()
+               if k not in ("RENDERLOOP_TOKEN", "RENDERLOOP_CONCURRENCY", iteration_hold.ENV)}
+        if self.hold is not None:
+            env[iteration_hold.ENV] = self.hold
+            env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HOLD_SITE), env.get("PYTHONPATH")]))
         # Its own session: a process-group signal reaches this server's group and nothing of pytest.
         self.process = start_serve(["--port", str(self.port), "--data-dir", str(self.data_dir), *self.backend],
                                    self.url, self.log_path, env, RAY_STARTUP_SECONDS, new_session=True)

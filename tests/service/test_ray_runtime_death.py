@@ -12,6 +12,7 @@ import subprocess
 import httpx
 import pytest
 
+from iteration_hold import hold_value
 from process_sockets import process_tree
 from serve_process import BACKENDS, ServeProcess
 from service_harness import finished, wait_for
@@ -20,7 +21,10 @@ pytestmark = pytest.mark.requires("ray")
 
 RUNTIME_DIED_EXIT_CODE = 75  # service.jobs.ray_worker: EX_TEMPFAIL
 EXIT_SECONDS = 30
-JOB = {"scene": "cornell-box", "width": 64, "height": 64, "spp_first": 64, "max_iterations": 5}
+JOB = {"scene": "cornell-box", "width": 32, "height": 32, "spp_first": 16, "max_iterations": 4}
+# The first server's job holds inside its second iteration's render in its Ray worker
+# (iteration_hold.py via serve_process.HOLD_SITE): running at the kill however fast the machine.
+HELD_AFTER_ONE = hold_value(1)
 
 
 def raylet_pid(server: ServeProcess) -> int:
@@ -35,7 +39,7 @@ def raylet_pid(server: ServeProcess) -> int:
 
 
 def test_a_killed_raylet_requeues_the_running_job_and_the_server_exits_non_zero(tmp_path):
-    first = ServeProcess(tmp_path / "data", tmp_path / "serve0.log", BACKENDS["ray"]).start()
+    first = ServeProcess(tmp_path / "data", tmp_path / "serve0.log", BACKENDS["ray"], HELD_AFTER_ONE).start()
     second = None
     try:
         with httpx.Client(base_url=first.url, timeout=60) as client:

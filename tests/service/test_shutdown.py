@@ -14,19 +14,25 @@ from pathlib import Path
 import httpx
 import pytest
 
+from iteration_hold import hold_value
 from serve_process import BACKENDS, ServeProcess
 from service_harness import finished, wait_for
 
 EXIT_SECONDS = 10
-JOB = {"scene": "cornell-box", "width": 64, "height": 64, "spp_first": 64, "max_iterations": 6}
+JOB = {"scene": "cornell-box", "width": 32, "height": 32, "spp_first": 16, "max_iterations": 4}
+# The first server's job holds inside its third iteration's render (iteration_hold.py, installed in
+# the server and its Ray workers by serve_process.HOLD_SITE): running at the signal however fast or
+# slow the machine, rendering nothing meanwhile; a job sized to outlast the signal instead cost
+# ~2000 spp at 64² per run.
+HELD_AFTER_TWO = hold_value(2)
 
 
 @pytest.fixture
 def serve(tmp_path):
     started: list[ServeProcess] = []
 
-    def start(backend: str) -> ServeProcess:
-        server = ServeProcess(tmp_path / "data", tmp_path / f"serve{len(started)}.log", BACKENDS[backend])
+    def start(backend: str, hold: str | None = None) -> ServeProcess:
+        server = ServeProcess(tmp_path / "data", tmp_path / f"serve{len(started)}.log", BACKENDS[backend], hold)
         started.append(server)
         return server.start()
 
@@ -69,7 +75,7 @@ SIGNAL_TARGETS = [pytest.param(False, id="server", marks=pytest.mark.slow), pyte
 @pytest.mark.parametrize("whole_group", SIGNAL_TARGETS)
 @pytest.mark.parametrize("backend", ["threads", "ray"])
 def test_sigterm_exits_0_within_10_s_without_a_traceback_and_requeues_the_running_job(serve, backend, whole_group):
-    first = serve(backend)
+    first = serve(backend, hold=HELD_AFTER_TWO)
     job_id, at_term, seconds = terminate_mid_job(first, whole_group)
     log = first.log()
     assert at_term["state"] == "running" and at_term["iteration"] < JOB["max_iterations"], "job ended before SIGTERM"
