@@ -17,6 +17,18 @@ def renderloop(*args, cwd=None) -> subprocess.CompletedProcess:
     return subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=600, cwd=cwd)
 
 
+def renderloops(*argvs: list) -> list[subprocess.CompletedProcess]:
+    """Independent `renderloop` commands at once, results in the order given: each start is mostly
+    imports, and two cores run two at a time (one after the other cost the sum)."""
+    processes = [subprocess.Popen([*CLI, *map(str, argv)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for argv in argvs]
+    results = []
+    for process in processes:
+        stdout, stderr = process.communicate(timeout=600)
+        results.append(subprocess.CompletedProcess(process.args, process.returncode, stdout, stderr))
+    return results
+
+
 def test_list_prints_the_builtin_scenes():
     result = renderloop("render", "--list")
     assert result.returncode == 0
@@ -79,8 +91,8 @@ def test_bad_input_gives_one_clear_line_and_a_nonzero_exit(tmp_path, monkeypatch
 
 
 def test_an_output_that_is_not_exr_is_refused_before_rendering(tmp_path):
-    for args in (["render", "cornell-box", "--spp", "1", "--no-denoise"], ["denoise", tmp_path / "in.exr"]):
-        result = renderloop(*args, "-o", tmp_path / "x.png")
+    commands = (["render", "cornell-box", "--spp", "1", "--no-denoise"], ["denoise", tmp_path / "in.exr"])
+    for result in renderloops(*([*args, "-o", tmp_path / "x.png"] for args in commands)):
         assert result.returncode == 2 and "must end in .exr" in result.stderr and "--png" in result.stderr
         assert not (tmp_path / "x.png").exists()
 
@@ -170,11 +182,10 @@ def test_help_loads_no_heavy_module():
 
 
 def test_explain_says_which_integrator_runs_and_why_without_rendering(write_scene_xml, tmp_path):
-    declared = renderloop("render", "veiled", "--explain")
+    scene = write_scene_xml('<shape type="sphere"><bsdf type="diffuse"/></shape><emitter type="constant"/>')
+    declared, chosen = renderloops(["render", "veiled", "--explain"], ["render", scene, "--explain"])
     assert declared.returncode == 0, declared.stderr
     assert "integrator: volpath (declared by the scene" in declared.stdout and "participating media: yes" in declared.stdout
-    scene = write_scene_xml('<shape type="sphere"><bsdf type="diffuse"/></shape><emitter type="constant"/>')
-    chosen = renderloop("render", scene, "--explain")
     assert chosen.returncode == 0 and "declares no integrator and has no media: chose 'path'" in chosen.stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.xml"]  # nothing rendered, nothing written
 
@@ -218,7 +229,7 @@ def test_serve_with_an_unreachable_postgresql_says_so_in_one_line_without_the_pa
 
 
 def test_serve_refuses_zero_workers_and_a_thread_count_beside_ray_workers(tmp_path):
-    zero = renderloop("serve", "--data-dir", tmp_path / "data", "--workers", "0")
+    zero, both = renderloops(["serve", "--data-dir", tmp_path / "data", "--workers", "0"],
+                             ["serve", "--data-dir", tmp_path / "data", "--workers", "2", "--concurrency", "1"])
     assert zero.returncode == 2 and zero.stderr.strip() == "renderloop: error: --workers must be >= 1"
-    both = renderloop("serve", "--data-dir", tmp_path / "data", "--workers", "2", "--concurrency", "1")
     assert both.returncode == 2 and "not allowed with argument --workers" in both.stderr
