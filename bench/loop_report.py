@@ -379,7 +379,8 @@ def per_iteration_tables(scenes: list[SceneResult]) -> str:
 def agreement_line(a: ErrorAgreement) -> str:
     return (f"- {a.scene}: (d) spp per pixel min {a.spp_min} / median {a.spp_median:g} / max {a.spp_max}; "
             f"predicted vs true per-pixel SMAPE (last iteration): r = {a.correlation:.2f}, mean predicted / true "
-            f"= {a.ratio:.3g}; (a) converges as SMAPE ∝ spp^{a.exponent:.2f}.")
+            f"= {a.ratio:.3g}"  # (a)'s convergence only when the run had (a) (else its exponent is NaN)
+            + ("" if math.isnan(a.exponent) else f"; (a) converges as SMAPE ∝ spp^{a.exponent:.2f}") + ".")
 
 
 def degenerate_note(median_ratio: float) -> str:

@@ -16,7 +16,7 @@ from bench.cli import main as bench_main
 from bench.common import true_error_map
 from bench import loop_report
 from bench.loop_report import run_loop_benchmark
-from bench.loop_run import METHODS, STAGES, Headline, TrueErrorMap, select_methods, time_to_reach
+from bench.loop_run import METHODS, STAGES, ErrorAgreement, Headline, TrueErrorMap, select_methods, time_to_reach
 from bench.loop_seeds import bound_line, gaps, seed_table
 
 
@@ -160,3 +160,10 @@ def test_loop_flags_refuse_a_method_set_without_the_product_and_zero_timing_repe
     assert "must include the product (d)" in capsys.readouterr().err
     assert bench_main(["--loop", "--timing-repeats", "0"]) == 2
     assert "--timing-repeats must be >= 1" in capsys.readouterr().err
+
+
+def test_a_scene_note_speaks_of_uniform_convergence_only_when_the_run_had_uniform():
+    with_a = loop_report.agreement_line(ErrorAgreement("cbox", 20, 100.0, 300, 0.6, 1.1, -0.48))
+    without_a = loop_report.agreement_line(ErrorAgreement("cbox", 20, 100.0, 300, 0.6, 1.1, math.nan))
+    assert "(a) converges as SMAPE ∝ spp^-0.48" in with_a
+    assert "converges" not in without_a and "nan" not in without_a and without_a.endswith("= 1.1.")
