@@ -14,10 +14,9 @@ iteration while its checkpoint is written, and when each checkpoint landed.
 from __future__ import annotations
 
 import errno
-import importlib.abc
+import importlib.util
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
@@ -71,29 +70,14 @@ def patch_loop(module) -> None:
 PATCHES = {"service.jobs.checkpoint_format": patch_state, "service.loop.loop": patch_loop}
 
 
-class ProbeFinder(importlib.abc.MetaPathFinder):
-    """Lets the real finders load the module, then patches it before anyone uses it."""
-
-    def find_spec(self, name, path, target=None):
-        if name not in PATCHES:
-            return None
-        for finder in sys.meta_path:
-            if finder is self or not hasattr(finder, "find_spec"):
-                continue
-            spec = finder.find_spec(name, path, target)
-            if spec is not None:
-                break
-        else:
-            return None
-        exec_module = spec.loader.exec_module
-
-        def exec_and_patch(module) -> None:
-            exec_module(module)
-            PATCHES[name](module)
-
-        spec.loader.exec_module = exec_and_patch
-        return spec
+def load_patch_after_import():
+    """tests/service/patch_after_import.py under a private name: the worker's sys.path stays as it is."""
+    path = Path(__file__).resolve().parents[1] / "patch_after_import.py"
+    spec = importlib.util.spec_from_file_location("_renderloop_test_patch_after_import", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 if PROBE_DIR:
-    sys.meta_path.insert(0, ProbeFinder())
+    load_patch_after_import().install(PATCHES)
