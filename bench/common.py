@@ -33,9 +33,9 @@ from service.render.builtin import BUILTIN_BY_NAME
 from service.render.effects import inspect_scene, make_integrator
 from service.render.framebuffer import FrameBuffer
 from service.render.renderer import render_samples
-from service.render.runtime import active_variant
+from service.render.runtime import active_variant, network_device
 from service.render.scenes import load_scene
-from service.loop.oidn import OIDN_SETTINGS, oidn_image
+from service.loop.oidn import OIDN_SETTINGS, oidn_hwc, oidn_image
 from service.loop.tensors import nchw
 
 # Every reference render draws from its own stream: a reference that shared samples with an
@@ -58,12 +58,15 @@ def command_line() -> str:
 
 
 def git_commit() -> str:
+    """The checkout's commit; RENDERLOOP_COMMIT where the tree was copied without its .git (a
+    device machine), else 'unknown'."""
+    fallback = os.environ.get("RENDERLOOP_COMMIT", "unknown")
     try:
         out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                              cwd=Path(__file__).resolve().parent, timeout=5)
-        return out.stdout.strip() or "unknown"
+        return out.stdout.strip() or fallback
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        return fallback
 
 
 def cpu_name() -> str:
@@ -81,10 +84,25 @@ def load_average() -> str:
     return "/".join(f"{x:.1f}" for x in os.getloadavg())
 
 
+def gpu_line() -> str | None:
+    """The GPU the networks and OIDN run on (name, driver, torch's CUDA), or None on the CPU."""
+    if network_device() != "cuda":
+        return None
+    try:
+        driver = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+                                capture_output=True, text=True, timeout=10).stdout.strip().splitlines()[0]
+    except (OSError, subprocess.SubprocessError, IndexError):
+        driver = "unknown"
+    return (f"{torch.cuda.get_device_name()}, driver {driver}, torch CUDA {torch.version.cuda}; networks and "
+            f"OIDN on CUDA")
+
+
 def machine_line() -> str:
     cpu = cpu_name()
-    return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__} "
+    line = (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__} "
             f"({torch.get_num_threads()} thread{'s' if torch.get_num_threads() > 1 else ''})")
+    gpu = gpu_line()
+    return line if gpu is None else f"{line}; GPU: {gpu}"
 
 
 def provenance(command: str | None = None, variant: str | None = None) -> str:
@@ -165,7 +183,7 @@ def load_bench_networks(folder: str | Path | None = None) -> BenchNetworks:
         # each value whole, never cut
         summary = "; ".join(f"{key}={extra[key]}" for key in PROVENANCE_KEYS if isinstance(extra.get(key), str))
         parts.append(f"`{name}` sha1 {digest}" + (f" ({summary})" if summary else ""))
-    return BenchNetworks(load_networks(directory), directory, f"{shown_path(directory)}: " + "; ".join(parts))
+    return BenchNetworks(load_networks(directory, device=network_device()), directory, f"{shown_path(directory)}: " + "; ".join(parts))
 
 
 # --- references -------------------------------------------------------------------------------
@@ -261,4 +279,15 @@ def oidn_denoiser() -> tuple[OidnDenoise, str]:
         installed = f" {version('pyoidn')}"
     except PackageNotFoundError:
         installed = ""
+    if network_device() == "cuda":
+        return _oidn_on_cuda, (f"Intel Open Image Denoise through `pyoidn`{installed} ({OIDN_SETTINGS}), OIDN's "
+                               "CUDA device; a point's time includes copying the render to it and the result back.")
     return oidn_image, f"Intel Open Image Denoise through `pyoidn`{installed} ({OIDN_SETTINGS})."
+
+
+def _oidn_on_cuda(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """oidn_image on OIDN's CUDA device: the host arrays copied to the GPU and the result back."""
+    def tensor(a: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to("cuda")
+
+    return oidn_hwc(tensor(color), tensor(albedo), tensor(normal)).cpu().numpy()

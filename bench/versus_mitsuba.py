@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from bench.common import BenchNetworks, OidnDenoise, command_line, load_average, load_bench_networks, oidn_denoiser, pinned_torch_threads
@@ -26,14 +27,16 @@ SUITE_ROOTS = (DEV_SCENES, VAL_SCENES)
 
 
 def suite_scenes(names: list[str] | None) -> list[DevScene]:
-    """The scenes of scenes/dev and scenes/val (in that order), or those named."""
+    """The scenes of scenes/dev and scenes/val (in that order), or those named (in the order named:
+    a run cut short has measured the first ones)."""
     found = [scene for root in SUITE_ROOTS for scene in dev_scenes(None, root)]
     if not names:
         return found
     unknown = sorted(set(names) - {s.name for s in found})
     if unknown:
         raise ValueError(f"unknown scene(s) {', '.join(unknown)}; known: {', '.join(s.name for s in found)}")
-    return [s for s in found if s.name in names]
+    by_name = {s.name: s for s in found}
+    return [by_name[name] for name in dict.fromkeys(names)]
 
 
 def run_scene(scene: DevScene, settings: Settings, nets: BenchNetworks, oidn: OidnDenoise) -> SceneRun:
@@ -72,10 +75,13 @@ def measure_versus_mitsuba(*, megapixels: float = DEFAULT_MEGAPIXELS, max_spp: i
                            reference_spp: int = DEFAULT_REFERENCE_SPP, scenes: list[str] | None = None,
                            weights_dir: Path | None = None, cache_dir: Path = DEFAULT_CACHE_DIR,
                            threads: int | None = None, command: str | None = None,
-                           costs_megapixels: float | None = None) -> Results:
+                           costs_megapixels: float | None = None,
+                           after_scene: Callable[[Results], object] | None = None) -> Results:
     """Measure every scene (or those named). `threads`: torch intra-op threads (None: probe 1 vs 2
     and take the faster, as `renderloop bench --loop` does). `costs_megapixels`: also the fixed
-    costs of one iteration on the first scene at that size (the fixed costs at ~2 MP from a small run)."""
+    costs of one iteration on the first scene at that size (the fixed costs at ~2 MP from a small run).
+    `after_scene`: called with the results so far after each scene (the command writes the report
+    then, so a run cut short keeps every finished scene)."""
     started = time.perf_counter()
     spp_levels(max_spp)  # refuses a max below the first iteration before anything runs
     chosen = suite_scenes(scenes)
@@ -89,6 +95,9 @@ def measure_versus_mitsuba(*, megapixels: float = DEFAULT_MEGAPIXELS, max_spp: i
     with pinned_torch_threads(threads):
         for scene in chosen:
             results.scenes.append(run_scene(scene, settings, nets, oidn))
+            results.seconds = time.perf_counter() - started
+            if after_scene is not None:
+                after_scene(results)
         if costs_megapixels is not None:
             results.probe = probe_costs(chosen[0], costs_megapixels, nets)
     results.seconds = time.perf_counter() - started
@@ -103,8 +112,10 @@ def write_report(results: Results, out_dir: Path) -> Path:
 
 
 def run_versus_mitsuba(out_dir: Path = Path("docs"), **options) -> Path:
-    """Measure (measure_versus_mitsuba's options) and write `out_dir`/benchmarks-versus-mitsuba.md."""
-    return write_report(measure_versus_mitsuba(**options), out_dir)
+    """Measure (measure_versus_mitsuba's options) and write `out_dir`/benchmarks-versus-mitsuba.md,
+    after each scene and at the end."""
+    return write_report(measure_versus_mitsuba(after_scene=lambda so_far: write_report(so_far, out_dir), **options),
+                        out_dir)
 
 
 # --- the command ------------------------------------------------------------------------------------

@@ -20,6 +20,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
+
 from bench.versus_mitsuba_run import LoopRun
 from service.jobs.artifacts import JobFiles, Preview
 from service.jobs.checkpoint_format import write_state
@@ -85,11 +87,19 @@ class FixedCosts:
         return writes / (sum(self.iteration_ms) + writes)
 
 
+def _synchronize() -> None:
+    """Wait for the GPU's queued work: a CUDA call returns before its kernels finish."""
+    if torch.cuda.is_initialized():
+        torch.cuda.synchronize()
+
+
 def _median_ms(call: Callable[[], object], repeats: int) -> float:
     times = []
     for _ in range(repeats):
+        _synchronize()
         started = time.perf_counter()
         call()
+        _synchronize()
         times.append(time.perf_counter() - started)
     return 1000 * statistics.median(times)
 
@@ -107,14 +117,14 @@ def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCost
     buffer = loop.state.buffers[0]
     lam = loop.state.lam_map
     denoiser = session.networks.denoiser
-    frame = frame_tensors(buffer)
+    frame = frame_tensors(buffer).to(session.device)  # OIDN's input where the loop gives it: the networks' device
     images = session.denoise(loop.state.buffers, lam)
     ms = {
         "render": 1000 * run.curve.points[-1].stages["render"],
         # the next iteration's allocation from this state (iteration 0's is a constant fill)
         "allocate": _median_ms(lambda: next_counts(loop.spec.allocator, buffer, loop.state.error_maps[0],
                                                    iteration_budget(int(buffer.spp.sum())), seed=0), repeats),
-        "to_tensors": _median_ms(lambda: frame_tensors(buffer), repeats),
+        "to_tensors": _median_ms(lambda: frame_tensors(buffer).to(session.device), repeats),
         "oidn_candidate": _median_ms(lambda: oidn_tensor(frame), repeats)
         if denoiser.config.oidn_candidate else 0.0,
         "denoiser": _median_ms(lambda: session.denoise(loop.state.buffers, lam), repeats),

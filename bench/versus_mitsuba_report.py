@@ -185,6 +185,11 @@ def network_table(scenes: list[SceneRun], probe: CostProbe | None, threads: int)
     for label, value in rows:
         values = [value(run) for run in scenes]
         lines.append(f"| {label} | {statistics.median(values):.0f} | {min(values):.0f} | {max(values):.0f} |")
+    ratios = [(run.costs.per_megapixel("denoiser") + run.costs.per_megapixel("oidn_candidate")) / oidn_ms_per_mp(run)
+              for run in scenes]
+    lines += ["", f"Our denoise (the full pass with its OIDN call) takes **{statistics.median(ratios):.2f}×** the time "
+                  f"of OIDN alone on the same image (median; {min(ratios):.2f}–{max(ratios):.2f}×; bar on a GPU: "
+                  "≤ 3×)."]
     if probe is not None:
         c = probe.costs
         lines += ["", f"At {c.megapixels:.2f} MP ({probe.scene}, `--costs-megapixels`): denoiser "

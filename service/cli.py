@@ -46,9 +46,10 @@ def load_cli_networks(weights: Path | None):
     """Torch threads and networks, chosen once per command and passed down (docs/design.md)."""
     from models.pretrained import load_networks
     from service.loop.tensors import configure_torch_threads
+    from service.render.runtime import network_device
 
     configure_torch_threads()
-    return load_networks(weights)
+    return load_networks(weights, device=network_device())
 
 
 # -- render -----------------------------------------------------------------------------------

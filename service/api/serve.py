@@ -29,6 +29,7 @@ from service.jobs.quotas import Quotas
 from service.jobs.retention import Retention
 from service.jobs.bundle import MAX_BUNDLE_BYTES, MAX_BUNDLE_FILES, BundleLimits
 from service.loop.spec import SERVICE_LIMITS, JobLimits
+from service.render.runtime import network_device
 from service.render.scene_probe import ProbeLimits
 from service.loop.tensors import configure_torch_threads
 
@@ -62,7 +63,7 @@ def bundle_limits_from_env() -> BundleLimits:
 
 def app_from_env() -> FastAPI:
     configure_torch_threads()
-    return create_app(default_data_dir(), networks=load_networks(),
+    return create_app(default_data_dir(), networks=load_networks(device=network_device()),
                       workers=worker_settings_from_env(), security=SecuritySettings.from_env(),
                       bundle_limits=bundle_limits_from_env(), job_limits=job_limits_from_env(),
                       retention=retention_from_env(), db_url=os.environ.get(DB_ENV) or None,

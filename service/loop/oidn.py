@@ -16,30 +16,38 @@ from models.frames import FrameTensors
 OIDN_SETTINGS = "RT filter, `hdr=True`, quality high, noisy colour + albedo + normal"
 
 
-def _hwc(a: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """NaN → 0, ±Inf → the range's ends, clipped: OIDN's documented input ranges."""
-    a = np.nan_to_num(np.asarray(a, dtype=np.float32), nan=0.0, posinf=hi, neginf=lo)
-    return np.ascontiguousarray(np.clip(a, lo, hi), dtype=np.float32)
+def _clean(image: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
+    """NaN → 0, ±Inf → the range's ends, clipped: OIDN's documented input ranges. (H, W, 3)
+    float32, contiguous, on the image's device."""
+    image = image.to(torch.float32)
+    return torch.nan_to_num(image, nan=0.0, posinf=hi, neginf=lo).clamp(lo, hi).contiguous()
+
+
+def oidn_hwc(color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """(H, W, 3) noisy HDR radiance, albedo, normal tensors → OIDN's (H, W, 3) estimate, ≥ 0, on
+    their device: OIDN's CPU device for CPU tensors, its CUDA device (on torch's current stream)
+    for CUDA ones, so a GPU job never copies its frame to the host for OIDN.
+    The colour goes in at the networks' exposure (models.exposure) and comes out in the scene's
+    units again: the HDR_MAX clamp is then relative to the image, as the denoiser's is."""
+    exposure = Exposure.of(color.to(torch.float32).permute(2, 0, 1)[None])   # (H, W, 3): one scale broadcasts
+    out = pyoidn.denoise(_clean(exposure.forward(color.to(torch.float32)[None])[0], 0.0, HDR_MAX),
+                         _clean(albedo, 0.0, 1.0), _clean(normal, -1.0, 1.0), hdr=True, quality="high")
+    return exposure.inverse(out.clamp_min(0.0)[None])[0]
 
 
 def oidn_image(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """(H, W, 3) noisy HDR radiance, albedo, normal → OIDN's (H, W, 3) estimate, ≥ 0.
-    The colour goes in at the networks' exposure (models.exposure) and comes out in the scene's
-    units again: the HDR_MAX clamp is then relative to the image, as the denoiser's is."""
-    radiance = torch.from_numpy(np.ascontiguousarray(color, dtype=np.float32))   # (H, W, 3): one scale broadcasts
-    exposure = Exposure.of(radiance.permute(2, 0, 1)[None])
-    out = pyoidn.denoise(_hwc(exposure.forward(radiance[None])[0].numpy(), 0.0, HDR_MAX), _hwc(albedo, 0.0, 1.0),
-                         _hwc(normal, -1.0, 1.0), hdr=True, quality="high")
-    out = torch.from_numpy(np.maximum(np.asarray(out, dtype=np.float32), 0.0))
-    return exposure.inverse(out[None])[0].numpy()
+    """oidn_hwc on (H, W, 3) host arrays (OIDN's CPU device) → (H, W, 3) float32 array."""
+    def tensor(a: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+
+    return oidn_hwc(tensor(color), tensor(albedo), tensor(normal)).numpy()
 
 
 def oidn_tensor(frame: FrameTensors) -> torch.Tensor:
-    """OIDN on every image of an (N, C, H, W) frame batch → (N, 3, H, W) on the frame's device."""
-    def hwc(t: torch.Tensor, i: int) -> np.ndarray:
-        return t[i].detach().float().permute(1, 2, 0).cpu().numpy()
+    """OIDN on every image of an (N, C, H, W) frame batch → (N, 3, H, W), on the frame's device."""
+    def hwc(t: torch.Tensor, i: int) -> torch.Tensor:
+        return t[i].detach().permute(1, 2, 0)
 
-    images = [oidn_image(hwc(frame.color, i), hwc(frame.albedo, i), hwc(frame.normal, i))
+    images = [oidn_hwc(hwc(frame.color, i), hwc(frame.albedo, i), hwc(frame.normal, i))
               for i in range(frame.color.shape[0])]
-    stacked = torch.from_numpy(np.stack(images).transpose(0, 3, 1, 2).copy())
-    return stacked.to(device=frame.color.device, dtype=frame.color.dtype)
+    return torch.stack(images).permute(0, 3, 1, 2).to(dtype=frame.color.dtype).contiguous()

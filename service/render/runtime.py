@@ -64,6 +64,14 @@ def choose_variant() -> str:
     return "cuda_ad_rgb" if cuda_available() else "llvm_ad_rgb"
 
 
+def network_device() -> str:
+    """Where the networks (and OIDN) run: `cuda` when the renderer does (a `cuda_*` variant) and
+    torch sees a GPU, else `cpu`. One knob for both, so `RENDERLOOP_VARIANT=llvm_ad_rgb` on a GPU
+    machine keeps the whole loop on the CPU, and a GPU job never copies its samples to the CPU
+    only to run the networks there."""
+    return "cuda" if choose_variant().startswith("cuda_") and cuda_available() else "cpu"
+
+
 # Dr.Jit keeps the state of a symbolic recording (a traced loop, a virtual call) where another
 # thread's Mitsuba work reads it: loading the built-in scenes (the page's GET /scenes) in one
 # thread while another rendered failed 8 of 40 renders of a 32² cornell box ('jit_var_sub(r3654,

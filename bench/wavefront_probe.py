@@ -1,0 +1,71 @@
+"""The renderer's throughput against `mi.render` at ~1080p for several wavefront sizes (lanes per
+chunk): which `max_wavefront` the GPU wants. Prints one line per case; the device run
+(bench/gpu_run.sh) keeps them in its log.
+
+    python -m bench.wavefront_probe [--size 1920x1080] [--spp 16] [--repeats 3]
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import drjit as dr
+import numpy as np
+
+from service.render.framebuffer import FrameBuffer
+from service.render.renderer import render_samples
+from service.render.runtime import active_variant, mitsuba
+from service.render.scenes import load_scene
+
+WAVEFRONTS = (1 << 22, 1 << 23, 1 << 24, 1 << 25)
+
+
+def _seconds(call, repeats: int) -> float:
+    call()  # compiles the kernels (cached for the timed calls)
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - started)
+    return statistics.median(times)
+
+
+def probe(scene_name: str, width: int, height: int, spp: int, repeats: int) -> None:
+    mi = mitsuba()
+    scene = load_scene(scene_name, width=width, height=height)
+    samples = width * height * spp
+    # mi.render in calls of at most 2^25 lanes, as bench --versus-mitsuba renders
+    per_call = max(1, min(spp, (1 << 25) // (width * height)))
+
+    def theirs() -> None:
+        for i in range(spp // per_call):
+            image = mi.render(scene, spp=per_call, seed=i)
+            dr.eval(image)
+        np.asarray(image)
+
+    base = _seconds(theirs, repeats)
+    print(f"wavefront probe [{active_variant()}] {scene_name} {width}x{height} {spp} spp: mi.render "
+          f"{samples / base / 1e6:.1f} M samples/s", flush=True)
+    counts = np.full((height, width), spp)
+    for lanes in WAVEFRONTS:
+        ours = _seconds(lambda: render_samples(scene, counts, FrameBuffer.empty(height, width), max_wavefront=lanes),
+                        repeats)
+        print(f"wavefront probe [{active_variant()}] {scene_name} max_wavefront 2^{lanes.bit_length() - 1}: ours "
+              f"{samples / ours / 1e6:.1f} M samples/s = {base / ours:.2f}x mi.render", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="1920x1080")
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--scenes", default="cornell-box")
+    args = parser.parse_args()
+    width, height = (int(v) for v in args.size.split("x"))
+    for name in args.scenes.split(","):
+        probe(name, width, height, args.spp, args.repeats)
+
+
+if __name__ == "__main__":
+    main()
