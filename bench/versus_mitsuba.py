@@ -13,6 +13,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import torch
+
 from bench.common import BenchNetworks, OidnDenoise, command_line, load_average, load_bench_networks, oidn_denoiser, pinned_torch_threads
 from bench.dev_references import DEV_SCENES, VAL_SCENES, DevScene, dev_scenes
 from bench.loop_report import DEFAULT_CACHE_DIR, THREAD_PROBE_SIZE, choose_torch_threads
@@ -20,6 +22,7 @@ from bench.versus_mitsuba_costs import measure_fixed_costs
 from bench.versus_mitsuba_report import LOOP, UNIFORM, CostProbe, Results, SceneRun, Settings, report_text
 from bench.versus_mitsuba_run import Curve, better_of, compare, loop_curve, mitsuba_curve, spp_levels, warm_up_loop
 from bench.versus_mitsuba_scene import reference, scaled_film, scene_filter
+from service.render.runtime import network_device
 
 REPORT_NAME = "benchmarks-versus-mitsuba.md"
 DEFAULT_MEGAPIXELS, DEFAULT_MAX_SPP, DEFAULT_REFERENCE_SPP = 2.0, 1024, 4096
@@ -86,8 +89,9 @@ def measure_versus_mitsuba(*, megapixels: float = DEFAULT_MEGAPIXELS, max_spp: i
     spp_levels(max_spp)  # refuses a max below the first iteration before anything runs
     chosen = suite_scenes(scenes)
     nets = load_bench_networks(weights_dir)
-    if threads is None:
-        threads = choose_torch_threads(nets, THREAD_PROBE_SIZE)[1]
+    if threads is None:  # on a GPU the networks run there: torch's host threads as it sets them
+        threads = (torch.get_num_threads() if network_device() == "cuda" else
+                   choose_torch_threads(nets, THREAD_PROBE_SIZE)[1])
     settings = Settings(megapixels, max_spp, reference_spp, threads, command or command_line(), Path(cache_dir),
                         tuple(scenes or ()))
     oidn, oidn_status = oidn_denoiser()
