@@ -11,7 +11,7 @@ set -u
 OUT=${OUT:?set OUT to the folder the logs and reports go to}
 PY=${PYTHON:-python3}
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" RENDERLOOP_VARIANT=${RENDERLOOP_VARIANT:-cuda_ad_rgb}
-SCENES=${GPU_SCENES:-fine_texture,hard_shadows,point_object,kitchen_counter,dof_desk,metals,living_room,sun_room,env_object,lamp_room,glass_box,fog_spot,turntable,attic_skylight,bokeh_bar,bottle_studio,glass_shelf,misty_lantern,night_street,porch_view,shaded_bulb_study}
+SCENES=${GPU_SCENES:-fine_texture,point_object,dof_desk,hard_shadows,kitchen_counter,metals,living_room,sun_room,env_object,lamp_room,glass_box,fog_spot,turntable,attic_skylight,bokeh_bar,bottle_studio,glass_shelf,misty_lantern,night_street,porch_view,shaded_bulb_study}
 started=$(date +%s)
 step() {  # step NAME SECONDS COMMAND...: one step, its output in $OUT/NAME.log and the run's log
     local name=$1 limit=$2; shift 2
@@ -30,10 +30,10 @@ print('variant', mi.variant(), 'networks on', network_device(), 'torch', torch._
 print('OIDN CUDA device supported:', pyoidn.Device.is_cuda_available(0))
 print(torch.cuda.get_device_name())
 "
-step wavefront 75 "$PY" -m bench.wavefront_probe --size "${PROBE_SIZE:-1920x1080}" --spp 16 --repeats 3
-step versus_mitsuba "${VERSUS_SECONDS:-280}" "$PY" -m service.cli bench --versus-mitsuba --megapixels "${GPU_MEGAPIXELS:-2}" \
+step wavefront 90 "$PY" -m bench.wavefront_probe --size "${PROBE_SIZE:-1920x1080}" --spp 16 --repeats 3 --history
+step versus_mitsuba "${VERSUS_SECONDS:-270}" "$PY" -m service.cli bench --versus-mitsuba --megapixels "${GPU_MEGAPIXELS:-2}" \
     --max-spp "${GPU_MAX_SPP:-256}" --reference-spp "${GPU_REFERENCE_SPP:-4096}" --scenes "$SCENES" -o "$OUT" --cache /tmp/bench-cache
-step fidelity "${FIDELITY_SECONDS:-100}" "$PY" -m pytest -q -p no:cacheprovider tests/fidelity -k "not spectral" \
+step fidelity "${FIDELITY_SECONDS:-80}" "$PY" -m pytest -q -p no:cacheprovider --import-mode=append tests/fidelity -k "not spectral" \
     --durations=5
-step sampler "${SAMPLER_SECONDS:-60}" "$PY" -m service.cli bench --sampler --size "${SAMPLER_SIZE:-1024}" --spp 64 -o "$OUT"
+step sampler "${SAMPLER_SECONDS:-80}" "$PY" -m service.cli bench --sampler --size "${SAMPLER_SIZE:-512}" --spp 64 -o "$OUT"
 echo "== done after $(( $(date +%s) - started ))s"

@@ -55,16 +55,61 @@ def probe(scene_name: str, width: int, height: int, spp: int, repeats: int) -> N
               f"{samples / ours / 1e6:.1f} M samples/s = {base / ours:.2f}x mi.render", flush=True)
 
 
+def kernel_history(label: str, call) -> None:
+    """Dr.Jit's kernel history of one call: how many kernels it launched and their GPU time
+    against the call's wall time (where the rest goes: the host)."""
+    dr.kernel_history_clear()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    started = time.perf_counter()
+    call()
+    wall = time.perf_counter() - started
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
+    history = dr.kernel_history()
+    kernels = [k for k in history if "execution_time" in k]
+    gpu_ms = sum(float(k["execution_time"]) for k in kernels)
+    print(f"kernel history {label}: wall {wall * 1e3:.0f} ms, {len(history)} entries, {len(kernels)} timed, "
+          f"kernel time {gpu_ms:.0f} ms", flush=True)
+    for k in sorted(kernels, key=lambda k: -float(k["execution_time"]))[:6]:
+        print(f"  {float(k['execution_time']):8.1f} ms  {k.get('type')} size {k.get('size')} "
+              f"ops {k.get('operation_count')} hash {str(k.get('hash'))[:10]}", flush=True)
+
+
+def scatter_probe(pixels: int, spp: int, channels: int = 13) -> None:
+    """The per-pixel sums' scatter-add alone (lanes of one pixel consecutive), per ReduceMode."""
+    mi = mitsuba()
+    lanes = pixels * spp
+    idx = dr.arange(mi.UInt32, lanes) // spp
+    value = dr.full(mi.Float, 0.5, lanes)
+    for mode in (dr.ReduceMode.Auto, dr.ReduceMode.Local, dr.ReduceMode.Direct):
+        def run() -> None:
+            sums = dr.zeros(mi.Float, pixels * channels)
+            for c in range(channels):
+                dr.scatter_reduce(dr.ReduceOp.Add, sums, value, idx * channels + c, mode=mode)
+            dr.eval(sums)
+            dr.sync_thread()
+        seconds = _seconds(run, 3)
+        print(f"scatter probe {pixels} px x {spp} lanes x {channels} ch, {mode}: {seconds * 1e3:.1f} ms", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default="1920x1080")
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--scenes", default="cornell-box")
+    parser.add_argument("--history", action="store_true", help="also Dr.Jit's kernel history of one pass each, "
+                        "and the per-pixel sums' scatter alone per reduce mode")
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.split("x"))
     for name in args.scenes.split(","):
         probe(name, width, height, args.spp, args.repeats)
+    if args.history:
+        mi = mitsuba()
+        scene = load_scene("cornell-box", width=width, height=height)
+        counts = np.full((height, width), args.spp)
+        kernel_history("ours", lambda: render_samples(scene, counts, FrameBuffer.empty(height, width)))
+        kernel_history("mi.render", lambda: np.asarray(mi.render(scene, spp=args.spp)))
+        scatter_probe(width * height, args.spp)
 
 
 if __name__ == "__main__":

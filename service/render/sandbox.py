@@ -29,6 +29,7 @@ from typing import Callable, Iterable, TypeVar
 
 import models
 import service
+from service.render.runtime import choose_variant
 
 T = TypeVar("T")
 
@@ -49,6 +50,13 @@ FILE_RIGHTS = ACCESS_EXECUTE | ACCESS_READ_FILE  # READ_DIR on a file is EINVAL
 # Shared libraries Mitsuba, Dr.Jit (libLLVM) and torch open lazily, possibly during a load.
 SYSTEM_LIBRARY_DIRS = ("/lib", "/lib64", "/usr/lib", "/usr/lib64", "/usr/local/lib")
 SYSTEM_FILES = ("/etc/ld.so.cache", "/dev/null", "/dev/urandom")
+# With a CUDA variant a scene load builds OptiX acceleration structures, and the CUDA driver opens
+# its device nodes (/dev/nvidia*, read-write: Landlock asks for the read right), reads /proc and
+# /sys for the device's state and loads the driver's OptiX library: walled without these, the
+# load fails (measured on an H100: 'Failed to allocate launch resources … operation not permitted').
+# A scene's own file references never reach them: the first wall (service.render.flatten) admits
+# only paths inside the scene's bundle.
+GPU_READABLE = ("/dev", "/proc", "/sys", "/usr/local/nvidia", "/var/tmp")
 
 
 class _RulesetAttr(ctypes.Structure):
@@ -115,6 +123,9 @@ def software_roots() -> tuple[Path, ...]:
     drjit_cache = Path.home() / ".drjit"  # Dr.Jit's compiled-kernel cache, read when a load launches kernels
     if drjit_cache.is_dir():
         roots.append(drjit_cache)
+    if choose_variant().startswith("cuda_"):
+        roots += [Path(p) for p in GPU_READABLE if Path(p).is_dir()]
+        roots += [p for p in (Path.home() / ".nv",) if p.is_dir()]  # the CUDA/OptiX compute caches
     return tuple(sorted(set(roots)))
 
 
