@@ -58,15 +58,16 @@ def command_line() -> str:
 
 
 def git_commit() -> str:
-    """The checkout's commit; RENDERLOOP_COMMIT where the tree was copied without its .git (a
-    device machine), else 'unknown'."""
-    fallback = os.environ.get("RENDERLOOP_COMMIT", "unknown")
+    """RENDERLOOP_COMMIT when set (a copied tree, e.g. on a device machine, whose .git may be
+    missing or older than its files), else the checkout's commit, else 'unknown'."""
+    if os.environ.get("RENDERLOOP_COMMIT"):
+        return os.environ["RENDERLOOP_COMMIT"]
     try:
         out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                              cwd=Path(__file__).resolve().parent, timeout=5)
-        return out.stdout.strip() or fallback
+        return out.stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
-        return fallback
+        return "unknown"
 
 
 def cpu_name() -> str:

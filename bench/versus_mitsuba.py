@@ -25,6 +25,7 @@ from bench.versus_mitsuba_scene import reference, scaled_film, scene_filter
 from service.render.runtime import network_device
 
 REPORT_NAME = "benchmarks-versus-mitsuba.md"
+GPU_REPORT_NAME = "benchmarks-versus-mitsuba-gpu.md"  # networks and OIDN on CUDA: a report of its own
 DEFAULT_MEGAPIXELS, DEFAULT_MAX_SPP, DEFAULT_REFERENCE_SPP = 2.0, 1024, 4096
 SUITE_ROOTS = (DEV_SCENES, VAL_SCENES)
 
@@ -108,16 +109,21 @@ def measure_versus_mitsuba(*, megapixels: float = DEFAULT_MEGAPIXELS, max_spp: i
     return results
 
 
+def report_name() -> str:
+    """The CPU and the GPU reports side by side in docs/: a run on a GPU never overwrites the CPU's."""
+    return GPU_REPORT_NAME if network_device() == "cuda" else REPORT_NAME
+
+
 def write_report(results: Results, out_dir: Path) -> Path:
-    out = Path(out_dir) / REPORT_NAME
+    out = Path(out_dir) / report_name()
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(report_text(results))
     return out
 
 
 def run_versus_mitsuba(out_dir: Path = Path("docs"), **options) -> Path:
-    """Measure (measure_versus_mitsuba's options) and write `out_dir`/benchmarks-versus-mitsuba.md,
-    after each scene and at the end."""
+    """Measure (measure_versus_mitsuba's options) and write `out_dir`/report_name(), after each
+    scene and at the end."""
     return write_report(measure_versus_mitsuba(after_scene=lambda so_far: write_report(so_far, out_dir), **options),
                         out_dir)
 
@@ -143,7 +149,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The `renderloop bench` flags this module owns (--weights, --cache, --reference-spp, -o are shared)."""
     parser.add_argument("--versus-mitsuba", action="store_true",
                         help="the loop vs mi.render + OIDN (scene's filter and box) on scenes/dev and scenes/val as "
-                             f"written, films scaled to --megapixels → {REPORT_NAME}")
+                             f"written, films scaled to --megapixels → {REPORT_NAME} ({GPU_REPORT_NAME} with "
+                             "the networks on CUDA)")
     parser.add_argument("--megapixels", type=positive_megapixels, default=DEFAULT_MEGAPIXELS,
                         help=f"with --versus-mitsuba: each film scaled to about this many MP, aspect kept "
                              f"(default {DEFAULT_MEGAPIXELS:g}, about 1080p)")

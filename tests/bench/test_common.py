@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from bench.common import (METRIC_NAMES, REFERENCE_SEED, cached_reference, fill, image_metrics, load_bench_networks,
+from bench.common import (METRIC_NAMES, REFERENCE_SEED, cached_reference, fill, git_commit, image_metrics, load_bench_networks,
                           pinned_torch_threads, provenance)
 from models.checkpoint import read_checkpoint
 from models.pretrained import SHIPPED_WEIGHTS_DIR
@@ -81,3 +81,11 @@ def test_bench_networks_name_the_shipped_folder_relative_to_the_repository(monke
     description = load_bench_networks(None).description
     assert description.startswith("models/weights: ")
     assert str(SHIPPED_WEIGHTS_DIR.parents[1]) not in description
+
+
+def test_a_copied_tree_names_the_commit_it_was_told(monkeypatch) -> None:
+    # a device machine gets the files without (or with a stale) .git: the run passes the commit
+    monkeypatch.setenv("RENDERLOOP_COMMIT", "0badc0de")
+    assert git_commit() == "0badc0de"
+    monkeypatch.delenv("RENDERLOOP_COMMIT")
+    assert git_commit() not in ("", "0badc0de")

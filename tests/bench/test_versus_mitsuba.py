@@ -11,7 +11,9 @@ from pathlib import Path
 import pytest
 
 from bench.cli import main as bench_main
-from bench.versus_mitsuba import add_arguments, measure_versus_mitsuba, run_versus_mitsuba_command, write_report
+from bench import versus_mitsuba
+from bench.versus_mitsuba import (add_arguments, measure_versus_mitsuba, report_name, run_versus_mitsuba_command,
+                                  suite_scenes, write_report)
 from bench.versus_mitsuba_costs import FixedCosts
 from bench.versus_mitsuba_report import LOOP, UNIFORM, headline_table
 from bench.versus_mitsuba_run import Curve, CurvePoint, better_of, compare, error_at_time, time_at_error
@@ -31,12 +33,35 @@ def loglog(x0: float, y0: float, x1: float, y1: float, y: float) -> float:
     return math.exp(math.log(x0) + u * (math.log(x1) - math.log(x0)))
 
 
+# The scenes measured so far, each time the run called its after_scene hook (the tiny run's).
+SCENES_AT_EACH_HOOK: list[list[str]] = []
+
+
 @pytest.fixture(scope="module")
 def tiny_results(tmp_path_factory, tiny_weights_dir: Path):
     cache = tmp_path_factory.mktemp("cache")
     return measure_versus_mitsuba(megapixels=0.004, max_spp=64, reference_spp=256, scenes=[TINY_SCENE],
                                   weights_dir=tiny_weights_dir, cache_dir=cache, threads=1,
-                                  command="renderloop bench --versus-mitsuba --tiny", costs_megapixels=0.008)
+                                  command="renderloop bench --versus-mitsuba --tiny", costs_megapixels=0.008,
+                                  after_scene=lambda so_far: SCENES_AT_EACH_HOOK.append(
+                                      [run.scene.name for run in so_far.scenes]))
+
+
+def test_each_finished_scene_is_handed_on_before_the_next_starts(tiny_results) -> None:
+    # the command writes the report from this hook: a run cut short keeps every finished scene
+    assert SCENES_AT_EACH_HOOK == [[TINY_SCENE]]
+
+
+def test_scenes_run_in_the_order_named() -> None:
+    names = ["point_object", "dof_desk", "kitchen_counter", "fine_texture"]
+    assert [scene.name for scene in suite_scenes(names)] == names
+
+
+def test_a_run_with_the_networks_on_cuda_writes_the_gpu_report_beside_the_cpu_one(monkeypatch) -> None:
+    monkeypatch.setattr(versus_mitsuba, "network_device", lambda: "cpu")
+    assert report_name() == "benchmarks-versus-mitsuba.md"
+    monkeypatch.setattr(versus_mitsuba, "network_device", lambda: "cuda")
+    assert report_name() == "benchmarks-versus-mitsuba-gpu.md"
 
 
 def test_tiny_run_writes_a_filled_report_with_every_section(tiny_results, tmp_path: Path) -> None:
@@ -46,7 +71,8 @@ def test_tiny_run_writes_a_filled_report_with_every_section(tiny_results, tmp_pa
                    "## Headline", "equal-error speed-up", "## Peak memory", "## Networks and OIDN, ms per megapixel",
                    "## Fixed costs per iteration", "state snapshot on the loop's thread", "checkpoint write",
                    "preview write", "What the writes cost the render",
-                   "**A small run**", "renderloop bench --versus-mitsuba -o docs", "256 spp", "quality high"):
+                   "**A small run**", "renderloop bench --versus-mitsuba -o docs", "256 spp", "quality high",
+                   "Our denoise (the full pass with its OIDN call) takes"):
         assert needed in text, needed
     assert "nan" not in text.lower().replace("nanos", "")
     assert f"{TINY_SCENE}:** one 16-spp iteration" in text  # the --costs-megapixels probe's table
