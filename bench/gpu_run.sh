@@ -6,7 +6,9 @@
 # stop the next; everything lands in $OUT (logs, the reports).
 #
 #   OUT=/tmp/gpu-out bash bench/gpu_run.sh        # from the repository root, with the project's
-#                                                  # packages importable (PYTHONPATH or a venv)
+#                                                  # packages importable (PYTHONPATH or a venv;
+#                                                  # bench/gpu_bundle.sh packs them for a machine
+#                                                  # that reaches no package index)
 set -u
 OUT=${OUT:?set OUT to the folder the logs and reports go to}
 PY=${PYTHON:-python3}
