@@ -17,6 +17,7 @@ import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from string import Template
@@ -35,7 +36,7 @@ from service.render.framebuffer import FrameBuffer
 from service.render.renderer import render_samples
 from service.render.runtime import active_variant, network_device
 from service.render.scenes import load_scene
-from service.loop.oidn import OIDN_SETTINGS, oidn_hwc, oidn_image
+from service.loop.oidn import OIDN_SETTINGS, oidn_image
 from service.loop.tensors import nchw
 
 # Every reference render draws from its own stream: a reference that shared samples with an
@@ -281,14 +282,7 @@ def oidn_denoiser() -> tuple[OidnDenoise, str]:
     except PackageNotFoundError:
         installed = ""
     if network_device() == "cuda":
-        return _oidn_on_cuda, (f"Intel Open Image Denoise through `pyoidn`{installed} ({OIDN_SETTINGS}), OIDN's "
-                               "CUDA device; a point's time includes copying the render to it and the result back.")
+        return partial(oidn_image, device="cuda"), (
+            f"Intel Open Image Denoise through `pyoidn`{installed} ({OIDN_SETTINGS}), OIDN's CUDA device; a "
+            "point's time includes copying the render to it and the result back.")
     return oidn_image, f"Intel Open Image Denoise through `pyoidn`{installed} ({OIDN_SETTINGS})."
-
-
-def _oidn_on_cuda(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """oidn_image on OIDN's CUDA device: the host arrays copied to the GPU and the result back."""
-    def tensor(a: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to("cuda")
-
-    return oidn_hwc(tensor(color), tensor(albedo), tensor(normal)).cpu().numpy()

@@ -35,12 +35,13 @@ def oidn_hwc(color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor) ->
     return exposure.inverse(out.clamp_min(0.0)[None])[0]
 
 
-def oidn_image(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """oidn_hwc on (H, W, 3) host arrays (OIDN's CPU device) → (H, W, 3) float32 array."""
+def oidn_image(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray, device: str = "cpu") -> np.ndarray:
+    """oidn_hwc on (H, W, 3) host arrays → (H, W, 3) float32 array; `device` "cuda": copied to the
+    GPU for OIDN's CUDA device and the result back."""
     def tensor(a: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)
 
-    return oidn_hwc(tensor(color), tensor(albedo), tensor(normal)).numpy()
+    return oidn_hwc(tensor(color), tensor(albedo), tensor(normal)).cpu().numpy()
 
 
 def oidn_tensor(frame: FrameTensors) -> torch.Tensor:
