@@ -34,6 +34,7 @@ def run_denoise(args) -> int:
     from service.exr_denoise import NO_VARIANCE_NOTE, denoise_exr
     from service.images import tonemap, write_png
     from service.loop.tensors import configure_torch_threads
+    from service.render.runtime import network_device
 
     require_exr_path(args.output)
     if args.lambda_map is None and lambda_problem(args.lam):  # fail before the weights load
@@ -41,7 +42,7 @@ def run_denoise(args) -> int:
     if args.spp is not None and args.spp < 1:
         raise ExrError(f"--spp must be >= 1 (got {args.spp})")
     configure_torch_threads()
-    networks = load_networks(args.weights)
+    networks = load_networks(args.weights, device=network_device())
     frame = denoise_exr(args.input, args.output, networks, lam=args.lam, lambda_map=args.lambda_map, frames=args.frames,
                         spp=args.spp)
     if frame.variance is None:

@@ -118,7 +118,8 @@ def denoise_exr(source: Path, output: Path, networks: Networks, *, lam: float = 
         if f.shape != centre_frame.shape:
             raise ExrError(f"{p}: size {f.shape[::-1]} differs from the input's {centre_frame.shape[::-1]}")
     centre = [p.resolve() for p in paths].index(source.resolve())
-    window = [frame_from_exr(p, f, spp) for p, f in zip(paths, loaded)]
+    device = next(networks.denoiser.parameters()).device  # the GPU when the networks are there
+    window = [frame_from_exr(p, f, spp).to(device) for p, f in zip(paths, loaded)]
     lam_map = load_lambda(lam, lambda_map, centre_frame.shape)
     with torch.no_grad():
         window, centre = networks.denoiser.filtered_window(window, centre)  # a single-frame network pools it
