@@ -3,9 +3,12 @@
 Reads like Mitsuba 3's own Python render loop (prepare → sample rays → sample → develop);
 the one difference is the per-pixel sample count: pixel indices are expanded by their counts
 into one flat wavefront (docs/design.md, "Runtime facts"), split into chunks of at most
-`max_wavefront` lanes so memory stays bounded. A scene with a stratifying sampler traces its
-pass in groups of uniform count instead, one per binary digit of the counts, so that Mitsuba's
-own sampler can stratify every dimension of each pixel's samples (stratified_lanes.py).
+`max_wavefront` lanes so memory stays bounded. The expansion happens on the device from a
+per-pixel description (lane_map.py), and every chunk adds into the pass's film-sized sums on the
+device, read back once per pass (pass_sums.py): the host touches each pixel about once per pass,
+never each sample. A scene with a stratifying sampler traces its pass in groups of uniform
+count instead, one per binary digit of the counts, so that Mitsuba's own sampler can stratify
+every dimension of each pixel's samples (stratified_lanes.py).
 """
 from __future__ import annotations
 
@@ -21,20 +24,18 @@ from service.render.film_projection import FilmProjection, film_position, film_p
 from service.render.filters import PixelFilter
 from service.render.framebuffer import FrameBuffer
 from service.render.integrators import instance_refusal, sample_lane, to_rgb
+from service.render.lane_map import independent_chunks, lane_pixels
 from service.render.object_motion import ShapeMotion, previous_position
+from service.render.pass_sums import PassSums
 from service.render.runtime import JIT_LOCK, mitsuba
 from service.render.scenes import SceneError
 from service.render.splat import FilmSplat
-from service.render.stratified_lanes import LaneGroupChunk, digit_group_chunks, sequence_sampler
+from service.render.stratified_lanes import digit_group_chunks, group_lanes, sequence_sampler
 from service.render.stratified_sequence import film_bits, is_stratifying, lens_bits, unit_point
 
 # 2^22 lanes ≈ a few hundred MB of Dr.Jit state on the LLVM backend: a 1024² × 64 spp pass
 # (67 M samples) runs in 16 chunks instead of one 10+ GB wavefront.
 DEFAULT_MAX_WAVEFRONT = 1 << 22
-# Floats of the smallest per-chunk sums array (256 KB to zero): see sums_capacity.
-MIN_SUMS_CAPACITY = 1 << 16
-# Bytes: what Dr.Jit's LLVM backend takes as an aligned input array (see `aligned`).
-KERNEL_ALIGNMENT = 64
 # A miss has no first-hit point; motion of the background is taken at this distance.
 BACKGROUND_DISTANCE = 1e4
 
@@ -49,7 +50,8 @@ class RenderPass:
 
 
 def expand_counts(counts: np.ndarray) -> np.ndarray:
-    """Flat pixel indices, each repeated by its count: the wavefront's lane → pixel map."""
+    """Flat pixel indices, each repeated by its count: the wavefront's lane → pixel map, on the
+    host (what lane_map.py builds on the device per chunk; a reference for checks)."""
     flat = np.asarray(counts, dtype=np.int64).ravel()
     if flat.size and flat.min() < 0:
         raise ValueError("sample counts must be >= 0")
@@ -96,32 +98,17 @@ def _first_hit_flags(mi):
     return mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame
 
 
-def _stratified_uniforms(mi, setup: _Setup, idx, sample_index: np.ndarray | None):
-    """The lanes' film and lens 2D uniforms from their pixels' scrambled (0,2)-sequences, or
-    (None, None) when the scene's sampler is `independent` (then both come from the sampler)."""
-    if sample_index is None or setup.sequence_seed is None:
+def _stratified_uniforms(mi, setup: _Setup, idx, k):
+    """The lanes' film and lens 2D uniforms from their pixels' scrambled (0,2)-sequences at
+    sample numbers `k` (device UInt32), or (None, None) when the scene's sampler is
+    `independent` (then both come from the sampler)."""
+    if k is None or setup.sequence_seed is None:
         return None, None
-    k = mi.UInt32(aligned(sample_index))
     # Opaque: a literal seed would compile a new kernel for every job and frame.
     seed = dr.opaque(mi.UInt32, setup.sequence_seed & 0xFFFFFFFF)
     film = unit_point(mi, film_bits(k, seed, idx))
     lens = unit_point(mi, lens_bits(k, seed, idx)) if setup.sensor.needs_aperture_sample() else None
     return film, lens
-
-
-def aligned(array: np.ndarray) -> np.ndarray:
-    """`array` (contiguous) with its data on a 64-byte boundary. Dr.Jit's LLVM backend reads a
-    numpy array in place and writes its alignment into the kernel (`align 64` or `align 1`),
-    so the same kernel hashed differently whenever malloc placed a small lane array elsewhere
-    and was built again (~0.4 s each; seen on 2 of 8 digit groups per pass, stratified_lanes.py)."""
-    array = np.ascontiguousarray(array)
-    if array.ctypes.data % KERNEL_ALIGNMENT == 0:
-        return array
-    raw = np.empty(array.nbytes + KERNEL_ALIGNMENT, dtype=np.uint8)
-    start = -raw.ctypes.data % KERNEL_ALIGNMENT
-    out = raw[start:start + array.nbytes].view(array.dtype).reshape(array.shape)
-    out[...] = array
-    return out
 
 
 def independent_sampler(mi, seed: int, lanes: int):
@@ -131,18 +118,15 @@ def independent_sampler(mi, seed: int, lanes: int):
     return sampler
 
 
-def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, sampler,
-                 group: LaneGroupChunk | None = None) -> tuple[np.ndarray, slice | np.ndarray, int]:
-    """Trace one chunk of lanes (flat pixel indices, ascending, a pixel's lanes consecutive) with
-    `sampler` (seeded for len(pixels) lanes) and return per-pixel sums, the flat pixels they
-    belong to (a slice, or an index array), and the number of non-finite samples. Columns:
-    radiance RGB, radiance² RGB, albedo RGB, normal XYZ, depth (+ motion XY) (+ the integrator's
-    AOVs). `group`: set for a stratifying scene's digit group (stratified_lanes.py): each lane's
-    sample number in its pixel, for the film and lens samples, and its pixel's row."""
-    n = len(pixels)
+def _trace_chunk(mi, setup: _Setup, sums: PassSums, idx, sampler, sample_index=None) -> None:
+    """Trace one chunk of lanes (`idx`: device UInt32 flat pixel indices, ascending, a pixel's
+    lanes consecutive) with `sampler` (seeded for as many lanes) and add its per-pixel sums to
+    the pass's device `sums` (pass_sums.py; nothing is read back). Channels: radiance RGB,
+    radiance² RGB, albedo RGB, normal XYZ, depth (+ motion XY) (+ the integrator's AOVs).
+    `sample_index`: for a stratifying scene's digit group (stratified_lanes.py), each lane's
+    sample number in its pixel (device UInt32), for the film and lens samples."""
     sensor, scene = setup.sensor, setup.scene
-    idx = mi.UInt32(aligned(pixels))
-    film_u, lens_u = _stratified_uniforms(mi, setup, idx, None if group is None else group.sample_index)
+    film_u, lens_u = _stratified_uniforms(mi, setup, idx, sample_index)
     # Film position in pixels of the crop window: the box filter's uniform in-pixel offset, or
     # an offset drawn from the film's filter with its weight (filters.py). The sensor's sample
     # space [0, 1]² spans the crop window (Mitsuba builds its projection from film size, crop
@@ -216,58 +200,10 @@ def _trace_chunk(mi, setup: _Setup, pixels: np.ndarray, sampler,
         channels += [motion.x, motion.y]
     channels += [dr.select(finite, a, 0.0) for a in aovs]
     # Reduce into per-pixel sums inside the same kernel (dr.scatter_reduce): per-lane values
-    # never exist as arrays, so memory stays O(pixels of this chunk).
-    stride = len(channels)
-    if group is None:
-        # Lanes are sorted by pixel, so the chunk covers one contiguous pixel range and only that
-        # range is summed. The kernel is keyed by the sums array's size and by literals: a chunk's
-        # first pixel and span change from chunk to chunk under a non-uniform count map, and each
-        # new key built a new kernel (~0.34 s on the LLVM backend, for every chunk of every
-        # adaptive pass). A power-of-two capacity and an opaque offset leave a handful of kernels
-        # per scene, each built once.
-        first, span = int(pixels[0]), int(pixels[-1]) - int(pixels[0]) + 1
-        slot = idx - dr.opaque(mi.UInt32, first)
-        rows: slice | np.ndarray = slice(first, first + span)
-    else:
-        # A digit group's pixels are a sparse subset of the film, each with its lanes
-        # consecutive: its k-th pixel's sums go to row k (an uploaded lane → row map), not to a
-        # span that could reach across the whole film.
-        span = len(group.rows)
-        slot = mi.UInt32(aligned(group.slot))
-        rows = group.rows
-    sums = dr.zeros(mi.Float, sums_capacity(span * stride))
-    for c, value in enumerate(channels):
-        dr.scatter_reduce(dr.ReduceOp.Add, sums, value, slot * stride + c)
-    nonfinite = dr.count(~finite)
-    dr.eval(sums, nonfinite, *([setup.splat.sums] if setup.splat is not None else []))
-    per_pixel = np.asarray(sums, dtype=np.float64)[:span * stride].reshape(span, stride)
-    return per_pixel, rows, int(np.asarray(nonfinite).ravel()[0])
-
-
-def sums_capacity(size: int) -> int:
-    """The length of a chunk's sums array (see _trace_chunk): the smallest power of two ≥ size,
-    at least MIN_SUMS_CAPACITY so every small chunk (a pass's last one) shares one kernel."""
-    return max(1 << max(size - 1, 0).bit_length(), MIN_SUMS_CAPACITY)
-
-
-def _add_sums(buffer: FrameBuffer, sums: np.ndarray, rows: slice | np.ndarray, motion: bool) -> None:
-    """Add one chunk's per-pixel sums (13 [+2 motion] [+AOVs] columns) to its flat pixels `rows`
-    (a slice, or distinct indices)."""
-
-    def flat(array: np.ndarray) -> np.ndarray:
-        return array.reshape(-1, *array.shape[2:])  # a view: the buffers are contiguous
-
-    flat(buffer.radiance_sum)[rows] += sums[:, 0:3]
-    flat(buffer.radiance_sq_sum)[rows] += sums[:, 3:6]
-    flat(buffer.albedo_sum)[rows] += sums[:, 6:9]
-    flat(buffer.normal_sum)[rows] += sums[:, 9:12]
-    flat(buffer.depth_sum)[rows] += sums[:, 12]
-    first_aov = 13
-    if motion:
-        flat(buffer.motion_sum)[rows] += sums[:, 13:15]
-        first_aov = 15
-    if buffer.aov_sum is not None:
-        flat(buffer.aov_sum)[rows] += sums[:, first_aov:]
+    # never exist as arrays, so memory stays O(pixels). The pass's film-sized sums are the
+    # same arrays in every chunk, so one kernel serves every chunk and pass.
+    sums.add(idx, channels, finite)
+    dr.eval(*sums.device_arrays, *([setup.splat.sums] if setup.splat is not None else []))
 
 
 def check_integrator(mi, integrator) -> None:
@@ -325,12 +261,15 @@ def render_samples(
     with JIT_LOCK:  # runtime.JIT_LOCK: the pass's Dr.Jit objects, then one chunk at a time
         setup = _prepare(mi, scene, sensor, integrator, buffer, counts, aov_names, total, seed,
                          prev_sensor, prev_shapes, splat)
+        sums = PassSums(mi, height * width, prev_sensor is not None, len(aov_names))
     if setup.sequence_seed is None:
-        chunks = _trace_independent(mi, setup, buffer, counts, seed, max_wavefront, progress)
+        chunks = _trace_independent(mi, setup, sums, buffer, counts, seed, max_wavefront, progress)
     else:
-        chunks = _trace_digit_groups(mi, setup, buffer, counts, seed, max_wavefront, progress)
-    if setup.splat is not None:
-        with JIT_LOCK:
+        chunks = _trace_digit_groups(mi, setup, sums, buffer, counts, seed, max_wavefront, progress)
+    with JIT_LOCK:  # develop: the pass's sums read back and added once
+        if total:
+            _count_nonfinite(buffer, sums.add_to(buffer))
+        if setup.splat is not None:
             buffer.add_splat(setup.splat.host())
     buffer.spp += counts.astype(np.int64)
     buffer.passes += 1
@@ -358,31 +297,29 @@ def _prepare(mi, scene, sensor, integrator, buffer: FrameBuffer, counts: np.ndar
     )
 
 
-def _add_chunk(buffer: FrameBuffer, traced: tuple[np.ndarray, slice | np.ndarray, int], motion: bool) -> None:
-    """Add one traced chunk (_trace_chunk's result) to the buffer, counting non-finite samples."""
-    sums, rows, nonfinite = traced
+def _count_nonfinite(buffer: FrameBuffer, nonfinite: int) -> None:
+    """Record the pass's dropped (non-finite) samples in the buffer's meta."""
     if nonfinite:
         buffer.meta["nonfinite_samples"] = int(buffer.meta.get("nonfinite_samples", 0) + nonfinite)
-    _add_sums(buffer, sums, rows, motion)
 
 
-def _trace_independent(mi, setup: _Setup, buffer: FrameBuffer, counts: np.ndarray, seed: int,
+def _trace_independent(mi, setup: _Setup, sums: PassSums, buffer: FrameBuffer, counts: np.ndarray, seed: int,
                        max_wavefront: int, progress: Callable[[int], None] | None) -> int:
     """The `independent` scene's pass: lanes in pixel order, cut every max_wavefront lanes, each
-    chunk its own seed. Returns the number of chunks."""
-    lanes = expand_counts(counts)
-    chunks = -(-len(lanes) // max_wavefront)
-    for chunk in range(chunks):
-        pixels = lanes[chunk * max_wavefront:(chunk + 1) * max_wavefront]
+    chunk its own seed; each chunk's lane → pixel map expanded on the device (lane_map.py).
+    Returns the number of chunks."""
+    chunks = 0
+    for rows in independent_chunks(counts, max_wavefront):
         with JIT_LOCK:
-            sampler = independent_sampler(mi, pass_seed(seed, buffer.passes, chunk), len(pixels))
-            _add_chunk(buffer, _trace_chunk(mi, setup, pixels, sampler), setup.prev_projection is not None)
+            sampler = independent_sampler(mi, pass_seed(seed, buffer.passes, chunks), rows.size)
+            _trace_chunk(mi, setup, sums, lane_pixels(mi, rows), sampler)
+        chunks += 1
         if progress is not None:
-            progress(len(pixels))
+            progress(rows.size)
     return chunks
 
 
-def _trace_digit_groups(mi, setup: _Setup, buffer: FrameBuffer, counts: np.ndarray, seed: int,
+def _trace_digit_groups(mi, setup: _Setup, sums: PassSums, buffer: FrameBuffer, counts: np.ndarray, seed: int,
                         max_wavefront: int, progress: Callable[[int], None] | None) -> int:
     """A stratifying scene's pass: every dimension stratified per pixel, in groups of uniform
     count by the binary digits of the counts (stratified_lanes.py), each chunk its own seed.
@@ -390,9 +327,10 @@ def _trace_digit_groups(mi, setup: _Setup, buffer: FrameBuffer, counts: np.ndarr
     chunks = 0
     for chunk in digit_group_chunks(buffer.spp, counts, max_wavefront):
         with JIT_LOCK:
-            sampler = sequence_sampler(mi, chunk.sequence_length, pass_seed(seed, buffer.passes, chunks), len(chunk.pixels))
-            _add_chunk(buffer, _trace_chunk(mi, setup, chunk.pixels, sampler, chunk), setup.prev_projection is not None)
+            sampler = sequence_sampler(mi, chunk.sequence_length, pass_seed(seed, buffer.passes, chunks), chunk.rows.size)
+            pixels, sample_index = group_lanes(mi, chunk)
+            _trace_chunk(mi, setup, sums, pixels, sampler, sample_index)
         chunks += 1
         if progress is not None:
-            progress(len(chunk.pixels))
+            progress(chunk.rows.size)
     return chunks

@@ -33,7 +33,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterator
 
+import drjit as dr
 import numpy as np
+
+from service.render.lane_map import ChunkRows, lane_rows, row_pixels, upload
 
 # Mitsuba's sampler per sequence length (lanes that one pixel's sequence spans, a power of 4).
 # Every one keeps each dimension of a sample uniform; they differ in how independent two
@@ -53,20 +56,27 @@ LONG_SEQUENCE_SAMPLER = "multijitter"
 @dataclass(frozen=True)
 class LaneGroupChunk:
     """One wavefront of a sequence-length group: pixel-major lanes, each pixel's lanes consecutive
-    and a whole number of sequences of `sequence_length` lanes."""
+    and a whole number of sequences of `sequence_length` lanes. The lanes themselves are expanded
+    on the device (lane_map.py): a pixel's lane j takes sample number first_sample[row] + j."""
 
-    pixels: np.ndarray          # lane → flat pixel index (uint32, ascending, each repeated)
-    sample_index: np.ndarray    # lane → the sample's number in its pixel over the job (uint32)
-    slot: np.ndarray            # lane → its pixel's row in `rows` (uint32)
-    rows: np.ndarray            # the chunk's distinct flat pixels, ascending (int64)
+    rows: ChunkRows             # the chunk's pixels (ascending) and lanes per pixel
+    first_sample: np.ndarray    # row → its first lane's sample number in the pixel over the job (uint32)
     sequence_length: int        # 4^k: the sampler's samples per wavefront
+
+    @property
+    def pixels(self) -> np.ndarray:
+        """The chunk's distinct flat pixels, ascending (int64)."""
+        if self.rows.pixels is not None:
+            return self.rows.pixels
+        return self.rows.first_pixel + np.arange(self.rows.size // self.rows.uniform)
 
 
 def digit_group_chunks(prior: np.ndarray, counts: np.ndarray, max_wavefront: int) -> Iterator[LaneGroupChunk]:
     """The pass's lanes grouped by sequence length (digits 2k and 2k+1 of each pixel's count),
     longest first, each group cut into chunks of whole pixels of at most `max_wavefront` lanes
     (at least one pixel). Over all chunks, pixel p gets exactly counts[p] lanes numbered
-    prior[p] … + counts[p] − 1, each digit's run aligned to its 2^b within the pass."""
+    prior[p] … + counts[p] − 1, each digit's run aligned to its 2^b within the pass. Host work
+    is per pixel, never per lane."""
     flat = np.asarray(counts, dtype=np.int64).ravel()
     if flat.size and flat.min() < 0:
         raise ValueError("sample counts must be >= 0")
@@ -77,14 +87,27 @@ def digit_group_chunks(prior: np.ndarray, counts: np.ndarray, max_wavefront: int
         sequences = (flat >> low_bit) & 3          # 2 for digit 2k+1, 1 for digit 2k
         members = np.flatnonzero(sequences)
         lanes = sequences[members] * length
+        first_samples = group_first_samples(before[members], flat[members], low_bit)
         for chunk in _cut_at_pixels(lanes, max_wavefront):
-            rows = members[chunk]
-            yield LaneGroupChunk(
-                pixels=np.repeat(rows, lanes[chunk]).astype(np.uint32),
-                sample_index=group_sample_indices(before[rows], flat[rows], low_bit),
-                slot=np.repeat(np.arange(len(rows), dtype=np.uint32), lanes[chunk]),
-                rows=rows,
-                sequence_length=length)
+            yield LaneGroupChunk(rows=_chunk_rows(members[chunk], lanes[chunk]),
+                                 first_sample=first_samples[chunk], sequence_length=length)
+
+
+def _chunk_rows(pixels: np.ndarray, lanes: np.ndarray) -> ChunkRows:
+    """Rows of whole pixels; the arithmetic (upload-free) form when they are consecutive pixels
+    with one count, as under a uniform count map."""
+    size = int(lanes.sum())
+    if int(lanes.min()) == int(lanes.max()) and int(pixels[-1] - pixels[0]) == len(pixels) - 1:
+        return ChunkRows(size=size, uniform=int(lanes[0]), first_pixel=int(pixels[0]))
+    return ChunkRows(size=size, pixels=pixels, lanes=lanes)
+
+
+def group_lanes(mi, chunk: LaneGroupChunk):
+    """The chunk's lanes expanded on the device (lane_map.py): (flat pixel, sample number in
+    the pixel) per lane, device UInt32."""
+    row, within = lane_rows(mi, chunk.rows)
+    first_sample = dr.gather(mi.UInt32, upload(mi, chunk.first_sample), row)
+    return row_pixels(mi, chunk.rows, row), first_sample + within
 
 
 def _cut_at_pixels(lanes: np.ndarray, max_wavefront: int) -> Iterator[slice]:
@@ -99,15 +122,13 @@ def _cut_at_pixels(lanes: np.ndarray, max_wavefront: int) -> Iterator[slice]:
         start = stop
 
 
-def group_sample_indices(prior: np.ndarray, counts: np.ndarray, low_bit: int) -> np.ndarray:
-    """Lane → sample number for the pixels (prior counts, this pass's counts) of the group of
-    digits low_bit and low_bit + 1, pixel-major: each pixel's ((n >> low_bit) & 3) · 2^low_bit
-    numbers after the higher digits' runs — digit low_bit + 1's run, then digit low_bit's."""
+def group_first_samples(prior: np.ndarray, counts: np.ndarray, low_bit: int) -> np.ndarray:
+    """Each pixel's first sample number (prior counts, this pass's counts) in the group of digits
+    low_bit and low_bit + 1: its ((n >> low_bit) & 3) · 2^low_bit numbers come after the higher
+    digits' runs — digit low_bit + 1's run, then digit low_bit's."""
     counts = np.asarray(counts, dtype=np.int64)
     first = np.asarray(prior, dtype=np.int64) + ((counts >> (low_bit + 2)) << (low_bit + 2))
-    lanes = ((counts >> low_bit) & 3) << low_bit
-    within = np.arange(int(lanes.sum()), dtype=np.int64) - np.repeat(np.cumsum(lanes) - lanes, lanes)
-    return (np.repeat(first, lanes) + within).astype(np.uint32)
+    return first.astype(np.uint32)
 
 
 def sequence_sampler_kind(length: int) -> str:

@@ -5,7 +5,7 @@ import pytest
 
 from service.loop.allocate import exposed_relative_variance
 from service.render.framebuffer import FrameBuffer
-from service.render.renderer import MIN_SUMS_CAPACITY, expand_counts, pass_seed, render_samples, sums_capacity
+from service.render.renderer import expand_counts, pass_seed, render_samples
 from service.render.runtime import mitsuba
 
 SIZE = 24
@@ -215,12 +215,6 @@ def test_filter_weights_average_to_one_per_pixel_even_at_the_film_border():
     # Signed weights (negative lobes) have a spread; judge each pixel by its own standard error.
     z = (buffer.mean[..., 0] - 1.0) / np.sqrt(buffer.variance[..., 0])
     assert np.abs(z).max() < 4.5 and abs(z.mean()) < 4.5 / np.sqrt(z.size)
-
-
-def test_sums_capacity_is_a_power_of_two_with_a_floor():
-    assert sums_capacity(1) == MIN_SUMS_CAPACITY and sums_capacity(MIN_SUMS_CAPACITY) == MIN_SUMS_CAPACITY
-    assert sums_capacity(MIN_SUMS_CAPACITY + 1) == 2 * MIN_SUMS_CAPACITY
-    assert sums_capacity(3 * MIN_SUMS_CAPACITY) == 4 * MIN_SUMS_CAPACITY
 
 
 def test_adaptive_passes_reuse_the_compiled_kernels(cornell):

@@ -10,7 +10,7 @@ import pytest
 import service.render.renderer as renderer
 from service.render.framebuffer import FrameBuffer
 from service.render.renderer import render_samples
-from service.render.stratified_lanes import digit_group_chunks, sequence_sampler
+from service.render.stratified_lanes import digit_group_chunks, group_lanes, sequence_sampler
 from service.render.runtime import mitsuba
 from service.render.stratified_sequence import film_bits, lens_bits, reverse_bits, sobol_dim1
 from tests.fidelity.harness import compare_file
@@ -112,6 +112,12 @@ def test_generator_matrices_are_van_der_corput_and_pascal_mod_2():
         assert int(sobol_dim1(k)[0]) == column, j
 
 
+def device_lanes(chunk) -> tuple[np.ndarray, np.ndarray]:
+    """A digit group chunk's lanes as the renderer traces them: (flat pixel, sample number)."""
+    pixels, sample_index = group_lanes(mitsuba(), chunk)
+    return np.asarray(pixels), np.asarray(sample_index)
+
+
 def test_digit_groups_give_each_pixel_exactly_its_counts_sample_numbers_across_passes():
     prior = np.array([[3, 0], [1, 5]])
     counts = np.array([[2, 1], [0, 11]])
@@ -120,12 +126,13 @@ def test_digit_groups_give_each_pixel_exactly_its_counts_sample_numbers_across_p
         numbers = {p: [] for p in range(4)}
         for chunk in digit_group_chunks(prior, counts, max_wavefront):
             # pixel-major, each pixel's lanes consecutive, whole sequences of 4^k lanes each
-            assert (np.diff(chunk.pixels.astype(np.int64)) >= 0).all()
-            np.testing.assert_array_equal(chunk.rows[chunk.slot], chunk.pixels)
-            lanes = np.bincount(chunk.slot)
+            pixels, sample_index = device_lanes(chunk)
+            assert (np.diff(pixels.astype(np.int64)) >= 0).all()
+            np.testing.assert_array_equal(np.unique(pixels), chunk.pixels)
+            lanes = np.unique(pixels, return_counts=True)[1]
             assert (lanes % chunk.sequence_length == 0).all() and lanes.max() <= 3 * chunk.sequence_length
-            assert len(chunk.pixels) <= max(max_wavefront, lanes.max())
-            for pixel, number in zip(chunk.pixels.tolist(), chunk.sample_index.tolist()):
+            assert len(pixels) <= max(max_wavefront, lanes.max())
+            for pixel, number in zip(pixels.tolist(), sample_index.tolist()):
                 numbers[pixel].append(number)
         assert {p: sorted(n) for p, n in numbers.items()} == {
             0: [3, 4], 1: [0], 2: [], 3: list(range(5, 16))}
@@ -140,8 +147,9 @@ def test_digits_sharing_a_sequence_length_are_traced_as_one_group():
     prior = np.array([7, 0, 3, 1, 2, 9, 4, 0])
     chunks = list(digit_group_chunks(prior, counts, 1 << 20))
     assert [c.sequence_length for c in chunks] == [16, 4, 1]
+    lanes = [device_lanes(c) for c in chunks]
     for pixel, n in enumerate(counts.tolist()):
-        numbers = np.concatenate([c.sample_index[c.pixels == pixel] for c in chunks]).astype(int) - prior[pixel]
+        numbers = np.concatenate([numbers[pixels == pixel] for pixels, numbers in lanes]).astype(int) - prior[pixel]
         assert sorted(numbers.tolist()) == list(range(n))
         for bit in range(6):   # digit b of n: numbers (n >> (b+1)) << (b+1) … + 2^b − 1, together
             if n >> bit & 1:
@@ -273,5 +281,9 @@ def test_uneven_stratified_passes_build_one_kernel_per_digit_and_reuse_it():
         launched = [entry for entry in dr.kernel_history() if entry["type"] == dr.KernelType.JIT]
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert len(launched) >= 8   # 4 maps × 2 groups actually traced
-    assert len({str(entry["hash"]) for entry in launched}) <= 2
+    # The trace kernels (thousands of operations); the lane map's scatter of run starts
+    # (lane_map.py, a handful) is one more kernel, shared by every chunk.
+    traced = [entry for entry in launched if entry["operation_count"] > 100]
+    assert len(traced) >= 8   # 4 maps × 2 groups actually traced
+    assert len({str(entry["hash"]) for entry in traced}) <= 2
+    assert len({str(entry["hash"]) for entry in launched}) <= 3
