@@ -30,6 +30,7 @@ from service.loop.allocate import iteration_budget
 from service.loop.loop import RenderLoop, next_counts
 from service.loop.oidn import oidn_tensor
 from service.loop.tensors import frame_tensors, to_image
+from service.render.framebuffer import FrameBuffer
 
 # The stages of the table, in the order an iteration (and then the worker) runs them.
 # (key, label, whether it is a fixed cost: independent of the samples rendered)
@@ -108,7 +109,18 @@ def _compose_final_anew(loop: RenderLoop) -> list:
     """The final images as the loop composes them once per iteration (service/loop/final_image.py):
     the kept raw image and share forgotten, as new samples or a new error map forget them."""
     loop._forget_final()
+    for buffer in loop.state.buffers:
+        buffer.invalidate()
     return loop.denoised()
+
+
+def _anew(buffer: FrameBuffer, call: Callable[[], object]) -> Callable[[], object]:
+    """`call` as its first read after a pass of samples: what the buffer derives from its sums
+    (FrameBuffer.cached: the mean, the converged mask, …) forgotten first, as a render forgets it."""
+    def first_read() -> object:
+        buffer.invalidate()
+        return call()
+    return first_read
 
 
 def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCosts:
@@ -122,9 +134,11 @@ def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCost
     ms = {
         "render": 1000 * run.curve.points[-1].stages["render"],
         # the next iteration's allocation from this state (iteration 0's is a constant fill)
-        "allocate": _median_ms(lambda: next_counts(loop.spec.allocator, buffer, loop.state.error_maps[0],
-                                                   iteration_budget(int(buffer.spp.sum())), seed=0), repeats),
-        "to_tensors": _median_ms(lambda: frame_tensors(buffer).to(session.device), repeats),
+        # with the converged mask it reads (the loop computes it once per iteration, in denoise_step)
+        "allocate": _median_ms(_anew(buffer, lambda: next_counts(loop.spec.allocator, buffer, loop.state.error_maps[0],
+                                                                 iteration_budget(int(buffer.spp.sum())), seed=0)),
+                               repeats),
+        "to_tensors": _median_ms(_anew(buffer, lambda: frame_tensors(buffer).to(session.device)), repeats),
         "oidn_candidate": _median_ms(lambda: oidn_tensor(frame), repeats)
         if denoiser.config.oidn_candidate else 0.0,
         "denoiser": _median_ms(lambda: session.denoise(loop.state.buffers, lam), repeats),

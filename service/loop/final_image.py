@@ -95,21 +95,29 @@ def channel_sum(values: np.ndarray) -> np.ndarray:
 
 def raw_expected_error(raw: np.ndarray, raw_variance: np.ndarray, exposure: float) -> np.ndarray:
     """(H, W) expected SMAPE of the raw image at the networks' exposure: per channel
-    √(2/π)·σ / (2|r| + ε), the mean over channels (as the error map is). float64, in place."""
-    sigma = raw_variance.astype(np.float64)
-    np.maximum(sigma, 0.0, out=sigma)
-    np.sqrt(sigma, out=sigma)
-    sigma *= exposure
-    magnitude = raw.astype(np.float64)
-    np.abs(magnitude, out=magnitude)
-    magnitude *= 2.0
-    magnitude *= exposure
-    magnitude += SMAPE_EPS
-    sigma *= MEAN_ABS_PER_SIGMA
-    sigma /= magnitude
-    mean = channel_sum(sigma)
-    mean /= sigma.shape[-1]  # as ndarray.mean divides its sum
-    return mean
+    √(2/π)·σ / (2|r| + ε), the mean over channels (as the error map is). float64, one colour
+    plane at a time into two (H, W) scratch planes: at 2 MP the (H, W, 3) float64 temporaries'
+    first touch cost as much as the arithmetic. The channels are added in `channel_sum`'s order."""
+    sigma, magnitude = np.empty(raw.shape[:2]), np.empty(raw.shape[:2])
+    total = None
+    for c in range(raw.shape[-1]):
+        sigma[...] = raw_variance[..., c]
+        np.maximum(sigma, 0.0, out=sigma)
+        np.sqrt(sigma, out=sigma)
+        sigma *= exposure
+        magnitude[...] = raw[..., c]
+        np.abs(magnitude, out=magnitude)
+        magnitude *= 2.0
+        magnitude *= exposure
+        magnitude += SMAPE_EPS
+        sigma *= MEAN_ABS_PER_SIGMA
+        sigma /= magnitude
+        if total is None:
+            total = sigma.copy()
+        else:
+            total += sigma
+    total /= raw.shape[-1]  # as ndarray.mean divides its sum
+    return total
 
 
 def raw_weight(denoised_error: np.ndarray, raw_error: np.ndarray, raw_variance: np.ndarray) -> np.ndarray:
@@ -141,8 +149,13 @@ def raw_share(raw: np.ndarray, raw_variance: np.ndarray, predicted_error: np.nda
 
 def blend(denoised: np.ndarray, raw: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     """(H, W, 3) final image (≥ 0): (1 − α)·d + α·r."""
-    # ≥ 0 as the denoised image is: a Mitchell film's negative lobes can make a raw pixel negative
-    return np.maximum(denoised + alpha * (raw - denoised), 0.0).astype(np.float32)
+    # ≥ 0 as the denoised image is: a Mitchell film's negative lobes can make a raw pixel negative.
+    # In place in one array (d + α·(r − d), the same operations; IEEE addition commutes).
+    out = np.subtract(raw, denoised, dtype=np.result_type(raw, denoised, alpha))
+    out *= alpha
+    out += denoised
+    np.maximum(out, 0.0, out=out)
+    return out.astype(np.float32, copy=False)
 
 
 def compose_final(denoised: np.ndarray, raw: np.ndarray, raw_variance: np.ndarray, predicted_error: np.ndarray,

@@ -22,7 +22,7 @@ from service.loop.allocate import allocate_samples, allocation_weights, exposed_
 from service.loop.change_calibration import calibrate_by_change, image_change
 from service.loop.denoise_session import DenoiseSession
 from service.loop.final_image import blend, raw_share
-from service.loop.tensors import nchw, to_image as to_hwc
+from service.loop.tensors import nchw, samples_exposure, to_image as to_hwc
 from service.loop.spec import IterationRecord, LoopSpec, LoopSpecError, lambda_problem, validate_spec
 from service.loop.state import LoopState
 from service.render.effects import inspect_frames, load_frames, make_integrator
@@ -46,10 +46,11 @@ def next_counts(allocator: str, buffer: FrameBuffer, predicted_error: np.ndarray
     return allocate_samples(weights, budget, seed=seed, floor_only=settled)
 
 
-def exposed_change(previous: np.ndarray, current: np.ndarray, samples: np.ndarray) -> float:
+def exposed_change(previous: np.ndarray, current: np.ndarray, samples: np.ndarray | Exposure) -> float:
     """image_change of two denoised images at the networks' exposure of the samples' mean
-    (models.exposure): SMAPE's ε is absolute, and the change calibrates the error map's mean."""
-    exposure = Exposure.of(nchw(samples))
+    (models.exposure; or that exposure itself): SMAPE's ε is absolute, and the change calibrates
+    the error map's mean."""
+    exposure = samples if isinstance(samples, Exposure) else Exposure.of(nchw(samples))
     return image_change(*(to_hwc(exposure.forward(nchw(x))) for x in (previous, current)))
 
 
@@ -312,7 +313,7 @@ class RenderLoop:
         for f, (image, samples) in previous.items():
             now = self._denoised_samples[f] = int(self.state.buffers[f].spp.sum())
             if samples is not None and 2 * samples == now:        # the previous iteration's image
-                self._change[f] = (exposed_change(image, self._denoised[f], self.state.buffers[f].mean)
+                self._change[f] = (exposed_change(image, self._denoised[f], samples_exposure(self.state.buffers[f]))
                                    if same_lam else None)
             elif samples != now:                                  # none (first pass, resumed loop)
                 self._change[f] = None
@@ -405,7 +406,7 @@ class RenderLoop:
         if self.session is None or image is None or error is None:
             return image
         if self._raw_share[f] is None:
-            exposure = float(Exposure.of(nchw(buffer.mean)).scale.flatten()[0])
+            exposure = float(samples_exposure(buffer).scale.flatten()[0])
             # kept with its share: buffer.raw divides the film's splat sums anew on every read
             # (~70 ms at 2 MP), and a λ edit recomposes from the same samples; the variance
             # comes from the same division (FrameBuffer.raw_and_variance)

@@ -6,6 +6,7 @@ import os
 import numpy as np
 import torch
 
+from models.exposure import Exposure
 from models.frames import FrameTensors
 from service.render.framebuffer import FrameBuffer
 
@@ -68,6 +69,12 @@ def frame_tensors(buffer: FrameBuffer, device: torch.device | str | None = None)
         fields[name] = block[:, first:first + channels]
         first += channels
     return FrameTensors(**fields)
+
+
+def samples_exposure(buffer: FrameBuffer) -> Exposure:
+    """The networks' exposure (models.exposure) of a frame's sample mean, once per pass of
+    samples (FrameBuffer.cached): the final image and the change calibration both read it."""
+    return buffer.cached("exposure", lambda: Exposure.of(nchw(buffer.mean)))
 
 
 def to_image(tensor: torch.Tensor) -> np.ndarray:

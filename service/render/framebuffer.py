@@ -125,16 +125,14 @@ class FrameBuffer:
         self._derived_pass = None
 
     def cached(self, key: object, compute: Callable[[], object]) -> object:
-        """`compute()`, once per pass of samples (see `_derived`); a derived array comes back
-        read-only, since every reader of this pass shares it."""
+        """`compute()`, once per pass of samples (see `_derived`). Every reader of the pass shares
+        the one array: read it, never write into it. (Not flagged read-only: torch warns on every
+        such array handed to torch.from_numpy, e.g. the mean to OIDN.)"""
         if self._derived_pass != self.passes:
             self._derived.clear()
             self._derived_pass = self.passes
         if key not in self._derived:
-            value = compute()
-            if isinstance(value, np.ndarray):
-                value.flags.writeable = False
-            self._derived[key] = value
+            self._derived[key] = compute()
         return self._derived[key]
 
     def _counts(self) -> np.ndarray:
@@ -174,8 +172,8 @@ class FrameBuffer:
 
     @property
     def mean(self) -> np.ndarray:
-        """Monte Carlo estimate of pixel radiance; 0 where no sample was taken. Read-only: one
-        array per pass shared by every reader (`cached`)."""
+        """Monte Carlo estimate of pixel radiance; 0 where no sample was taken. One array per pass
+        shared by every reader (`cached`): never write into it."""
         return self.cached("mean", lambda: self._per_sample(self.radiance_sum, np.float32))
 
     @property
@@ -223,21 +221,11 @@ class FrameBuffer:
         self.splat_sq_radiance_sq += sums[..., SQ_RADIANCE_SQ]
         self.splat_weight_sq += sums[..., WEIGHT_SQ]
 
-    def _splat_mean(self) -> np.ndarray:
-        weight = self.splat_weight[..., None]
-        mean = np.divide(self.splat_radiance, weight, out=np.zeros_like(self.splat_radiance), where=weight > 0)
-        # A pixel no splat reached with positive weight keeps its own samples' estimate (their
-        # mean is ~30 ms at 2 MP, so only when such a pixel exists).
-        covered = weight > 0
-        return _finite(mean if covered.all() else np.where(covered, mean, self._per_sample(self.radiance_sum)))
-
     @property
     def raw(self) -> np.ndarray:
         """The raw image users look at (`noisy` layer, `--no-denoise`): hdrfilm's estimate
         Σw·L / Σw from every sample under the pixel's filter (splat.py); `mean` for the box."""
-        if self.splat_weight is None:
-            return self.mean
-        return self._splat_mean().astype(np.float32)
+        return self.raw_and_variance()[0]
 
     @property
     def raw_variance(self) -> np.ndarray:
@@ -247,31 +235,45 @@ class FrameBuffer:
         to it and never cancel; 0 where n_eff ≤ 1, as `variance` is where n < 2. (Dropping
         Σw²·L, i.e. taking the w²-weighted mean to be R, saves 3 of the 11 channels per tap but
         underestimated the variance ~4× at edges: tests/render/test_raw_image.py.)"""
-        if self.splat_weight is None:
-            return self.variance
-        return self._splat_variance(self._splat_mean())
+        return self.raw_and_variance()[1]
 
     def raw_and_variance(self) -> tuple[np.ndarray, np.ndarray]:
-        """(`raw`, `raw_variance`) from one division of the splat sums (the final image reads
-        both once per iteration: ~75 ms saved at 2 MP)."""
+        """(`raw`, `raw_variance`), both from one division of the splat sums and kept for the pass
+        (`cached`: the final image, the previews and the result read them)."""
         if self.splat_weight is None:
-            return self.mean, self.variance
-        mean = self._splat_mean()
-        return mean.astype(np.float32), self._splat_variance(mean)
+            return self.mean, self.cached("variance", lambda: self.variance)
+        return self.cached("raw", self._splat_estimate)
 
-    def _splat_variance(self, mean: np.ndarray) -> np.ndarray:
-        """`raw_variance` from the splat mean (H, W, 3), in place where the formula allows (the
-        same operations in the same order as written out in `raw_variance`'s docstring)."""
-        weight, weight_sq = self.splat_weight[..., None], self.splat_weight_sq[..., None]
-        spread = 2 * mean
-        spread *= self.splat_sq_radiance
-        np.subtract(self.splat_sq_radiance_sq, spread, out=spread)
-        spread += np.square(mean) * weight_sq
-        np.maximum(spread, 0.0, out=spread)
-        n_eff = np.divide(weight**2, weight_sq, out=np.zeros_like(weight), where=(weight_sq > 0) & (weight > 0))
+    def _splat_estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        """(`raw`, `raw_variance`) as float32, one colour plane at a time in float64 (the same
+        operations in the same order as the whole-array formulas in `raw_variance`'s docstring,
+        so the same bits, with a third of their temporaries: at 2 MP allocating and first
+        touching the (H, W, 3) temporaries cost as much as the arithmetic)."""
+        weight, weight_sq = self.splat_weight, self.splat_weight_sq
+        covered = weight > 0
+        uncovered = None if covered.all() else ~covered
+        n_eff = np.divide(weight**2, weight_sq, out=np.zeros_like(weight), where=(weight_sq > 0) & covered)
         scale = np.divide(1.0, weight**2 * (1 - 1 / np.maximum(n_eff, 1.0)), out=np.zeros_like(weight), where=n_eff > 1)
-        spread *= scale
-        return _finite(spread).astype(np.float32)
+        raw, variance = np.empty(self.splat_radiance.shape, np.float32), np.empty(self.splat_radiance.shape, np.float32)
+        mean, spread = np.empty(weight.shape), np.empty(weight.shape)
+        for c in range(raw.shape[-1]):
+            mean.fill(0.0)
+            np.divide(self.splat_radiance[..., c], weight, out=mean, where=covered)
+            if uncovered is not None:
+                # a pixel no splat reached with positive weight keeps its own samples' estimate
+                mean[uncovered] = self._per_sample(self.radiance_sum[..., c])[uncovered]
+            _zero_nonfinite(mean)
+            raw[..., c] = mean
+            np.multiply(mean, 2, out=spread)
+            spread *= self.splat_sq_radiance[..., c]
+            np.subtract(self.splat_sq_radiance_sq[..., c], spread, out=spread)
+            np.square(mean, out=mean)
+            mean *= weight_sq
+            spread += mean
+            np.maximum(spread, 0.0, out=spread)
+            spread *= scale
+            variance[..., c] = spread
+        return raw, _zero_nonfinite(variance)
 
     def converged(self, min_spp: int = CONVERGED_MIN_SPP) -> np.ndarray:
         """(H, W) bool: at least `min_spp` samples and every one returned the same value — an
