@@ -35,10 +35,11 @@ def nchw(array: np.ndarray) -> torch.Tensor:
 
 
 def frame_tensors(buffer: FrameBuffer, device: torch.device | str | None = None) -> FrameTensors:
-    """The networks' input for one frame: every layer written straight from the buffer's sums
-    into the planes of one (1, C, H, W) float32 host block (no HWC arrays, no transposed
-    copies: ~3× less time at 2 MP), which goes to `device` (default: stays on the host) in one
-    copy; the fields are channel slices of it."""
+    """The networks' input for one frame: every layer written from the buffer's sums straight
+    into the planes of one (1, C, H, W) float32 host block (no HWC temporaries: ~3× less time at
+    2 MP), which goes to `device` (default: stays on the host) in one copy; the fields are
+    channel slices of it. The mean (and a box film's variance) the final image reads anyway come
+    from the buffer's per-pass cache, copied into their planes."""
     height, width = buffer.shape
     motion = buffer.motion_sum is not None
     widths = {"color": 3, "variance": 3, "albedo": 3, "normal": 3, "depth": 1, "spp": 1, **({"motion": 2} if motion else {})}
@@ -53,8 +54,12 @@ def frame_tensors(buffer: FrameBuffer, device: torch.device | str | None = None)
     def hwc(name: str) -> np.ndarray:
         return planes[name].transpose(1, 2, 0)  # a view: writing it fills the plane
 
-    buffer.per_sample_into(buffer.radiance_sum, hwc("color"))
-    buffer.variance_into(hwc("variance"))
+    np.copyto(hwc("color"), buffer.mean)
+    if buffer.splat_weight is None:
+        # a box film's raw variance is this variance: computed once, kept for the final image
+        np.copyto(hwc("variance"), buffer.raw_variance)
+    else:
+        buffer.variance_into(hwc("variance"))
     buffer.per_sample_into(buffer.albedo_sum, hwc("albedo"))
     buffer.per_sample_into(buffer.normal_sum, hwc("normal"))
     buffer.per_sample_into(buffer.depth_sum, planes["depth"][0])
