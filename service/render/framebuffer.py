@@ -18,6 +18,9 @@ SPLAT_CHANNELS = 11
 # The raw image's sums, optional (None under the box filter): checkpoints keep them by these names.
 SPLAT_ARRAYS = ("splat_weight", "splat_radiance", "splat_sq_radiance", "splat_sq_radiance_sq", "splat_weight_sq")
 
+_MISSING = object()  # FrameBuffer.cached: no value kept yet (None is a value)
+
+
 def _finite(values: np.ndarray) -> np.ndarray:
     """NaN/±Inf → 0. A running sum that went non-finite (a corrupted or overflowed accumulator;
     the renderer already drops non-finite samples) holds no usable estimate: read it like an
@@ -121,19 +124,23 @@ class FrameBuffer:
 
     def invalidate(self) -> None:
         """Forget every derived array: the sums were written other than by a render pass."""
-        self._derived.clear()
+        self._derived = {}
         self._derived_pass = None
 
     def cached(self, key: object, compute: Callable[[], object]) -> object:
         """`compute()`, once per pass of samples (see `_derived`). Every reader of the pass shares
         the one array: read it, never write into it. (Not flagged read-only: torch warns on every
-        such array handed to torch.from_numpy, e.g. the mean to OIDN.)"""
+        such array handed to torch.from_numpy, e.g. the mean to OIDN.) A new pass replaces the
+        dict rather than clearing it, so a reader on another thread (a λ edit) never finds its
+        key gone between the lookup and the read."""
+        derived = self._derived
         if self._derived_pass != self.passes:
-            self._derived.clear()
+            derived = self._derived = {}
             self._derived_pass = self.passes
-        if key not in self._derived:
-            self._derived[key] = compute()
-        return self._derived[key]
+        value = derived.get(key, _MISSING)
+        if value is _MISSING:
+            value = derived[key] = compute()
+        return value
 
     def _counts(self) -> np.ndarray:
         """(H, W) float64 sample counts, 1 where none was taken (whose sums are 0: a division by
