@@ -175,8 +175,9 @@ class FrameBuffer:
         if total.ndim == 2:
             np.divide(total, counts, out=out, casting="same_kind")
         else:
-            for c in range(total.shape[-1]):
-                np.divide(total[..., c], counts, out=out[..., c], casting="same_kind")
+            for rows in row_bands(*self.shape):  # a band's three planes share its cache lines
+                for c in range(total.shape[-1]):
+                    np.divide(total[rows, :, c], counts[rows], out=out[rows, :, c], casting="same_kind")
         unsampled = self._unsampled()
         if unsampled is not None:
             out[unsampled] = 0.0

@@ -7,7 +7,7 @@ import pickle
 import numpy as np
 import pytest
 
-from service.render.framebuffer import CONVERGED_MIN_SPP, CONVERGED_REL_TOLERANCE, FrameBuffer
+from service.render.framebuffer import BAND_ELEMENTS, CONVERGED_MIN_SPP, CONVERGED_REL_TOLERANCE, SPLAT_CHANNELS, FrameBuffer
 from service.render.renderer import render_samples
 from service.render.runtime import mitsuba
 
@@ -136,3 +136,30 @@ def test_a_settled_pixel_sees_the_level_of_an_agreed_neighbour_that_is_not_settl
     buffer.footprint = 1
     np.testing.assert_array_equal(buffer.converged(), np.tile([True, True, False, False, False], (3, 1)))
     np.testing.assert_array_equal(buffer.converged(), windowed_converged(buffer))
+
+
+def test_row_bands_give_the_whole_film_formulas():
+    """A film wider than a band (one row a band) read band by band equals the whole-array
+    formulas: the mean, the variance of the mean and the splatted raw image with its variance."""
+    rng = np.random.default_rng(11)
+    height, width = 4, BAND_ELEMENTS + 77
+    buffer = FrameBuffer.empty(height, width)
+    buffer.spp[:] = rng.integers(0, 4, size=(height, width))
+    n = buffer.spp[..., None].astype(np.float64)
+    buffer.radiance_sum[:] = rng.gamma(2.0, 0.3, size=(height, width, 3)) * n
+    buffer.radiance_sq_sum[:] = buffer.radiance_sum**2 / np.maximum(n, 1) * rng.uniform(1.0, 2.0, size=(height, width, 3))
+    sums = rng.random((height, width, SPLAT_CHANNELS))
+    sums[0, :100, 0] = 0.0  # pixels no splat reached: they keep their own samples' mean
+    buffer.add_splat(sums)
+    mean = np.divide(buffer.radiance_sum, n, out=np.zeros_like(buffer.radiance_sum), where=n > 0)
+    variance = np.divide(buffer.radiance_sq_sum - n * mean**2, n - 1, out=np.zeros_like(mean), where=n > 1)
+    variance = np.divide(np.maximum(variance, 0.0), n, out=np.zeros_like(mean), where=n > 1)
+    w, wsq = buffer.splat_weight[..., None], buffer.splat_weight_sq[..., None]
+    raw = np.where(w > 0, np.divide(buffer.splat_radiance, w, out=np.zeros_like(mean), where=w > 0), mean)
+    spread = np.maximum(buffer.splat_sq_radiance_sq - 2 * raw * buffer.splat_sq_radiance + raw**2 * wsq, 0.0)
+    n_eff = np.divide(w**2, wsq, out=np.zeros_like(w), where=(wsq > 0) & (w > 0))
+    raw_variance = spread * np.divide(1.0, w**2 * (1 - 1 / np.maximum(n_eff, 1.0)), out=np.zeros_like(w), where=n_eff > 1)
+    np.testing.assert_array_equal(buffer.mean, mean.astype(np.float32))
+    np.testing.assert_array_equal(buffer.variance, variance.astype(np.float32))
+    np.testing.assert_allclose(buffer.raw, raw.astype(np.float32), rtol=1e-6)
+    np.testing.assert_allclose(buffer.raw_variance, raw_variance.astype(np.float32), rtol=1e-5, atol=1e-30)
