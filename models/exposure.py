@@ -52,9 +52,12 @@ def exposure_metric(color: Tensor) -> Tensor:
     """(N,3,H,W) linear radiance → (N,) E: the geometric mean of the 16×16 bins' mean luminance
     (bins darker than DARK_BIN_FRACTION × the mean bin skipped); NaN for a black image.
     Non-finite and negative values read as 0 (they are noise, not exposure)."""
-    x = torch.nan_to_num(color.detach().double(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+    # one float64 copy, written in place (the same operations: at 2 MP on the CPU the three
+    # full-size temporaries of the out-of-place chain took ~2/3 of this function's time)
+    x = color.detach().to(torch.float64, copy=True)
+    x.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0).clamp_min_(0.0)
     weights = x.new_tensor(LUMINANCE_WEIGHTS).view(1, 3, 1, 1)
-    lum = (x * weights).sum(1, keepdim=True)
+    lum = x.mul_(weights).sum(1, keepdim=True)
     bins = F.avg_pool2d(lum, EXPOSURE_BIN, ceil_mode=True).flatten(1)       # edge bins: their own pixels' mean
     floor = DARK_BIN_FRACTION * bins.mean(1, keepdim=True)
     lit = bins > floor
