@@ -2,7 +2,12 @@
 chunk): which `max_wavefront` the GPU wants. Prints one line per case; the device run
 (bench/gpu_run.sh) keeps them in its log.
 
-    python -m bench.wavefront_probe [--size 1920x1080] [--spp 16] [--repeats 3]
+    python -m bench.wavefront_probe [--size 1920x1080] [--spp 16] [--repeats 3] [--history]
+
+Our passes add to one FrameBuffer, as the loop's passes do: a fresh buffer per pass also times
+the first touch of its ~400 MB of new pages (1.2 s of a 1080p pass's host time on the 2-core
+LLVM host, against 0.06-0.15 s with the buffer kept), which no loop iteration after the first
+pays. `--history` prints both, with the host's share: wall − Dr.Jit's kernel time.
 """
 from __future__ import annotations
 
@@ -47,12 +52,20 @@ def probe(scene_name: str, width: int, height: int, spp: int, repeats: int) -> N
     base = _seconds(theirs, repeats)
     print(f"wavefront probe [{active_variant()}] {scene_name} {width}x{height} {spp} spp: mi.render "
           f"{samples / base / 1e6:.1f} M samples/s", flush=True)
-    counts = np.full((height, width), spp)
-    for lanes in WAVEFRONTS:
-        ours = _seconds(lambda: render_samples(scene, counts, FrameBuffer.empty(height, width), max_wavefront=lanes),
-                        repeats)
-        print(f"wavefront probe [{active_variant()}] {scene_name} max_wavefront 2^{lanes.bit_length() - 1}: ours "
-              f"{samples / ours / 1e6:.1f} M samples/s = {base / ours:.2f}x mi.render", flush=True)
+    for label, counts in count_maps(width, height, spp).items():
+        for lanes in WAVEFRONTS if label == "uniform" else (WAVEFRONTS[0],):
+            buffer = FrameBuffer.empty(height, width)
+            ours = _seconds(lambda: render_samples(scene, counts, buffer, max_wavefront=lanes), repeats)
+            print(f"wavefront probe [{active_variant()}] {scene_name} {label} counts, max_wavefront "
+                  f"2^{lanes.bit_length() - 1}: ours {int(counts.sum()) / ours / 1e6:.1f} M samples/s = "
+                  f"{base / ours * counts.sum() / samples:.2f}x mi.render", flush=True)
+
+
+def count_maps(width: int, height: int, spp: int) -> dict[str, np.ndarray]:
+    """A uniform pass (the loop's first) and an uneven one of the same mean, like an adaptive
+    pass's (counts 1 … 2·spp − 1, uniformly at random)."""
+    uneven = np.random.default_rng(0).integers(1, 2 * spp, size=(height, width))
+    return {"uniform": np.full((height, width), spp), "uneven": uneven}
 
 
 def kernel_history(label: str, call) -> None:
@@ -68,7 +81,7 @@ def kernel_history(label: str, call) -> None:
     kernels = [k for k in history if "execution_time" in k]
     gpu_ms = sum(float(k["execution_time"]) for k in kernels)
     print(f"kernel history {label}: wall {wall * 1e3:.0f} ms, {len(history)} entries, {len(kernels)} timed, "
-          f"kernel time {gpu_ms:.0f} ms", flush=True)
+          f"kernel time {gpu_ms:.0f} ms, host (wall - kernel) {wall * 1e3 - gpu_ms:.0f} ms", flush=True)
     for k in sorted(kernels, key=lambda k: -float(k["execution_time"]))[:6]:
         print(f"  {float(k['execution_time']):8.1f} ms  {k.get('type')} size {k.get('size')} "
               f"ops {k.get('operation_count')} hash {str(k.get('hash'))[:10]}", flush=True)
@@ -106,8 +119,12 @@ def main() -> None:
     if args.history:
         mi = mitsuba()
         scene = load_scene("cornell-box", width=width, height=height)
-        counts = np.full((height, width), args.spp)
-        kernel_history("ours", lambda: render_samples(scene, counts, FrameBuffer.empty(height, width)))
+        for label, counts in count_maps(width, height, args.spp).items():
+            buffer = FrameBuffer.empty(height, width)
+            render_samples(scene, counts, buffer)   # compiles; the loop's buffer, its pages touched
+            kernel_history(f"ours {label}, kept buffer", lambda: render_samples(scene, counts, buffer))
+            kernel_history(f"ours {label}, fresh buffer",
+                           lambda: render_samples(scene, counts, FrameBuffer.empty(height, width)))
         kernel_history("mi.render", lambda: np.asarray(mi.render(scene, spp=args.spp)))
         scatter_probe(width * height, args.spp)
 

@@ -270,7 +270,7 @@ def render_samples(
         if total:
             _count_nonfinite(buffer, sums.add_to(buffer))
         if setup.splat is not None:
-            buffer.add_splat(setup.splat.host())
+            setup.splat.add_to(buffer)
     buffer.spp += counts.astype(np.int64)
     buffer.passes += 1
     return RenderPass(samples=total, chunks=chunks, seconds=perf_counter() - start)
