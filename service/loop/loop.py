@@ -51,7 +51,9 @@ def exposed_change(previous: np.ndarray, current: np.ndarray, samples: np.ndarra
     (models.exposure; or that exposure itself): SMAPE's ε is absolute, and the change calibrates
     the error map's mean."""
     exposure = samples if isinstance(samples, Exposure) else Exposure.of(nchw(samples))
-    return image_change(*(to_hwc(exposure.forward(nchw(x))) for x in (previous, current)))
+    # Exposure.forward's float32 product, taken in the images' own layout (no NCHW round trip)
+    scale = np.float32(exposure.scale.flatten()[0].item())
+    return image_change(*(np.asarray(x, dtype=np.float32) * scale for x in (previous, current)))
 
 
 def converged_error(converged: np.ndarray, error: np.ndarray) -> np.ndarray:
