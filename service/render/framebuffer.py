@@ -237,10 +237,11 @@ class FrameBuffer:
         """Add one render call's splat sums ((H, W, 11) columns of splat.py)."""
         self.invalidate()
         if self.splat_weight is None:
-            h, w = self.shape
-            self.splat_weight, self.splat_weight_sq = np.zeros((h, w)), np.zeros((h, w))
-            self.splat_radiance = np.zeros((h, w, 3))
-            self.splat_sq_radiance, self.splat_sq_radiance_sq = np.zeros((h, w, 3)), np.zeros((h, w, 3))
+            # the first sums are the arrays (0 + x is x: no sum of samples is −0): zeros added to
+            # took ~0.5 s at 2 MP on 2 cores, their fresh pages faulted in one by one
+            for name, columns in zip(SPLAT_ARRAYS, (WEIGHT, RADIANCE, SQ_RADIANCE, SQ_RADIANCE_SQ, WEIGHT_SQ)):
+                setattr(self, name, np.array(sums[..., columns], dtype=np.float64, order="C"))
+            return
         self.splat_weight += sums[..., WEIGHT]
         self.splat_radiance += sums[..., RADIANCE]
         self.splat_sq_radiance += sums[..., SQ_RADIANCE]
