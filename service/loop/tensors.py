@@ -83,8 +83,9 @@ def samples_exposure(buffer: FrameBuffer) -> Exposure:
 
 
 def to_image(tensor: torch.Tensor) -> np.ndarray:
-    """(1, C, H, W) tensor → (H, W, C) float32 array (C = 1 squeezed)."""
-    image = tensor[0].detach().float().permute(1, 2, 0).cpu().numpy()
+    """(1, C, H, W) tensor → (H, W, C) float32 array (C = 1 squeezed). Made contiguous where the
+    tensor lives (on a GPU the transpose runs there), so the host gets HWC in one copy."""
+    image = tensor[0].detach().float().permute(1, 2, 0).contiguous().cpu().numpy()
     return np.ascontiguousarray(image[..., 0] if image.shape[-1] == 1 else image)
 
 
