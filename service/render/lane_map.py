@@ -90,22 +90,29 @@ def independent_chunks(counts: np.ndarray, max_wavefront: int) -> Iterator[Chunk
 
 
 def lane_rows(mi, rows: ChunkRows):
-    """(row, lane's index within its row's run) per lane of the chunk, as device UInt32: for a
-    uniform chunk the row counts from `first_pixel`."""
+    """Each lane's row in the chunk (device UInt32); for a uniform chunk counted from
+    `first_pixel`."""
+    if rows.uniform:
+        shifted = dr.arange(mi.UInt32, rows.size) + dr.opaque(mi.UInt32, rows.skipped)
+        return shifted // dr.opaque(mi.UInt32, rows.uniform)
+    if len(rows.lanes) == 1:
+        return dr.zeros(mi.UInt32, rows.size)
+    marks = dr.zeros(mi.UInt32, rows.size)
+    dr.scatter(marks, mi.UInt32(1), upload(mi, _run_starts(rows)[1:]))
+    return dr.prefix_reduce(dr.ReduceOp.Add, marks, exclusive=False)
+
+
+def lane_within_row(mi, rows: ChunkRows, row):
+    """Each lane's index within its row's run (device UInt32), from its `row` (lane_rows)."""
     lane = dr.arange(mi.UInt32, rows.size)
     if rows.uniform:
-        shifted = lane + dr.opaque(mi.UInt32, rows.skipped)
-        spp = dr.opaque(mi.UInt32, rows.uniform)
-        row = shifted // spp
-        return row, shifted - row * spp
-    starts = np.cumsum(rows.lanes) - rows.lanes          # each row's first lane in the chunk
-    if len(starts) > 1:
-        marks = dr.zeros(mi.UInt32, rows.size)
-        dr.scatter(marks, mi.UInt32(1), upload(mi, starts[1:]))
-        row = dr.prefix_reduce(dr.ReduceOp.Add, marks, exclusive=False)
-    else:
-        row = dr.zeros(mi.UInt32, rows.size)
-    return row, lane - dr.gather(mi.UInt32, upload(mi, starts), row)
+        return lane + dr.opaque(mi.UInt32, rows.skipped) - row * dr.opaque(mi.UInt32, rows.uniform)
+    return lane - dr.gather(mi.UInt32, upload(mi, _run_starts(rows)), row)
+
+
+def _run_starts(rows: ChunkRows) -> np.ndarray:
+    """Each row's first lane in the chunk."""
+    return np.cumsum(rows.lanes) - rows.lanes
 
 
 def row_pixels(mi, rows: ChunkRows, row):
@@ -117,4 +124,4 @@ def row_pixels(mi, rows: ChunkRows, row):
 
 def lane_pixels(mi, rows: ChunkRows):
     """Lane → flat pixel index (device UInt32) of the chunk, rows expanded on the device."""
-    return row_pixels(mi, rows, lane_rows(mi, rows)[0])
+    return row_pixels(mi, rows, lane_rows(mi, rows))

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from time import perf_counter
-from typing import Callable
+from typing import Callable, Iterator
 
 import drjit as dr
 import numpy as np
@@ -24,13 +24,13 @@ from service.render.film_projection import FilmProjection, film_position, film_p
 from service.render.filters import PixelFilter
 from service.render.framebuffer import FrameBuffer
 from service.render.integrators import instance_refusal, sample_lane, to_rgb
-from service.render.lane_map import independent_chunks, lane_pixels
+from service.render.lane_map import ChunkRows, independent_chunks, lane_pixels
 from service.render.object_motion import ShapeMotion, previous_position
 from service.render.pass_sums import PassSums
 from service.render.runtime import JIT_LOCK, mitsuba
 from service.render.scenes import SceneError
 from service.render.splat import FilmSplat
-from service.render.stratified_lanes import digit_group_chunks, group_lanes, sequence_sampler
+from service.render.stratified_lanes import LaneGroupChunk, digit_group_chunks, group_lanes, sequence_sampler
 from service.render.stratified_sequence import film_bits, is_stratifying, lens_bits, unit_point
 
 # 2^22 lanes ≈ a few hundred MB of Dr.Jit state on the LLVM backend: a 1024² × 64 spp pass
@@ -120,8 +120,8 @@ def independent_sampler(mi, seed: int, lanes: int):
 
 def _trace_chunk(mi, setup: _Setup, sums: PassSums, idx, sampler, sample_index=None) -> None:
     """Trace one chunk of lanes (`idx`: device UInt32 flat pixel indices, ascending, a pixel's
-    lanes consecutive) with `sampler` (seeded for as many lanes) and add its per-pixel sums to
-    the pass's device `sums` (pass_sums.py; nothing is read back). Channels: radiance RGB,
+    lanes consecutive) with `sampler` (seeded for as many lanes): record the adds of its
+    per-pixel sums to the pass's device `sums` (pass_sums.py), for _launch_chunks to evaluate. Channels: radiance RGB,
     radiance² RGB, albedo RGB, normal XYZ, depth (+ motion XY) (+ the integrator's AOVs).
     `sample_index`: for a stratifying scene's digit group (stratified_lanes.py), each lane's
     sample number in its pixel (device UInt32), for the film and lens samples."""
@@ -203,7 +203,6 @@ def _trace_chunk(mi, setup: _Setup, sums: PassSums, idx, sampler, sample_index=N
     # never exist as arrays, so memory stays O(pixels). The pass's film-sized sums are the
     # same arrays in every chunk, so one kernel serves every chunk and pass.
     sums.add(idx, channels, finite)
-    dr.eval(*sums.device_arrays, *([setup.splat.sums] if setup.splat is not None else []))
 
 
 def check_integrator(mi, integrator) -> None:
@@ -303,20 +302,44 @@ def _count_nonfinite(buffer: FrameBuffer, nonfinite: int) -> None:
         buffer.meta["nonfinite_samples"] = int(buffer.meta.get("nonfinite_samples", 0) + nonfinite)
 
 
+def _launch_chunks(setup: _Setup, sums: PassSums, chunks: Iterator[tuple[int, Callable[[], None]]],
+                   progress: Callable[[int], None] | None) -> int:
+    """Run each (lanes, trace) chunk: trace it (Dr.Jit records its kernel), wait for the chunk
+    before it, launch it. Nothing is read back, so the host traces chunk k + 1 while the device
+    runs chunk k; but at most that one chunk runs ahead of `progress`, which is told of each
+    chunk once it has finished — the loop's cancel check raises there, and stops the pass within
+    a chunk, as when every chunk was read back. Returns the number of chunks."""
+    written = [*sums.device_arrays, *([setup.splat.sums] if setup.splat is not None else [])]
+    launched, finished = 0, 0
+    for lanes, trace in chunks:
+        with JIT_LOCK:
+            trace()
+            dr.sync_thread()   # the previous chunk has finished
+            dr.eval(*written)
+        if progress is not None and finished:
+            progress(finished)
+        launched, finished = launched + 1, lanes
+    if finished:
+        with JIT_LOCK:
+            dr.sync_thread()
+        if progress is not None:
+            progress(finished)
+    return launched
+
+
 def _trace_independent(mi, setup: _Setup, sums: PassSums, buffer: FrameBuffer, counts: np.ndarray, seed: int,
                        max_wavefront: int, progress: Callable[[int], None] | None) -> int:
     """The `independent` scene's pass: lanes in pixel order, cut every max_wavefront lanes, each
     chunk its own seed; each chunk's lane → pixel map expanded on the device (lane_map.py).
     Returns the number of chunks."""
-    chunks = 0
-    for rows in independent_chunks(counts, max_wavefront):
-        with JIT_LOCK:
-            sampler = independent_sampler(mi, pass_seed(seed, buffer.passes, chunks), rows.size)
-            _trace_chunk(mi, setup, sums, lane_pixels(mi, rows), sampler)
-        chunks += 1
-        if progress is not None:
-            progress(rows.size)
-    return chunks
+    def chunks() -> Iterator[tuple[int, Callable[[], None]]]:
+        for index, rows in enumerate(independent_chunks(counts, max_wavefront)):
+            def trace(index: int = index, rows: ChunkRows = rows) -> None:
+                sampler = independent_sampler(mi, pass_seed(seed, buffer.passes, index), rows.size)
+                _trace_chunk(mi, setup, sums, lane_pixels(mi, rows), sampler)
+            yield rows.size, trace
+
+    return _launch_chunks(setup, sums, chunks(), progress)
 
 
 def _trace_digit_groups(mi, setup: _Setup, sums: PassSums, buffer: FrameBuffer, counts: np.ndarray, seed: int,
@@ -324,13 +347,13 @@ def _trace_digit_groups(mi, setup: _Setup, sums: PassSums, buffer: FrameBuffer, 
     """A stratifying scene's pass: every dimension stratified per pixel, in groups of uniform
     count by the binary digits of the counts (stratified_lanes.py), each chunk its own seed.
     Returns the number of chunks."""
-    chunks = 0
-    for chunk in digit_group_chunks(buffer.spp, counts, max_wavefront):
-        with JIT_LOCK:
-            sampler = sequence_sampler(mi, chunk.sequence_length, pass_seed(seed, buffer.passes, chunks), chunk.rows.size)
-            pixels, sample_index = group_lanes(mi, chunk)
-            _trace_chunk(mi, setup, sums, pixels, sampler, sample_index)
-        chunks += 1
-        if progress is not None:
-            progress(chunk.rows.size)
-    return chunks
+    def chunks() -> Iterator[tuple[int, Callable[[], None]]]:
+        for index, chunk in enumerate(digit_group_chunks(buffer.spp, counts, max_wavefront)):
+            def trace(index: int = index, chunk: LaneGroupChunk = chunk) -> None:
+                sampler = sequence_sampler(mi, chunk.sequence_length, pass_seed(seed, buffer.passes, index),
+                                           chunk.rows.size)
+                pixels, sample_index = group_lanes(mi, chunk)
+                _trace_chunk(mi, setup, sums, pixels, sampler, sample_index)
+            yield chunk.rows.size, trace
+
+    return _launch_chunks(setup, sums, chunks(), progress)

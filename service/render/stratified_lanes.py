@@ -36,7 +36,7 @@ from typing import Iterator
 import drjit as dr
 import numpy as np
 
-from service.render.lane_map import ChunkRows, lane_rows, row_pixels, upload
+from service.render.lane_map import ChunkRows, lane_rows, lane_within_row, row_pixels, upload
 
 # Mitsuba's sampler per sequence length (lanes that one pixel's sequence spans, a power of 4).
 # Every one keeps each dimension of a sample uniform; they differ in how independent two
@@ -105,9 +105,9 @@ def _chunk_rows(pixels: np.ndarray, lanes: np.ndarray) -> ChunkRows:
 def group_lanes(mi, chunk: LaneGroupChunk):
     """The chunk's lanes expanded on the device (lane_map.py): (flat pixel, sample number in
     the pixel) per lane, device UInt32."""
-    row, within = lane_rows(mi, chunk.rows)
+    row = lane_rows(mi, chunk.rows)
     first_sample = dr.gather(mi.UInt32, upload(mi, chunk.first_sample), row)
-    return row_pixels(mi, chunk.rows, row), first_sample + within
+    return row_pixels(mi, chunk.rows, row), first_sample + lane_within_row(mi, chunk.rows, row)
 
 
 def _cut_at_pixels(lanes: np.ndarray, max_wavefront: int) -> Iterator[slice]:

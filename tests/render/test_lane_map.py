@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.render.lane_map import independent_chunks, lane_pixels, lane_rows
+from service.render.lane_map import independent_chunks, lane_pixels, lane_rows, lane_within_row
 from service.render.renderer import expand_counts
 from service.render.runtime import mitsuba
 
@@ -37,9 +37,19 @@ def test_a_lanes_index_within_its_run_counts_from_zero_per_row():
     mi = mitsuba()
     counts = np.array([[3, 0, 1, 4]])
     (chunk,) = independent_chunks(counts, 1 << 20)
-    row, within = lane_rows(mi, chunk)
+    row = lane_rows(mi, chunk)
+    within = lane_within_row(mi, chunk, row)
     assert np.asarray(row).tolist() == [0, 0, 0, 1, 2, 2, 2, 2]
     assert np.asarray(within).tolist() == [0, 1, 2, 0, 0, 1, 2, 3]
+
+
+def test_a_uniform_chunk_continues_the_pixel_the_previous_chunk_cut():
+    mi = mitsuba()
+    _, second, _ = independent_chunks(np.full((1, 3), 3), 4)
+    assert (second.first_pixel, second.skipped, second.size) == (1, 1, 4)
+    row = lane_rows(mi, second)
+    assert np.asarray(row).tolist() == [0, 0, 1, 1]
+    assert np.asarray(lane_within_row(mi, second, row)).tolist() == [1, 2, 0, 1]
 
 
 def test_an_all_zero_map_has_no_chunks():

@@ -106,3 +106,30 @@ def test_non_finite_samples_are_dropped_and_counted_once_per_pass():
         render_samples(scene, counts, buffer, seed=1, max_wavefront=17)
     assert buffer.meta["nonfinite_samples"] == 2 * counts.sum()
     assert not buffer.radiance_sum.any() and np.isfinite(buffer.radiance_sq_sum).all()
+
+
+class Stop(Exception):
+    pass
+
+
+def test_progress_hears_of_every_chunk_and_a_raise_stops_the_pass_without_touching_the_buffer():
+    mi = mitsuba()
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "path"},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+        "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 9, "height": 5, "rfilter": {"type": "box"}}},
+    })
+    counts = np.random.default_rng(10).integers(0, 6, size=(5, 9))
+    heard: list[int] = []
+    buffer = FrameBuffer.empty(5, 9)
+    result = render_samples(scene, counts, buffer, seed=1, max_wavefront=23, progress=heard.append)
+    assert sum(heard) == counts.sum() and len(heard) == result.chunks > 1
+
+    def stop(_lanes: int) -> None:
+        raise Stop
+
+    with pytest.raises(Stop):
+        render_samples(scene, counts, buffer, seed=2, max_wavefront=23, progress=stop)
+    np.testing.assert_array_equal(buffer.spp, counts)   # the stopped pass added nothing
+    render_samples(scene, counts, buffer, seed=3, max_wavefront=23)   # and leaves nothing behind
+    np.testing.assert_allclose(buffer.radiance_sum[..., 0], 2 * counts, atol=1e-4)
