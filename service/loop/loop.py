@@ -372,7 +372,7 @@ class RenderLoop:
         light into them."""
         for f, image in images.items():
             mask, buf = self._converged[f], self.state.buffers[f]
-            # buf.mean recomputes the whole frame (~30 ms at 2 MP): only when a pixel needs it
+            # the np.where is a full-frame pass: only when a pixel needs it
             kept = np.where(mask[..., None], buf.mean, image) if mask.any() else image
             self._denoised[f] = kept.astype(np.float32)
         self._denoised_lam = self.state.lam_map.copy()
@@ -409,9 +409,8 @@ class RenderLoop:
             return image
         if self._raw_share[f] is None:
             exposure = float(samples_exposure(buffer).scale.flatten()[0])
-            # kept with its share: buffer.raw divides the film's splat sums anew on every read
-            # (~70 ms at 2 MP), and a λ edit recomposes from the same samples; the variance
-            # comes from the same division (FrameBuffer.raw_and_variance)
+            # kept with its share, which a λ edit recomposes from; the buffer keeps the raw image
+            # and its variance for the pass too (FrameBuffer.raw_and_variance)
             self._raw_image[f], raw_variance = buffer.raw_and_variance()
             self._raw_share[f] = raw_share(self._raw_image[f], raw_variance, error, exposure)
         return blend(image, self._raw_image[f], self._raw_share[f])
