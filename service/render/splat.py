@@ -141,20 +141,22 @@ class FilmSplat:
                               index, active, mode=self.mode)
 
     def add_to(self, buffer: FrameBuffer) -> None:
-        """Add the render call's splat sums to `buffer`, read back once. The buffer's splat arrays
-        are added to straight from the packets' columns: building host()'s (H, W, 11) copy
-        first took 73-600 ms a pass at 1080p on the 2-core host (a fresh 180 MB array each pass,
-        its pages faulted in) against ~50 ms for the adds. The first pass, with no splat arrays
-        yet, goes through FrameBuffer.add_splat, which creates them."""
-        if buffer.splat_weight is None:
-            buffer.add_splat(self.host())
-            return
+        """Add the render call's splat sums to `buffer`, read back once, straight from the
+        packets' columns: building host()'s (H, W, 11) copy first took 73-600 ms a pass at 1080p
+        on the 2-core host (a fresh 180 MB array each pass, its pages faulted in) against ~40 ms
+        for the adds. A buffer without splat arrays yet (its first pass) gets copies of the
+        columns, in framebuffer.py's shapes (what FrameBuffer.add_splat would create)."""
         first = np.asarray(self.first, dtype=np.float64).reshape(self.height, self.width, FIRST_PACKET)
         second = np.asarray(self.second, dtype=np.float64).reshape(self.height, self.width, SECOND_PACKET)
-        for target, columns in ((buffer.splat_weight, first[..., 0]), (buffer.splat_radiance, first[..., 1:4]),
-                                (buffer.splat_sq_radiance, first[..., 4:7]), (buffer.splat_weight_sq, first[..., 7]),
-                                (buffer.splat_sq_radiance_sq, second[..., 0:3])):
-            np.add(target, columns, out=target)
+        columns = {"splat_weight": first[..., 0], "splat_radiance": first[..., 1:4],
+                   "splat_sq_radiance": first[..., 4:7], "splat_sq_radiance_sq": second[..., 0:3],
+                   "splat_weight_sq": first[..., 7]}
+        for name, values in columns.items():
+            target = getattr(buffer, name)
+            if target is None:
+                setattr(buffer, name, np.array(values, dtype=np.float64, order="C"))
+            else:
+                np.add(target, values, out=target)
 
     def host(self) -> np.ndarray:
         """(H, W, SPLAT_CHANNELS) float64 sums in framebuffer.py's column order, read back once
