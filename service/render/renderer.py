@@ -266,6 +266,7 @@ def render_samples(
     else:
         chunks = _trace_digit_groups(mi, setup, sums, buffer, counts, seed, max_wavefront, progress)
     with JIT_LOCK:  # develop: the pass's sums read back and added once
+        buffer.invalidate()   # what the buffer derived from its sums is stale from here on
         if total:
             _count_nonfinite(buffer, sums.add_to(buffer))
         if setup.splat is not None:
