@@ -9,17 +9,14 @@ import pytest
 
 from service.render.framebuffer import BAND_ELEMENTS, CONVERGED_MIN_SPP, CONVERGED_REL_TOLERANCE, SPLAT_CHANNELS, FrameBuffer
 from service.render.renderer import render_samples
-from service.render.runtime import mitsuba
+from tests.render.cornell import cornell_box
 
 SIZE = 12
 
 
 @pytest.fixture(scope="module")
 def cornell():
-    mi = mitsuba()
-    scene = mi.cornell_box()
-    scene["sensor"]["film"].update(width=SIZE, height=SIZE, rfilter={"type": "gaussian"})
-    return mi.load_dict(scene)
+    return cornell_box(SIZE, "gaussian")
 
 
 def expected_mean(buffer: FrameBuffer) -> np.ndarray:

@@ -7,16 +7,14 @@ from service.loop.allocate import exposed_relative_variance
 from service.render.framebuffer import FrameBuffer
 from service.render.renderer import expand_counts, pass_seed, render_samples
 from service.render.runtime import mitsuba
+from tests.render.cornell import cornell_box
 
 SIZE = 24
 
 
 @pytest.fixture(scope="module")
 def cornell():
-    mi = mitsuba()
-    scene = mi.cornell_box()
-    scene["sensor"]["film"].update(width=SIZE, height=SIZE, rfilter={"type": "box"})
-    return mi.load_dict(scene)
+    return cornell_box(SIZE, "box")
 
 
 @pytest.fixture(scope="module")
