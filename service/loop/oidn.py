@@ -29,8 +29,9 @@ def oidn_hwc(color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor) ->
     for CUDA ones, so a GPU job never copies its frame to the host for OIDN.
     The colour goes in at the networks' exposure (models.exposure) and comes out in the scene's
     units again: the HDR_MAX clamp is then relative to the image, as the denoiser's is."""
-    exposure = Exposure.of(color.to(torch.float32).permute(2, 0, 1)[None])   # (H, W, 3): one scale broadcasts
-    out = pyoidn.denoise(_clean(exposure.forward(color.to(torch.float32)[None])[0], 0.0, HDR_MAX),
+    color = color.to(torch.float32)
+    exposure = Exposure.of(color.permute(2, 0, 1)[None])   # (H, W, 3): one scale broadcasts
+    out = pyoidn.denoise(_clean(exposure.forward(color[None])[0], 0.0, HDR_MAX),
                          _clean(albedo, 0.0, 1.0), _clean(normal, -1.0, 1.0), hdr=True, quality="high")
     return exposure.inverse(out.clamp_min(0.0)[None])[0]
 
