@@ -129,7 +129,7 @@ def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCost
     buffer = loop.state.buffers[0]
     lam = loop.state.lam_map
     denoiser = session.networks.denoiser
-    frame = frame_tensors(buffer).to(session.device)  # OIDN's input where the loop gives it: the networks' device
+    frame = frame_tensors(buffer, session.device)  # OIDN's input where the loop gives it: the networks' device
     images = session.denoise(loop.state.buffers, lam)
     ms = {
         "render": 1000 * run.curve.points[-1].stages["render"],
@@ -138,7 +138,7 @@ def measure_fixed_costs(label: str, run: LoopRun, repeats: int = 3) -> FixedCost
         "allocate": _median_ms(_anew(buffer, lambda: next_counts(loop.spec.allocator, buffer, loop.state.error_maps[0],
                                                                  iteration_budget(int(buffer.spp.sum())), seed=0)),
                                repeats),
-        "to_tensors": _median_ms(_anew(buffer, lambda: frame_tensors(buffer).to(session.device)), repeats),
+        "to_tensors": _median_ms(_anew(buffer, lambda: frame_tensors(buffer, session.device)), repeats),
         "oidn_candidate": _median_ms(lambda: oidn_tensor(frame), repeats)
         if denoiser.config.oidn_candidate else 0.0,
         "denoiser": _median_ms(lambda: session.denoise(loop.state.buffers, lam), repeats),

@@ -38,7 +38,7 @@ class DenoiseSession:
         self.device = next(networks.denoiser.parameters()).device
 
     def _tensors(self, buffer: FrameBuffer) -> FrameTensors:
-        return frame_tensors(buffer).to(self.device)
+        return frame_tensors(buffer, self.device)  # one host → device copy of the whole block
 
     @property
     def inputs(self) -> dict[int, FrameTensors]:

@@ -49,15 +49,6 @@ class RenderPass:
     seconds: float
 
 
-def expand_counts(counts: np.ndarray) -> np.ndarray:
-    """Flat pixel indices, each repeated by its count: the wavefront's lane → pixel map, on the
-    host (what lane_map.py builds on the device per chunk; a reference for checks)."""
-    flat = np.asarray(counts, dtype=np.int64).ravel()
-    if flat.size and flat.min() < 0:
-        raise ValueError("sample counts must be >= 0")
-    return np.repeat(np.arange(flat.size, dtype=np.uint32), flat)
-
-
 def pass_seed(user_seed: int, pass_index: int, chunk_index: int) -> int:
     """Distinct 32-bit sampler seed per (job seed, pass, chunk) so passes are independent."""
     mask = (1 << 64) - 1

@@ -1,5 +1,5 @@
 """The lane → pixel map built on the device (service/render/lane_map.py): chunk for chunk the
-same lanes as the host's np.repeat reference (renderer.expand_counts), for uniform and uneven
+same lanes as the host's np.repeat reference (tests/render/lane_reference.py), for uniform and uneven
 count maps, zero counts and pixels cut between chunks."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from service.render.lane_map import independent_chunks, lane_pixels, lane_rows, lane_within_row
-from service.render.renderer import expand_counts
+from tests.render.lane_reference import expand_counts
 from service.render.runtime import mitsuba
 
 COUNT_MAPS = {

@@ -5,7 +5,7 @@ import pytest
 
 from service.loop.allocate import exposed_relative_variance
 from service.render.framebuffer import FrameBuffer
-from service.render.renderer import expand_counts, pass_seed, render_samples
+from service.render.renderer import pass_seed, render_samples
 from service.render.runtime import mitsuba
 from tests.render.cornell import cornell_box
 
@@ -29,11 +29,11 @@ def uniform(spp: int) -> np.ndarray:
     return np.full((SIZE, SIZE), spp, dtype=np.int64)
 
 
-def test_expand_counts_repeats_each_pixel_by_its_count():
-    lanes = expand_counts(np.array([[2, 0], [1, 3]]))
-    assert lanes.tolist() == [0, 0, 2, 3, 3, 3]
-    with pytest.raises(ValueError):
-        expand_counts(np.array([[1, -1]]))
+def test_a_negative_sample_count_is_refused(cornell):
+    counts = uniform(1)
+    counts[3, 5] = -1
+    with pytest.raises(ValueError, match="sample counts must be >= 0"):
+        render_samples(cornell, counts, FrameBuffer.empty(SIZE, SIZE))
 
 
 def test_pass_seeds_differ_between_passes_and_chunks():

@@ -9,7 +9,7 @@ import pytest
 
 from service.render.filters import PixelFilter
 from service.render.framebuffer import RADIANCE, SQ_RADIANCE, SQ_RADIANCE_SQ, WEIGHT, WEIGHT_SQ
-from service.render.renderer import expand_counts
+from tests.render.lane_reference import expand_counts
 from service.render.runtime import mitsuba
 from service.render.splat import EXPAND_BUDGET_BYTES, FIRST_PACKET, SECOND_PACKET, FilmSplat, reduce_mode
 
