@@ -20,9 +20,10 @@ from bench.common import (METRIC_NAMES, BenchNetworks, command_line, fill, load_
                           load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance, scene_reference)
 from bench.loop_plots import write_plots
 from bench.dev_references import DEFAULT_REFERENCE_DIR, SCALED_REFERENCE_SPP, load_reference, scaled_reference_dir
-from bench.loop_run import (BOUND_METHODS, DEGENERATE_PREDICTION_RATIO, DEV, FULL, LOOP_SEED, METHODS, PRODUCT, QUICK,
-                            STAGES, BenchSettings, ErrorAgreement, Headline, LoopMethod, SceneResult, error_agreement,
-                            headline, prepare_scenes, run_method, select_methods, warm_up)
+from bench.loop_run import (BOUND_METHODS, DEFAULT_METHODS, DEGENERATE_PREDICTION_RATIO, DEV, FULL, LOOP_SEED, METHODS,
+                            PRODUCT, QUICK, STAGES, BenchSettings, ErrorAgreement, Headline, LoopMethod, SceneResult, error_agreement,
+                            headline, prepare_scenes, select_methods, warm_up)
+from bench.loop_expected_bound import run_bench_method
 from bench.loop_seeds import GOAL_GAP_TO_BOUND, bound_line, gaps, median_scene, seed_table
 from bench.models_report import CASES as MODEL_CASES, ThreadTiming, benchmark_models, denoise_ms_by_threads
 from bench.sampler_report import CASES as SAMPLER_CASES, SamplerResult, bench_sampler, sampler_table
@@ -68,7 +69,7 @@ class LoopResults:
     threads: int  # torch intra-op threads of every timed network call (choose_torch_threads)
     scenes: list[SceneResult] = field(default_factory=list)  # the first seed's: every table but the seed spread
     head: Headline | None = None
-    methods: tuple[LoopMethod, ...] = METHODS
+    methods: tuple[LoopMethod, ...] = DEFAULT_METHODS
     seeds: dict[int, Headline] = field(default_factory=dict)  # every seed's headline, the first included
     seed_scenes: dict[int, list[SceneResult]] = field(default_factory=dict)  # the later seeds' runs (for the CSV)
     micro: MicroResults = field(default_factory=MicroResults)
@@ -99,7 +100,7 @@ def run_loop_benchmark(out_dir: Path = Path("docs"), *, quick: bool = False, wei
         settings = replace(settings, timing_repeats=timing_repeats)
     name = ("benchmarks-dev" + (f"-x{film_scale}" if film_scale > 1 else "")) if suite == "dev" else "benchmarks"
     chosen = select_methods(methods)
-    if len(chosen) < len(METHODS):  # a subset run must not overwrite the every-method report
+    if len(chosen) < len(DEFAULT_METHODS):  # a subset run must not overwrite the every-method report
         name += "-" + "".join(m.key for m in chosen)
     nets = load_bench_networks(weights_dir)
     probe, threads = choose_torch_threads(nets, settings.size or THREAD_PROBE_SIZE)
@@ -157,7 +158,7 @@ def choose_torch_threads(nets: BenchNetworks, size: int) -> tuple[ThreadTiming |
 
 def measure_loops(settings: BenchSettings, quick: bool, nets: BenchNetworks, threads: int, cache_dir: Path,
                   command: str | None, only: list[str] | None = None, seeds: tuple[int, ...] = (LOOP_SEED,),
-                  methods: tuple[LoopMethod, ...] = METHODS) -> LoopResults:
+                  methods: tuple[LoopMethod, ...] = DEFAULT_METHODS) -> LoopResults:
     if not seeds:
         raise ValueError("the loop benchmark needs at least one seed")
     oidn, oidn_status = oidn_denoiser()
@@ -173,7 +174,7 @@ def measure_loops(settings: BenchSettings, quick: bool, nets: BenchNetworks, thr
             seeded = replace(settings, seed=seed, timing_repeats=settings.timing_repeats if i == 0 else 1)
             runs = {}
             for method in methods:
-                runs[method.key] = run_method(scene, method, seeded, nets, reference, oidn)
+                runs[method.key] = run_bench_method(scene, method, seeded, nets, reference, oidn)
                 last = runs[method.key].rows[-1]
                 print(f"bench --loop: {scene.label} seed {seed} ({method.key}) SMAPE {last.metrics['smape']:.4f} "
                       f"after {last.cumulative_seconds:.2f} s", flush=True)
@@ -260,7 +261,7 @@ def seed_note(results: LoopResults) -> str:
     """Which methods and seeds this run measured, for the bound's section."""
     seeds = list(results.seeds)
     keys = ", ".join(f"({m.key})" for m in results.methods)
-    everything = "every method" if results.methods == METHODS else (
+    everything = "every method" if results.methods == DEFAULT_METHODS else (
         f"only {keys} (`--methods`: what the bound needs is {', '.join(f'({k})' for k in BOUND_METHODS)})")
     if len(seeds) == 1:
         return (f"One loop seed ({seeds[0]}) and {everything}: `--seeds 0 1 2` gives the spread over seeds (the s.d. "
@@ -461,7 +462,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "2 with --suite dev, 1 with --quick; later --seeds always run once)")
     parser.add_argument("--methods", nargs="+", default=None, metavar="KEY",
                         help=f"with --loop: only these methods ({', '.join(m.key for m in METHODS)}; must include "
-                             f"{PRODUCT}); the allocation bound needs {' '.join(BOUND_METHODS)}")
+                             f"{PRODUCT}; x, four loops each, only when named); the bound needs {' '.join(BOUND_METHODS)}")
     parser.add_argument("--suite", choices=("procedural", "dev", "val"), default="procedural",
                         help="with --loop: 'dev' runs the development suite at its own sizes → benchmarks-dev.md; "
                              "with --denoiser or --references: 'dev' (scenes/dev) or 'val' (scenes/val, "

@@ -88,6 +88,9 @@ class LoopMethod:
     denoiser: str  # "none" | "kpcn" | "oidn"
     predicts_error: bool  # only the product pays for the error network
     oracle: bool = False  # allocates by the reference's true error map: a bound, not a product
+    # > 0: allocates by the expected true error, from this many renders in lockstep
+    # (bench.loop_expected_bound): the bound of any predictor of the scene's error
+    replicas: int = 0
 
 
 METHODS: tuple[LoopMethod, ...] = (
@@ -99,7 +102,13 @@ METHODS: tuple[LoopMethod, ...] = (
     # What (d) would reach with a perfect error network: it separates "the predictor is not good
     # enough" from "error-driven allocation gains little on this scene".
     LoopMethod("o", "true-error adaptive + KPCN (bound: the reference's error map)", "error", "kpcn", False, oracle=True),
+    # What a perfect predictor of the scene's expected error would reach: (o) also knows where
+    # this render's noise landed, which no predictor can.
+    LoopMethod("x", "expected-error adaptive + KPCN (bound: the mean true error map of 3 other renders)", "error",
+               "kpcn", False, replicas=4),
 )
+# What `bench --loop` runs unless --methods names others: the replicated bound costs several loops.
+DEFAULT_METHODS = tuple(m for m in METHODS if not m.replicas)
 PRODUCT = "d"
 # What the allocation bound needs (bench.loop_seeds): uniform + KPCN, the product, the true-error allocation.
 BOUND_METHODS = ("b", "d", "o")
@@ -109,7 +118,7 @@ def select_methods(keys: list[str] | tuple[str, ...] | None) -> tuple[LoopMethod
     """METHODS in their order, only `keys` when given; the headline is read against the product,
     so it is always among them."""
     if keys is None:
-        return METHODS
+        return DEFAULT_METHODS
     known = {m.key for m in METHODS}
     unknown = sorted(set(keys) - known)
     if unknown:
@@ -257,7 +266,7 @@ class MethodRun:
     predicted_error: np.ndarray | None  # final predicted SMAPE map, (d) only
 
 
-def _loop_spec(scene: BenchScene, method: LoopMethod, settings: BenchSettings, iterations: int) -> LoopSpec:
+def loop_spec(scene: BenchScene, method: LoopMethod, settings: BenchSettings, iterations: int) -> LoopSpec:
     width, height = scene.film or (settings.size, settings.size)
     return LoopSpec(scene=scene.source, width=width, height=height, max_iterations=iterations,
                     allocator=method.allocator, denoise=method.denoiser == "kpcn", seed=settings.seed)
@@ -286,7 +295,7 @@ def _make_loop(scene: BenchScene, method: LoopMethod, settings: BenchSettings, n
         error_predictor = TrueErrorMap(reference)
     else:
         error_predictor = nets.networks.error_predictor if method.predicts_error else NoErrorPrediction()
-    return RenderLoop(_loop_spec(scene, method, settings, iterations), Networks(nets.networks.denoiser, error_predictor))
+    return RenderLoop(loop_spec(scene, method, settings, iterations), Networks(nets.networks.denoiser, error_predictor))
 
 
 def warm_up(scene: BenchScene, settings: BenchSettings, nets: BenchNetworks) -> None:
@@ -351,10 +360,11 @@ class Headline:
     median_smape_ratio: float
     oracle_ratio: dict[str, float] = field(default_factory=dict)  # scene → SMAPE(o) / SMAPE(b), same samples
     median_oracle_ratio: float = math.nan
+    expected_ratio: dict[str, float] = field(default_factory=dict)  # scene → SMAPE(x) / SMAPE(b), same samples
 
 
 def headline(results: list[SceneResult]) -> Headline:
-    target, times, speedup, ratio, oracle = {}, {}, {}, {}, {}
+    target, times, speedup, ratio, oracle, expected = {}, {}, {}, {}, {}, {}
     for result in results:
         label, runs = result.scene.label, result.runs
         product = runs[PRODUCT].rows
@@ -369,11 +379,13 @@ def headline(results: list[SceneResult]) -> Headline:
             ratio[label] = product[-1].metrics["smape"] / runs["b"].rows[-1].metrics["smape"]
             if "o" in runs:
                 oracle[label] = runs["o"].rows[-1].metrics["smape"] / runs["b"].rows[-1].metrics["smape"]
+            if "x" in runs:
+                expected[label] = runs["x"].rows[-1].metrics["smape"] / runs["b"].rows[-1].metrics["smape"]
     keys = sorted({k for s in speedup.values() for k in s})
     median_speedup = {k: statistics.median(s[k] for s in speedup.values() if k in s) for k in keys}
     return Headline(target, times, speedup, median_speedup, ratio,
                     statistics.median(ratio.values()) if ratio else math.nan,
-                    oracle, statistics.median(oracle.values()) if oracle else math.nan)
+                    oracle, statistics.median(oracle.values()) if oracle else math.nan, expected)
 
 
 # --- what the last iteration says about the samples and the error map ----------------------------

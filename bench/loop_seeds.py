@@ -4,7 +4,9 @@ the median scene, each as its mean ± sample standard deviation over the loop se
 
 The goal: the loop within GOAL_GAP_TO_BOUND of (o) on the median scene, that is, the median over
 the scenes of (d)/(b) − (o)/(b) at most 0.02. (o) allocates by the reference's true error map, so
-the gap is what a better error network could still buy with this allocator.
+the gap is what a better error network could still buy with this allocator — and also what it could
+not: (o) knows where this render's noise landed. (x) allocates by the expected true error
+(bench.loop_expected_bound); where it ran, the gap to it is reported beside.
 """
 from __future__ import annotations
 
@@ -45,11 +47,20 @@ def gaps(head: Headline) -> dict[str, float]:
             if scene in head.oracle_ratio}
 
 
-# The table's columns: (header, a seed's per-scene figures).
+def expected_gaps(head: Headline) -> dict[str, float]:
+    """Per scene: SMAPE (d)/(b) − (x)/(b), the gap to the expected-error allocation
+    (bench.loop_expected_bound); scenes without (x) are left out."""
+    return {scene: ratio - head.expected_ratio[scene] for scene, ratio in head.smape_ratio.items()
+            if scene in head.expected_ratio}
+
+
+# The table's columns: (header, a seed's per-scene figures); the (x) ones only where (x) ran.
 COLUMNS: tuple[tuple[str, Callable[[Headline], dict[str, float]]], ...] = (
     ("SMAPE (d)/(b)", lambda head: head.smape_ratio),
     ("SMAPE (o)/(b)", lambda head: head.oracle_ratio),
     ("gap (d)/(b) − (o)/(b)", gaps),
+    ("SMAPE (x)/(b)", lambda head: head.expected_ratio),
+    ("gap (d)/(b) − (x)/(b)", expected_gaps),
 )
 
 
@@ -64,10 +75,11 @@ def median_scene(heads: dict[int, Headline], figures: Callable[[Headline], dict[
 
 def seed_table(heads: dict[int, Headline]) -> str:
     scenes = list(next(iter(heads.values())).smape_ratio)
-    lines = ["| scene | " + " | ".join(header for header, _ in COLUMNS) + " |", "|---|" + "---:|" * len(COLUMNS)]
+    columns = [(header, f) for header, f in COLUMNS if any(f(head) for head in heads.values())]
+    lines = ["| scene | " + " | ".join(header for header, _ in columns) + " |", "|---|" + "---:|" * len(columns)]
     for scene in scenes:
-        lines.append(f"| {scene} | " + " | ".join(per_scene(heads, f, scene).text() for _, f in COLUMNS) + " |")
-    lines.append("| **median** | " + " | ".join(f"**{median_scene(heads, f).text()}**" for _, f in COLUMNS) + " |")
+        lines.append(f"| {scene} | " + " | ".join(per_scene(heads, f, scene).text() for _, f in columns) + " |")
+    lines.append("| **median** | " + " | ".join(f"**{median_scene(heads, f).text()}**" for _, f in columns) + " |")
     return "\n".join(lines)
 
 
@@ -78,7 +90,14 @@ def bound_line(heads: dict[int, Headline]) -> str:
         return "Bound: the true-error allocation (o) or uniform + KPCN (b) was not run: no gap to state."
     seeds = ", ".join(str(seed) for seed in heads)
     verdict = "met" if gap.mean <= GOAL_GAP_TO_BOUND else "not met"
-    return (f"**Bound: the loop's SMAPE at equal samples within {GOAL_GAP_TO_BOUND} of the true-error allocation "
+    line = (f"**Bound: the loop's SMAPE at equal samples within {GOAL_GAP_TO_BOUND} of the true-error allocation "
             f"(o) on the median scene**. Median over the scenes of (d)/(b) − (o)/(b): "
             f"**{gap.text()}** (mean ± s.d. over seeds {seeds}, min–max in brackets; {verdict}); median (d)/(b) "
             f"{median_scene(heads, COLUMNS[0][1]).text()}, median (o)/(b) {median_scene(heads, COLUMNS[1][1]).text()}.")
+    expected = median_scene(heads, expected_gaps)
+    if not math.isfinite(expected.mean):
+        return line
+    return (line + f" Against the allocation by the expected true error (x), what a perfect predictor of the scene's "
+            f"error reaches without knowing this render's noise: median (x)/(b) "
+            f"{median_scene(heads, COLUMNS[3][1]).text()}, median gap (d)/(b) − (x)/(b) **{expected.text()}** "
+            f"({'within' if expected.mean <= GOAL_GAP_TO_BOUND else 'above'} {GOAL_GAP_TO_BOUND}).")

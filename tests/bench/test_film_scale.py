@@ -13,7 +13,7 @@ import pytest
 from bench.dev_references import (load_reference, reference_file, scaled_film, scaled_reference_dir, dev_scenes,
                                   write_references)
 from bench.loop_report import dev_settings, run_loop_benchmark, scene_reference_image
-from bench.loop_run import DEV, _loop_spec, METHODS, prepare_scenes
+from bench.loop_run import DEV, loop_spec, METHODS, prepare_scenes
 
 POINT_OBJECT = "point_object"   # the suite's cheapest scene (256×256, mostly background)
 
@@ -42,7 +42,7 @@ def test_the_scaled_loop_renders_at_the_scaled_film_against_the_scaled_reference
     assert settings.film_scale == 2 and dev_settings(1) is DEV
     (scene,) = prepare_scenes(settings, scaled_cache, [POINT_OBJECT])
     assert scene.film == (512, 512)
-    spec = _loop_spec(scene, METHODS[0], settings, iterations=1)
+    spec = loop_spec(scene, METHODS[0], settings, iterations=1)
     assert (spec.width, spec.height) == (512, 512)
     assert scene_reference_image(scene, settings, scaled_cache).shape == (512, 512, 3)
     with pytest.raises(FileNotFoundError, match="--reference-spp 4096"):   # a reference of another spp
