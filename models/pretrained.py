@@ -15,16 +15,11 @@ import torch
 from models.checkpoint import CheckpointError, load_checkpoint
 from models.denoiser import Denoiser
 from models.error_predictor import ErrorMap, ErrorPredictor
-from models.error_tta import ErrorTTA
 
 SHIPPED_WEIGHTS_DIR = Path(__file__).parent / "weights"
 WEIGHTS_DIR_ENV = "RENDERLOOP_WEIGHTS_DIR"
 DENOISER_FILE = "denoiser.pt"
 ERROR_PREDICTOR_FILE = "error_predictor.pt"
-# Dihedral views the error map averages (models.error_tta); docs/decisions.md, "Test-time views of
-# the error network". $RENDERLOOP_ERROR_VIEWS overrides it at start-up.
-ERROR_MAP_VIEWS = 1
-ERROR_VIEWS_ENV = "RENDERLOOP_ERROR_VIEWS"
 
 
 @dataclass(frozen=True)
@@ -60,24 +55,11 @@ def load_error_predictor(directory: str | Path | None = None, device: str | torc
     return _load(weights_dir(directory), ERROR_PREDICTOR_FILE, ErrorPredictor.kind, device)
 
 
-def error_map_views(explicit: int | None = None) -> int:
-    """How many dihedral views the error map averages: `explicit`, else $RENDERLOOP_ERROR_VIEWS, else
-    ERROR_MAP_VIEWS."""
-    if explicit is not None:
-        return explicit
-    from_env = os.environ.get(ERROR_VIEWS_ENV)
-    return int(from_env) if from_env else ERROR_MAP_VIEWS
-
-
-def load_networks(directory: str | Path | None = None, device: str | torch.device = "cpu",
-                  error_views: int | None = None) -> Networks:
-    """Both networks from one folder (see `weights_dir` for which), in eval mode; the error map
-    averaged over `error_map_views(error_views)` dihedral views of its inputs (1: the network alone)."""
-    error_views = error_map_views(error_views)
-    error_predictor = load_error_predictor(directory, device).eval()
+def load_networks(directory: str | Path | None = None, device: str | torch.device = "cpu") -> Networks:
+    """Both networks from one folder (see `weights_dir` for which), in eval mode."""
     networks = Networks(
         denoiser=load_denoiser(directory, device).eval(),
-        error_predictor=error_predictor if error_views == 1 else ErrorTTA(error_predictor, error_views).eval(),
+        error_predictor=load_error_predictor(directory, device).eval(),
     )
     if networks.error_predictor.config.disagreement_input and not networks.denoiser.config.oidn_candidate:
         # refused at start-up, not at a job's first iteration
