@@ -4,13 +4,13 @@ could reach, as opposed to (o), which knows this very render's error.
 (o) allocates (and composes the final image) by the true error map of the render it is refining,
 its noise included: no network that predicts a scene's error can know where this render's
 noise happened to land. The repeatable part of the error — what a perfect predictor of the
-expected error knows — is estimated here by replicas: REPLICAS loops of the same scene with
-different seeds run in lockstep, every one allocating by the mean of the *other* replicas' true
-error maps of the same iteration (leave-one-out, so no replica sees its own noise). Replica 0
-has the loop seed of (b) and (d), so it shares their first iteration's samples; it is the run
-reported. The gap (d) − (x) is what a better error network could still buy; (x) − (o) is the
-render's own noise, which the ceiling of the per-pixel Spearman (bench.calibration_ceiling)
-measures for the ranking alone.
+expected error knows — is estimated here by replicas: loops of the same scene with different
+seeds (bench.loop_run.EXPECTED_BOUND_REPLICAS of them) run in lockstep, every one allocating by
+the mean of the *other* replicas' true error maps of the same iteration (leave-one-out, so no
+replica sees its own noise). Replica 0 has the loop seed of (b) and (d), so it shares their first
+iteration's samples; it is the run reported. The gap (d) − (x) is what a better error network
+could still buy; (x) − (o) is the render's own noise, which the ceiling of the per-pixel Spearman
+(bench.calibration_ceiling) measures for the ranking alone.
 """
 from __future__ import annotations
 
@@ -28,8 +28,6 @@ from service.loop.loop import RenderLoop, converged_error
 from service.loop.spec import IterationRecord
 from service.loop.tensors import to_image
 
-# Four replicas: each allocates by the mean of three other renders' maps.
-REPLICAS = 4
 # Replica j's loop seed: the run's seed + j · this (a prime far above the seeds a run is given).
 REPLICA_SEED_STRIDE = 104_729
 
@@ -76,7 +74,7 @@ def lockstep_iteration(loops: list[RenderLoop], stand_ins: list[OwnTrueError]) -
 
 
 def run_expected_bound(scene: BenchScene, method: LoopMethod, settings: BenchSettings, nets: BenchNetworks,
-                       reference: np.ndarray, replicas: int = REPLICAS) -> MethodRun:
+                       reference: np.ndarray, replicas: int) -> MethodRun:
     """(x) on one scene: `replicas` loops in lockstep, each allocating by the leave-one-out mean of
     the replicas' true error maps; replica 0's rows (its stage times include the true maps, not
     the error network's cost: a bound's time means little)."""

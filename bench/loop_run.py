@@ -93,6 +93,8 @@ class LoopMethod:
     replicas: int = 0
 
 
+# (x)'s renders in lockstep: each allocates by the mean of the other three's true error maps.
+EXPECTED_BOUND_REPLICAS = 4
 METHODS: tuple[LoopMethod, ...] = (
     LoopMethod("a", "uniform, no denoiser", "uniform", "none", False),
     LoopMethod("b", "uniform + KPCN", "uniform", "kpcn", False),
@@ -104,8 +106,8 @@ METHODS: tuple[LoopMethod, ...] = (
     LoopMethod("o", "true-error adaptive + KPCN (bound: the reference's error map)", "error", "kpcn", False, oracle=True),
     # What a perfect predictor of the scene's expected error would reach: (o) also knows where
     # this render's noise landed, which no predictor can.
-    LoopMethod("x", "expected-error adaptive + KPCN (bound: the mean true error map of 3 other renders)", "error",
-               "kpcn", False, replicas=4),
+    LoopMethod("x", f"expected-error adaptive + KPCN (bound: the mean true error map of {EXPECTED_BOUND_REPLICAS - 1} "
+               "other renders)", "error", "kpcn", False, replicas=EXPECTED_BOUND_REPLICAS),
 )
 # What `bench --loop` runs unless --methods names others: the replicated bound costs several loops.
 DEFAULT_METHODS = tuple(m for m in METHODS if not m.replicas)
