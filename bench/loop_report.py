@@ -21,8 +21,8 @@ from bench.common import (METRIC_NAMES, BenchNetworks, command_line, fill, load_
 from bench.loop_plots import write_plots
 from bench.dev_references import DEFAULT_REFERENCE_DIR, SCALED_REFERENCE_SPP, load_reference, scaled_reference_dir
 from bench.loop_run import (BOUND_METHODS, DEFAULT_METHODS, DEGENERATE_PREDICTION_RATIO, DEV, FULL, LOOP_SEED, METHODS,
-                            PRODUCT, QUICK, STAGES, BenchSettings, ErrorAgreement, Headline, LoopMethod, SceneResult, error_agreement,
-                            headline, prepare_scenes, select_methods, warm_up)
+                            PRODUCT, QUICK, STAGES, BenchSettings, ErrorAgreement, Headline, LoopMethod, SceneResult,
+                            error_agreement, headline, prepare_scenes, select_methods, warm_up)
 from bench.loop_expected_bound import run_bench_method
 from bench.loop_seeds import GOAL_GAP_TO_BOUND, bound_line, gaps, median_scene, seed_table
 from bench.models_report import CASES as MODEL_CASES, ThreadTiming, benchmark_models, denoise_ms_by_threads
@@ -461,8 +461,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --loop: identical runs of each loop whose fastest stages count (default 3, "
                              "2 with --suite dev, 1 with --quick; later --seeds always run once)")
     parser.add_argument("--methods", nargs="+", default=None, metavar="KEY",
-                        help=f"with --loop: only these methods ({', '.join(m.key for m in METHODS)}; must include "
-                             f"{PRODUCT}; x, four loops each, only when named); the bound needs {' '.join(BOUND_METHODS)}")
+                        help=f"with --loop: only these methods ({', '.join(m.key for m in METHODS)}; must include {PRODUCT}; "
+                             f"x, four loops each, only when named); the bound needs {' '.join(BOUND_METHODS)}")
     parser.add_argument("--suite", choices=("procedural", "dev", "val"), default="procedural",
                         help="with --loop: 'dev' runs the development suite at its own sizes → benchmarks-dev.md; "
                              "with --denoiser or --references: 'dev' (scenes/dev) or 'val' (scenes/val, "

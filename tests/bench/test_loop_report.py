@@ -16,7 +16,8 @@ from bench.cli import main as bench_main
 from bench.common import true_error_map
 from bench import loop_report
 from bench.loop_report import run_loop_benchmark
-from bench.loop_run import DEFAULT_METHODS, STAGES, ErrorAgreement, Headline, TrueErrorMap, select_methods, time_to_reach
+from bench.loop_run import (DEFAULT_METHODS, STAGES, ErrorAgreement, Headline, TrueErrorMap, select_methods,
+                             time_to_reach)
 from bench.loop_seeds import bound_line, gaps, seed_table
 
 
