@@ -127,8 +127,9 @@ class RenderLoop:
         self._denoised: list[np.ndarray | None] = [None] * spec.frames
         # the final images (`final_image`): `_denoised` falling back towards the raw image; None: not composed yet
         self._final: list[np.ndarray] | None = None
-        # per frame, the raw image's share of the final image (final_image.raw_share); it depends on
-        # the samples and the error map, not on λ, so a λ edit keeps it. None: not computed yet
+        # per frame, the raw image's share of the final image (final_image.raw_share), from the samples,
+        # the error map and the first denoised image composed after the pass; a λ edit keeps it, as
+        # it keeps the error map. None: not computed yet
         self._raw_share: list[np.ndarray | None] = [None] * spec.frames
         self._raw_image: list[np.ndarray | None] = [None] * spec.frames  # buffer.raw, beside `_raw_share`
         self._denoised_lam: np.ndarray | None = None  # the λ map `_denoised` was made with
@@ -412,7 +413,7 @@ class RenderLoop:
             # kept with its share, which a λ edit recomposes from; the buffer keeps the raw image
             # and its variance for the pass too (FrameBuffer.raw_and_variance)
             self._raw_image[f], raw_variance = buffer.raw_and_variance()
-            self._raw_share[f] = raw_share(self._raw_image[f], raw_variance, error, exposure)
+            self._raw_share[f] = raw_share(self._raw_image[f], image, raw_variance, error, exposure)
         return blend(image, self._raw_image[f], self._raw_share[f])
 
     def _record(self, timings: dict, images: bool = True) -> IterationRecord:

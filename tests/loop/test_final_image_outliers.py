@@ -55,3 +55,19 @@ def test_a_few_pixels_predicted_far_worse_denoised_than_their_neighbours_take_th
     # their neighbours keep (nearly: the block lifts their window's mean) the denoised image
     np.testing.assert_allclose(out[10, 13], DENOISED, atol=0.01)
     np.testing.assert_allclose(out[2, 2], DENOISED, atol=1e-3)
+
+
+def test_a_firefly_in_a_noisy_region_keeps_the_denoised_value() -> None:
+    # scenes/dev fog_spot, seed 1: in a noisy region both images' expected errors are ~0.1-0.2, and
+    # one rare bright path lifted a raw pixel ~700x above the truth (raw 84, truth 0.11). Its
+    # expected error must follow σ against the truth's magnitude, not saturate at SMAPE's ~0.4.
+    denoised = np.full((H, W, 3), DENOISED, np.float32)
+    rng = np.random.default_rng(5)
+    raw = (DENOISED * (1 + 0.3 * rng.standard_normal((H, W, 1)))).repeat(3, -1).astype(np.float32)
+    variance = np.full((H, W, 3), 0.3**2)   # e_r ≈ 0.12 everywhere, below the denoised prediction
+    predicted = np.full((H, W), 0.15)
+    raw[12, 16], variance[12, 16] = 700.0, 700.0**2
+    out = compose_final(denoised, raw, variance, predicted, exposure=1.0)
+    assert abs(out[12, 16] - DENOISED).max() < 0.05, out[12, 16]
+    # away from it the window's decision stands: the raw image (its expected error the lower)
+    np.testing.assert_allclose(out[2, 2], raw[2, 2], rtol=0.05)

@@ -45,11 +45,15 @@ def reference_window_mean(values: np.ndarray) -> np.ndarray:
 
 
 def reference_final(denoised, raw, variance, predicted, exposure) -> np.ndarray:
-    """α = ē_d^P / (ē_d^P + ē_r^P) of the outlier-floored window means, out = max((1 − α)·d + α·r, 0)."""
+    """α = ē_d^P / (ē_d^P + ē_r^P) of the outlier-floored window means (the raw pixel's own floor
+    over the denoised magnitude), out = max((1 − α)·d + α·r, 0)."""
     sigma = np.sqrt(np.maximum(variance.astype(np.float64), 0.0)) * exposure
-    raw_error = (math.sqrt(2 / math.pi) * sigma / (2 * np.abs(raw.astype(np.float64)) * exposure + SMAPE_EPS)).mean(-1)
+    def expected(magnitude: np.ndarray) -> np.ndarray:
+        return (math.sqrt(2 / math.pi) * sigma / (2 * np.abs(magnitude.astype(np.float64)) * exposure + SMAPE_EPS)).mean(-1)
+
+    raw_error, raw_own_error = expected(raw), expected(denoised)
     d = np.maximum(reference_window_mean(predicted), predicted.astype(np.float64) / DENOISED_OUTLIER_RATIO)
-    r = np.maximum(reference_window_mean(raw_error), raw_error / RAW_OUTLIER_RATIO)
+    r = np.maximum(reference_window_mean(raw_error), raw_own_error / RAW_OUTLIER_RATIO)
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
         alpha = 1 / (1 + np.minimum(r / d, 1e6) ** SHARPNESS)
     alpha = np.where((variance.sum(-1) > 0) & (d > 0) & np.isfinite(alpha), alpha, 0.0)[..., None]
