@@ -12,8 +12,10 @@ import pytest
 from service.loop.allocate import (
     ALLOCATORS,
     DEFAULT_CAP_MULTIPLE,
+    EDGE_SETTLE_SPP,
     allocate_samples,
     allocation_weights,
+    edge_top_up,
     error_weights,
     iteration_budget,
     uniform_weights,
@@ -233,6 +235,26 @@ def test_floor_only_pixels_next_to_a_hard_pixel_get_only_the_floor_despite_dilat
     far = counts[:4, :4]  # zero weight, nowhere near the hard pixel: the floor (plus the cap's spill)
     assert counts[settled].max() <= far.max()
     assert counts[8, 7] > 4 * far.max()  # an unsettled neighbour still gets the dilated weight
+
+
+def test_edge_pixels_whose_samples_agreed_are_topped_up_to_the_settling_count():
+    converged = np.ones((4, 6), bool)
+    settled = converged.copy()
+    settled[1, 2] = settled[2, 3] = False   # agreed, beside pixels that did not
+    converged[0, 0] = settled[0, 0] = False  # sampled by its error, not topped up
+    spp = np.full((4, 6), 16)
+    spp[2, 3] = EDGE_SETTLE_SPP + 10         # already past the count
+    top_up = edge_top_up(converged, settled, spp, budget=24 * 16)
+    expected = np.zeros((4, 6), np.int64)
+    expected[1, 2] = EDGE_SETTLE_SPP - 16
+    np.testing.assert_array_equal(top_up, expected)
+
+
+def test_edge_top_up_takes_at_most_half_the_budget():
+    converged, settled = np.ones((8, 8), bool), np.zeros((8, 8), bool)   # every pixel an edge
+    top_up = edge_top_up(converged, settled, np.full((8, 8), 16), budget=64 * 16)
+    assert 0 < top_up.sum() <= 64 * 16 // 2
+    assert top_up.max() - top_up.min() <= 1
 
 
 def test_all_mass_in_a_corner_pixel_dilates_inside_the_image():

@@ -51,6 +51,19 @@ def test_two_flat_emitters_side_by_side_are_not_converged_where_the_filter_mixes
     np.testing.assert_array_equal(buffer.converged()[0], [True, True, False, False, True, True])
 
 
+def test_a_background_pixel_beside_an_edge_is_converged_but_not_settled_under_the_box():
+    """16 misses beside a lit pixel: exact for the image under the box (`converged`), but an edge
+    with a few per cent coverage could hide in it, so the allocator does not leave it (`settled`)."""
+    n = CONVERGED_MIN_SPP
+    buffer = buffer_with([[0.0] * n] * 4 + [[0.5] * (n - 1) + [0.6]])   # four misses, then a noisy surface
+    buffer.depth_sum[0, 4] = 2.0 * n
+    np.testing.assert_array_equal(buffer.converged()[0], [True] * 4 + [False])
+    np.testing.assert_array_equal(buffer.settled()[0], [True] * 3 + [False, False])
+    buffer.footprint = 2   # a wider filter's reach decides both
+    np.testing.assert_array_equal(buffer.settled()[0], buffer.converged()[0])
+    np.testing.assert_array_equal(buffer.settled()[0], [True] * 2 + [False] * 3)
+
+
 def test_the_film_edge_does_not_unsettle_a_uniform_background():
     buffer = FrameBuffer.empty(4, 5)
     buffer.spp[:] = CONVERGED_MIN_SPP                       # every ray missed: radiance and depth 0
