@@ -325,8 +325,9 @@ class FrameBuffer:
         pixels left at 0 where the truth is 0.016-0.04 doubled the final image's relMSE). Such a
         pixel keeps its exact mean in the image while its samples all agree (`converged`); the
         allocator tops its count up (allocate.edge_top_up) before it trusts the agreement."""
-        reach = max(self.footprint, 1)
-        return self.cached(("settled", min_spp, reach), lambda: self._converged(min_spp, reach))
+        if self.footprint >= 1:
+            return self.converged(min_spp)  # the same reach: computed once
+        return self.cached(("settled", min_spp, 1), lambda: self._converged(min_spp, 1))
 
     def _converged(self, min_spp: int, reach: int) -> np.ndarray:
         """`converged`, by bands of rows and one channel plane at a time; the filter's level test
