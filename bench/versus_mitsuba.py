@@ -52,17 +52,19 @@ def run_scene(scene: DevScene, settings: Settings, nets: BenchNetworks, oidn: Oi
     ref = reference(scene, film, settings.reference_spp, settings.cache_dir)
     curves: dict[str, Curve] = {}
     for box in ((False,) if rfilter == "box" else (False, True)):
-        curve = mitsuba_curve(scene, film, box, levels, ref.mean, oidn)
+        curve = mitsuba_curve(scene, film, box, levels, ref, oidn)
         curves[curve.key] = curve
         say(f"{curve.label}: SMAPE {curve.points[-1].smape:.4f} at {levels[-1]} spp, {curve.points[-1].seconds:.1f} s")
     warm_up_loop(scene, film, nets.networks)
-    loop = loop_curve(LOOP, "the loop (error allocator)", scene, film, nets.networks, "error", levels, ref.mean)
-    uniform = loop_curve(UNIFORM, "uniform + ours", scene, film, nets.networks, "uniform", levels, ref.mean)
+    loop = loop_curve(LOOP, "the loop (error allocator)", scene, film, nets.networks, "error", levels, ref)
+    uniform = loop_curve(UNIFORM, "uniform + ours", scene, film, nets.networks, "uniform", levels, ref)
     curves[LOOP], curves[UNIFORM] = loop.curve, uniform.curve
     say(f"loop: SMAPE {loop.curve.points[-1].smape:.4f} after {loop.curve.points[-1].seconds:.1f} s")
-    versus = better_of(loop.curve, [c for k, c in curves.items() if k.startswith("mitsuba")])
+    competitors = [c for k, c in curves.items() if k.startswith("mitsuba")]
+    versus = better_of(loop.curve, competitors)
     costs = measure_fixed_costs(scene.name, loop)
-    return SceneRun(scene, film, rfilter, ref.relative_error, curves, versus, compare(loop.curve, uniform.curve), costs)
+    return SceneRun(scene, film, rfilter, ref.relative_error, curves, versus, compare(loop.curve, uniform.curve), costs,
+                    better_of(loop.curve, competitors, "relmse"))
 
 
 def probe_costs(scene: DevScene, megapixels: float, nets: BenchNetworks) -> CostProbe:

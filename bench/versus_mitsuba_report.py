@@ -33,6 +33,7 @@ class SceneRun:
     versus_mitsuba: Comparison  # the loop against the better mi.render + OIDN
     versus_uniform: Comparison
     costs: FixedCosts
+    versus_mitsuba_relmse: Comparison | None = None  # the same, in relMSE less the reference's noise
 
 
 @dataclass
@@ -124,6 +125,32 @@ def summary(scenes: list[SceneRun], megapixels: float) -> str:
             f"(bar ≤ {GOAL_PEAK_RSS_GB:g} GB for a 2 MP job){at_size}.")
 
 
+def relmse_table(scenes: list[SceneRun]) -> str:
+    """The headline read in relMSE with the reference's own noise taken out (`debiased_relmse`)."""
+    lines = ["| scene (film, filter) | reference's relative error | loop relMSE | better `mi.render` + OIDN | "
+             "its s to that relMSE | equal-error speed-up | equal-time relMSE ratio |",
+             "|---|---:|---:|---|---:|---:|---:|"]
+    for run in scenes:
+        v = run.versus_mitsuba_relmse
+        if v is None:
+            continue
+        lines.append(f"| {scene_cell(run)} | {run.reference_error:.4f} | {v.target:.3g} | {run.curves[v.other].label} | "
+                     f"{reading_cell(v.other_seconds, '.2f')} | **{ratio_cell(v.speedup, v.other_seconds)}** | "
+                     f"{ratio_cell(v.error_ratio, v.other_error)} |")
+    return "\n".join(lines)
+
+
+def relmse_summary(scenes: list[SceneRun]) -> str:
+    readings = [run.versus_mitsuba_relmse for run in scenes if run.versus_mitsuba_relmse is not None]
+    speedups = [v.speedup for v in readings if math.isfinite(v.speedup)]
+    if not speedups:
+        return "No scene has a relMSE reading."
+    ahead = sum(s > 1 for s in speedups)
+    return (f"In relMSE less the references' noise the loop reaches the better `mi.render` + OIDN's error in less "
+            f"wall time on **{ahead} of {len(speedups)}** scenes; median equal-error speed-up "
+            f"**{statistics.median(speedups):.2f}×**.")
+
+
 def curve_tables(scenes: list[SceneRun]) -> str:
     blocks = []
     for run in scenes:
@@ -131,8 +158,8 @@ def curve_tables(scenes: list[SceneRun]) -> str:
         lines = [f"**{scene_cell(run)}**, reference's own relative error {run.reference_error:.4f}", "",
                  "| spp | " + " | ".join(c.label for c in curves) + " |", "|---:|" + "---:|" * len(curves)]
         for i in range(max(len(c.points) for c in curves)):
-            cells = [f"{c.points[i].smape:.4f} @ {c.points[i].seconds:.2f} s" if i < len(c.points) else ""
-                     for c in curves]
+            cells = [f"{c.points[i].smape:.4f} / {c.points[i].relmse:.3g} @ {c.points[i].seconds:.2f} s"
+                     if i < len(c.points) else "" for c in curves]
             lines.append(f"| {curves[0].points[i].spp:g} | " + " | ".join(cells) + " |")
         blocks.append("\n".join(lines))
     return "\n\n".join(blocks)
@@ -296,6 +323,7 @@ def report_text(results: Results) -> str:
         megapixels=f"{s.megapixels:g}", levels=", ".join(f"{x:g}" for x in levels), threads=s.threads,
         aovs=AOVS, max_lanes=f"{MAX_LANES:,}", iterations=len(levels), reference_spp=s.reference_spp,
         max_spp=s.max_spp, headline_table=headline_table(scenes), summary=summary(scenes, s.megapixels),
+        relmse_table=relmse_table(scenes), relmse_summary=relmse_summary(scenes),
         curve_tables=curve_tables(scenes), stage_tables=stage_tables(scenes), memory_table=memory_table(scenes),
         network_table=network_table(scenes, results.probe, s.threads), fixed_costs_note=fixed_costs_note(scenes),
         fixed_costs_table=fixed_costs_table(scenes, results.probe), stall_note=stall_note(scenes, results.probe),

@@ -20,11 +20,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bench.common import OidnDenoise, sanitize
+from bench.common import OidnDenoise, Reference, sanitize
 from bench.dev_references import DevScene
 from bench.loop_run import LOOP_SEED, STAGES, NoErrorPrediction
 from bench.versus_mitsuba_scene import Film, aov_integrator, competitor_scene, render_with_aovs, warm_up
 from models.losses import smape
+from models.metrics import RELMSE_EPS
 from models.pretrained import Networks
 from service.loop.loop import RenderLoop
 from service.loop.spec import IterationRecord, LoopSpec
@@ -41,6 +42,7 @@ class CurvePoint:
     seconds: float  # wall time to this image (see the module docstring)
     smape: float
     stages: dict[str, float]  # seconds per stage of this point (a loop: this iteration's)
+    relmse: float = math.nan  # relMSE with the reference's own noise taken out (`debiased_relmse`)
 
 
 @dataclass
@@ -74,6 +76,24 @@ def spp_levels(max_spp: int) -> list[int]:
 def image_smape(image: np.ndarray, reference: np.ndarray) -> float:
     """SMAPE (ε = 0.01) on linear radiance, sanitised as every report's metrics are."""
     return float(smape(sanitize(nchw(image)), sanitize(nchw(reference))))
+
+
+def debiased_relmse(image: np.ndarray, reference: Reference) -> float:
+    """relMSE (ε = RELMSE_EPS) against a noisy reference with its noise taken out. For a
+    reference mean m independent of the image x, E[(x − m)²] = (x − t)² + Var(m): each pixel's
+    squared difference less the reference's variance of the mean (its passes' spread,
+    bench.common.Reference) estimates the squared error against the truth t without bias. The
+    denominator keeps m² + ε (its noise is second order, (σ_m / m)² ≲ 1e-3 at 1024 spp). Unlike
+    SMAPE, whose floor a noisy reference sets, this reads errors below the reference's own; it can
+    be ≤ 0 where the image is closer to the truth than the reference's noise can tell."""
+    x = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    np.maximum(x, 0.0, out=x)
+    m = np.asarray(reference.mean, dtype=np.float64)
+    x -= m
+    np.square(x, out=x)
+    x -= reference.variance
+    x /= np.square(m) + RELMSE_EPS
+    return float(x.mean())
 
 
 # --- peak memory ----------------------------------------------------------------------------------
@@ -110,7 +130,7 @@ def peak_rss(curve: Curve) -> Iterator[None]:
 # --- mi.render + OIDN -------------------------------------------------------------------------------
 
 
-def mitsuba_curve(scene: DevScene, film: Film, box: bool, levels: list[int], reference: np.ndarray,
+def mitsuba_curve(scene: DevScene, film: Film, box: bool, levels: list[int], reference: Reference,
                   oidn: OidnDenoise) -> Curve:
     """`mi.render` with the `aov` integrator at each uniform spp, then OIDN: one point per spp."""
     loaded = competitor_scene(scene, film, box)
@@ -126,7 +146,8 @@ def mitsuba_curve(scene: DevScene, film: Film, box: bool, levels: list[int], ref
             denoised = oidn(image.color, image.albedo, image.normal)
             done = time.perf_counter()
             stages = {"render": rendered - started, "oidn": done - rendered}
-            curve.points.append(CurvePoint(spp, done - started, image_smape(denoised, reference), stages))
+            curve.points.append(CurvePoint(spp, done - started, image_smape(denoised, reference.mean), stages,
+                                           debiased_relmse(denoised, reference)))
     return curve
 
 
@@ -157,9 +178,9 @@ def warm_up_loop(scene: DevScene, film: Film, networks: Networks) -> None:
 
 
 def loop_curve(key: str, label: str, scene: DevScene, film: Film, networks: Networks, allocator: str,
-               levels: list[int], reference: np.ndarray | None) -> LoopRun:
-    """One point per iteration (16, 32, … spp mean): cumulative stage time and SMAPE (nan without
-    a reference: a run for its costs and memory only)."""
+               levels: list[int], reference: Reference | None) -> LoopRun:
+    """One point per iteration (16, 32, … spp mean): cumulative stage time, SMAPE and debiased
+    relMSE (nan without a reference: a run for its costs and memory only)."""
     curve = Curve(key, label)
     loop = make_loop(scene, film, networks, allocator, len(levels))
     elapsed, last = 0.0, None
@@ -167,8 +188,9 @@ def loop_curve(key: str, label: str, scene: DevScene, film: Film, networks: Netw
         for record in loop.run():
             stages = {name: float(record.timings.get(name, 0.0)) for name in STAGES}
             elapsed += sum(stages.values())
-            error = math.nan if reference is None else image_smape(record.denoised[0], reference)
-            curve.points.append(CurvePoint(record.spp_mean, elapsed, error, stages))
+            error = math.nan if reference is None else image_smape(record.denoised[0], reference.mean)
+            relative = math.nan if reference is None else debiased_relmse(record.denoised[0], reference)
+            curve.points.append(CurvePoint(record.spp_mean, elapsed, error, stages, relative))
             last = record
     return LoopRun(curve, loop, last)
 
@@ -190,10 +212,11 @@ class Reading:
         return self.how == "interpolated"
 
 
-def _log_points(curve: Curve) -> list[tuple[float, float]]:
-    """(log seconds, log SMAPE) of the curve's points in spp order, the unusable ones left out."""
-    return [(math.log(p.seconds), math.log(p.smape)) for p in curve.points
-            if p.seconds > 0 and p.smape > 0 and math.isfinite(p.smape)]
+def _log_points(curve: Curve, metric: str = "smape") -> list[tuple[float, float]]:
+    """(log seconds, log error) of the curve's points in spp order, error the CurvePoint field
+    `metric` ("smape" or "relmse"), the unusable ones (≤ 0, not finite) left out."""
+    values = [(p.seconds, getattr(p, metric)) for p in curve.points]
+    return [(math.log(t), math.log(e)) for t, e in values if t > 0 and e > 0 and math.isfinite(e)]
 
 
 def _power_law(points: list[tuple[float, float]]) -> tuple[float, float] | None:
@@ -213,10 +236,10 @@ def _line(x0: float, y0: float, x1: float, y1: float, y: float) -> float:
     return x1 if y1 == y0 else x0 + (y - y0) * (x1 - x0) / (y1 - y0)
 
 
-def time_at_error(curve: Curve, target: float) -> Reading:
+def time_at_error(curve: Curve, target: float, metric: str = "smape") -> Reading:
     """Wall time at which `curve` reaches SMAPE `target`: log-log interpolation on the first segment
     (in spp order) whose errors bracket it; outside the curve's errors, the power law's time."""
-    points = _log_points(curve)
+    points = _log_points(curve, metric)
     if not points or not target > 0:
         return Reading(math.inf, "not reached")
     y = math.log(target)
@@ -229,10 +252,10 @@ def time_at_error(curve: Curve, target: float) -> Reading:
     return Reading(math.exp((y - fit[0]) / fit[1]), "extrapolated") if fit else Reading(math.inf, "not reached")
 
 
-def error_at_time(curve: Curve, seconds: float) -> Reading:
+def error_at_time(curve: Curve, seconds: float, metric: str = "smape") -> Reading:
     """SMAPE of `curve` at wall time `seconds`: log-log interpolation on the first segment (in spp
     order) whose times bracket it; outside the curve's times, the power law's SMAPE."""
-    points = _log_points(curve)
+    points = _log_points(curve, metric)
     if not points or not seconds > 0:
         return Reading(math.nan, "not reached")
     x = math.log(seconds)
@@ -248,29 +271,32 @@ class Comparison:
     """The loop against one other method on one scene, at the loop's final error and time."""
 
     other: str  # the other curve's key
-    target: float  # the loop's final SMAPE
+    target: float  # the loop's final error (SMAPE, or `metric`)
     loop_seconds: float  # the loop's wall time to it
-    other_seconds: Reading  # the other method's wall time to the same SMAPE
-    other_error: Reading  # the other method's SMAPE at the loop's wall time
+    other_seconds: Reading  # the other method's wall time to the same error
+    other_error: Reading  # the other method's error at the loop's wall time
+    metric: str = "smape"  # the CurvePoint field the readings are in
 
     @property
     def speedup(self) -> float:
-        """Equal-error speed-up: the other's time to the loop's final SMAPE ÷ the loop's time."""
+        """Equal-error speed-up: the other's time to the loop's final error ÷ the loop's time."""
         return self.other_seconds.value / self.loop_seconds
 
     @property
     def error_ratio(self) -> float:
-        """Equal-time error ratio: the loop's SMAPE ÷ the other's at the loop's wall time (< 1: the loop ahead)."""
+        """Equal-time error ratio: the loop's error ÷ the other's at the loop's wall time (< 1: the loop ahead)."""
         return self.target / self.other_error.value
 
 
-def compare(loop: Curve, other: Curve) -> Comparison:
+def compare(loop: Curve, other: Curve, metric: str = "smape") -> Comparison:
+    """The loop's final point against `other`'s curve, both read in `metric` (a CurvePoint field)."""
     final = loop.points[-1]
-    return Comparison(other.key, final.smape, final.seconds, time_at_error(other, final.smape),
-                      error_at_time(other, final.seconds))
+    target = getattr(final, metric)
+    return Comparison(other.key, target, final.seconds, time_at_error(other, target, metric),
+                      error_at_time(other, final.seconds, metric), metric)
 
 
-def better_of(loop: Curve, competitors: list[Curve]) -> Comparison:
-    """The comparison against whichever competitor reaches the loop's final SMAPE sooner."""
-    comparisons = [compare(loop, c) for c in competitors]
+def better_of(loop: Curve, competitors: list[Curve], metric: str = "smape") -> Comparison:
+    """The comparison against whichever competitor reaches the loop's final error sooner."""
+    comparisons = [compare(loop, c, metric) for c in competitors]
     return min(comparisons, key=lambda c: c.other_seconds.value if math.isfinite(c.other_seconds.value) else math.inf)

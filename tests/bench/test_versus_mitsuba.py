@@ -8,6 +8,7 @@ import math
 import resource
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bench.cli import main as bench_main
@@ -16,7 +17,9 @@ from bench.versus_mitsuba import (add_arguments, measure_versus_mitsuba, report_
                                   suite_scenes, write_report)
 from bench.versus_mitsuba_costs import FixedCosts
 from bench.versus_mitsuba_report import LOOP, UNIFORM, headline_table
-from bench.versus_mitsuba_run import Curve, CurvePoint, better_of, compare, error_at_time, time_at_error
+from bench.common import Reference
+from bench.versus_mitsuba_run import (Curve, CurvePoint, better_of, compare, debiased_relmse, error_at_time,
+                                      time_at_error)
 from bench.versus_mitsuba_scene import pass_plan
 
 TINY_SCENE = "sun_room"  # a Gaussian film: both mi.render films run
@@ -68,7 +71,7 @@ def test_tiny_run_writes_a_filled_report_with_every_section(tiny_results, tmp_pa
     text = write_report(tiny_results, tmp_path).read_text()
     assert "$" not in text  # every template field was filled
     for needed in ("Command: `renderloop bench --versus-mitsuba --tiny`", "Machine:", "Mitsuba variant:",
-                   "## Headline", "equal-error speed-up", "## Peak memory", "## Networks and OIDN, ms per megapixel",
+                   "## Headline", "equal-error speed-up", "## The same in relMSE", "## Peak memory", "## Networks and OIDN, ms per megapixel",
                    "## Fixed costs per iteration", "state snapshot on the loop's thread", "checkpoint write",
                    "preview write", "What the writes cost the render",
                    "**A small run**", "renderloop bench --versus-mitsuba -o docs", "256 spp", "quality high",
@@ -192,6 +195,30 @@ def test_extrapolation_is_flagged_when_the_curves_do_not_meet() -> None:
     # the competitor that reaches the loop's SMAPE sooner is the one compared
     assert best.other == "mitsuba-box"
     assert best.speedup == pytest.approx(time_at_error(already_lower, 0.02).value / 2.0)
+
+
+def test_debiased_relmse_reads_the_error_against_the_truth_through_a_noisy_reference() -> None:
+    rng = np.random.default_rng(4)
+    truth = rng.uniform(0.5, 2.0, size=(256, 256, 3))
+    image = truth + 0.02 * truth * rng.standard_normal(truth.shape)            # 2 % relative error
+    sigma_ref = 0.03 * truth                                                   # a noisier reference
+    reference = Reference((truth + sigma_ref * rng.standard_normal(truth.shape)).astype(np.float32),
+                          (sigma_ref**2).astype(np.float32))
+    against_truth = float(np.mean((image - truth) ** 2 / (truth**2 + 0.01)))
+    naive = float(np.mean((image - reference.mean) ** 2 / (reference.mean.astype(np.float64) ** 2 + 0.01)))
+    assert naive > 2.5 * against_truth                     # the reference's noise dominates the plain reading
+    assert debiased_relmse(image, reference) == pytest.approx(against_truth, rel=0.05)
+
+
+def test_readings_in_relmse_use_the_points_relmse() -> None:
+    loop = Curve(LOOP, LOOP, [CurvePoint(16, 1.0, 0.05, {}, 4e-4), CurvePoint(32, 2.0, 0.04, {}, 2e-4)])
+    other = Curve("mitsuba", "mitsuba", [CurvePoint(16, 1.0, 0.03, {}, 8e-4), CurvePoint(32, 2.0, 0.02, {}, 4e-4),
+                                         CurvePoint(64, 4.0, 0.015, {}, 1e-4)])
+    by_smape, by_relmse = compare(loop, other), compare(loop, other, "relmse")
+    assert by_smape.speedup < 1 < by_relmse.speedup        # behind in SMAPE, ahead in relMSE
+    assert by_relmse.target == 2e-4 and by_relmse.metric == "relmse"
+    assert by_relmse.other_seconds.value == pytest.approx(loglog(2.0, 4e-4, 4.0, 1e-4, 2e-4))
+    assert better_of(loop, [other], "relmse") == by_relmse
 
 
 def test_pass_plan_keeps_powers_of_four_within_the_lane_cap() -> None:
