@@ -106,32 +106,41 @@ def raw_expected_error(magnitude: np.ndarray, raw_variance: np.ndarray, exposure
     """(H, W) expected SMAPE of the raw image at the networks' exposure: per channel
     √(2/π)·σ / (2|m| + ε), m the image that stands for the truth's magnitude (`magnitude`: the raw
     image for the window's mean, the denoised one for the pixel's own outlier test), the mean over
-    channels (as the error map is). float64, by bands of
-    rows, one colour plane at a time in two scratch planes that stay in the CPU's cache (at 2 MP
-    the (H, W, 3) float64 temporaries' traffic cost as much as the arithmetic). The channels are
-    added in `channel_sum`'s order."""
-    height, width, channels = magnitude.shape
-    total = np.empty((height, width))
+    channels (as the error map is)."""
+    return raw_expected_errors((magnitude,), raw_variance, exposure)[0]
+
+
+def raw_expected_errors(magnitudes: tuple[np.ndarray, ...], raw_variance: np.ndarray,
+                        exposure: float) -> list[np.ndarray]:
+    """`raw_expected_error` over each of `magnitudes`, the spread √(2/π)·σ computed once for all.
+    float64, by bands of rows, one colour plane at a time in scratch planes that stay in the CPU's
+    cache (at 2 MP the (H, W, 3) float64 temporaries' traffic cost as much as the arithmetic). The
+    channels are added in `channel_sum`'s order."""
+    height, width, channels = raw_variance.shape
+    totals = [np.empty((height, width)) for _ in magnitudes]
     for rows in row_bands(height, width):
-        sigma, denominator = np.empty((rows.stop - rows.start, width)), np.empty((rows.stop - rows.start, width))
+        shape = (rows.stop - rows.start, width)
+        spread, denominator, error = np.empty(shape), np.empty(shape), np.empty(shape)
         for c in range(channels):
-            sigma[...] = raw_variance[rows, :, c]
-            np.maximum(sigma, 0.0, out=sigma)
-            np.sqrt(sigma, out=sigma)
-            sigma *= exposure
-            denominator[...] = magnitude[rows, :, c]
-            np.abs(denominator, out=denominator)
-            denominator *= 2.0
-            denominator *= exposure
-            denominator += SMAPE_EPS
-            sigma *= MEAN_ABS_PER_SIGMA
-            sigma /= denominator
-            if c == 0:
-                total[rows] = sigma
-            else:
-                total[rows] += sigma
-    total /= channels  # as ndarray.mean divides its sum
-    return total
+            spread[...] = raw_variance[rows, :, c]
+            np.maximum(spread, 0.0, out=spread)
+            np.sqrt(spread, out=spread)
+            spread *= exposure
+            spread *= MEAN_ABS_PER_SIGMA
+            for magnitude, total in zip(magnitudes, totals):
+                denominator[...] = magnitude[rows, :, c]
+                np.abs(denominator, out=denominator)
+                denominator *= 2.0
+                denominator *= exposure
+                denominator += SMAPE_EPS
+                np.divide(spread, denominator, out=error)
+                if c == 0:
+                    total[rows] = error
+                else:
+                    total[rows] += error
+    for total in totals:
+        total /= channels  # as ndarray.mean divides its sum
+    return totals
 
 
 def raw_weight(denoised_error: np.ndarray, raw_error: np.ndarray, raw_variance: np.ndarray,
@@ -161,8 +170,8 @@ def raw_share(raw: np.ndarray, denoised: np.ndarray, raw_variance: np.ndarray, p
     `exposure`: the networks' scale of the frame's samples (models.exposure.Exposure.scale). Like
     the error map (predicted once per iteration), it is computed once per iteration, with the
     iteration's denoised image: a λ edit reuses it and pays only `blend`."""
-    alpha = raw_weight(predicted_error, raw_expected_error(raw, raw_variance, exposure), raw_variance,
-                       raw_expected_error(denoised, raw_variance, exposure))[..., None]
+    window_error, own_error = raw_expected_errors((raw, denoised), raw_variance, exposure)
+    alpha = raw_weight(predicted_error, window_error, raw_variance, own_error)[..., None]
     return np.where(np.isfinite(alpha), alpha, 0.0).astype(np.float32)  # an unreadable estimate keeps the denoised pixel
 
 
