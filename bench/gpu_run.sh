@@ -33,11 +33,12 @@ print('OIDN CUDA device supported:', pyoidn.Device.is_cuda_available(0))
 print(torch.cuda.get_device_name())
 "
 step wavefront 90 "$PY" -m bench.wavefront_probe --size "${PROBE_SIZE:-1920x1080}" --spp 16 --repeats 3 --history
-step versus_mitsuba "${VERSUS_SECONDS:-360}" "$PY" -m service.cli bench --versus-mitsuba --megapixels "${GPU_MEGAPIXELS:-2}" \
-    --max-spp "${GPU_MAX_SPP:-256}" --reference-spp "${GPU_REFERENCE_SPP:-4096}" --scenes "$SCENES" -o "$OUT" --cache /tmp/bench-cache
 # -n 8 (pytest-xdist, in the GPU image): the suite compiles a kernel per scene, 27 tests in 43 s
 # on an H100 with 8 workers against over 80 s alone. FIDELITY_ARGS= runs it in one process.
 step fidelity "${FIDELITY_SECONDS:-70}" "$PY" -m pytest -q -p no:cacheprovider --import-mode=append tests/fidelity -k "not spectral" \
     --durations=5 ${FIDELITY_ARGS--n 8}
-step sampler "${SAMPLER_SECONDS:-60}" "$PY" -m service.cli bench --sampler --size "${SAMPLER_SIZE:-512}" --spp 64 -o "$OUT"
+step sampler "${SAMPLER_SECONDS:-45}" "$PY" -m service.cli bench --sampler --size "${SAMPLER_SIZE:-512}" --spp 64 -o "$OUT"
+# Last: it writes its report after each scene and takes whatever time the run has left.
+step versus_mitsuba "${VERSUS_SECONDS:-360}" "$PY" -m service.cli bench --versus-mitsuba --megapixels "${GPU_MEGAPIXELS:-2}" \
+    --max-spp "${GPU_MAX_SPP:-256}" --reference-spp "${GPU_REFERENCE_SPP:-4096}" --scenes "$SCENES" -o "$OUT" --cache /tmp/bench-cache
 echo "== done after $(( $(date +%s) - started ))s"
