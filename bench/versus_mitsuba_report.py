@@ -176,6 +176,18 @@ def stage_tables(scenes: list[SceneRun]) -> str:
     return "\n".join(lines)
 
 
+def compile_table(scenes: list[SceneRun]) -> str:
+    """Per scene, the seconds Dr.Jit spent compiling kernels in each method's untimed warm-up."""
+    order = ("mitsuba", "mitsuba-box", LOOP, UNIFORM)
+    lines = ["| scene | `mi.render` + OIDN, the scene's filter | `mi.render` + OIDN, box film | the loop (error allocator) | uniform + ours |",
+             "|---|---:|---:|---:|---:|"]
+    for run in scenes:
+        cells = [f"{run.curves[k].compile_s:.2f}" if k in run.curves and math.isfinite(run.curves[k].compile_s) else ""
+                 for k in order]
+        lines.append(f"| {run.scene.name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def memory_table(scenes: list[SceneRun]) -> str:
     order = ("mitsuba", "mitsuba-box", LOOP, UNIFORM)
     keys = [k for k in order if any(k in run.curves for run in scenes)]
@@ -324,7 +336,7 @@ def report_text(results: Results) -> str:
         aovs=AOVS, max_lanes=f"{MAX_LANES:,}", iterations=len(levels), reference_spp=s.reference_spp,
         max_spp=s.max_spp, headline_table=headline_table(scenes), summary=summary(scenes, s.megapixels),
         relmse_table=relmse_table(scenes), relmse_summary=relmse_summary(scenes),
-        curve_tables=curve_tables(scenes), stage_tables=stage_tables(scenes), memory_table=memory_table(scenes),
+        curve_tables=curve_tables(scenes), stage_tables=stage_tables(scenes), compile_table=compile_table(scenes), memory_table=memory_table(scenes),
         network_table=network_table(scenes, results.probe, s.threads), fixed_costs_note=fixed_costs_note(scenes),
         fixed_costs_table=fixed_costs_table(scenes, results.probe), stall_note=stall_note(scenes, results.probe),
         full_command=full_command(s),

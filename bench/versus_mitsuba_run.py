@@ -6,7 +6,9 @@ of two curves that the report's headline rests on.
 Wall time of a `mi.render` point: one render of N spp (the scene loaded once, its kernels compiled
 by an untimed warm-up) plus the OIDN call. Wall time of a loop point: the loop's own per-stage
 timings summed over its iterations so far (render, denoise, error, allocate), the scene loaded
-and its kernels compiled by an untimed one-iteration warm-up, as `renderloop bench --loop` does.
+the networks warmed by an untimed one-iteration loop and the timed loop's own kernels built by
+three untimed passes (`compile_loop_kernels`). Each method's kernel compile time is kept
+beside its curve (`kernel_compile_seconds`): a user's first render of a scene pays it.
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
+import drjit as dr
 import numpy as np
 
 from bench.common import OidnDenoise, Reference, sanitize
@@ -30,10 +33,16 @@ from models.pretrained import Networks
 from service.loop.loop import RenderLoop
 from service.loop.spec import IterationRecord, LoopSpec
 from service.loop.tensors import nchw
+from service.render.renderer import render_samples
 
 FIRST_SPP = 16
 MITSUBA_SEED = 1_000  # any stream but the reference's (bench.common.REFERENCE_SEED)
 RSS_INTERVAL_S = 0.02
+# Binary digits 0, 2, …, 10 set: a pixel with this count takes every sequence length 1, 4, …, 1024
+# of a stratifying scene's digit groups (service/render/stratified_lanes.py), whose sampler is
+# built with that length as its sample count, a literal in the kernel. Counts above 4095 in one
+# pass (rare) still compile theirs when they occur.
+WARM_UP_COUNT = 0b10101010101
 
 
 @dataclass
@@ -52,6 +61,7 @@ class Curve:
     points: list[CurvePoint] = field(default_factory=list)
     peak_rss_mb: float = math.nan  # the process's peak resident memory while this curve ran
     rss_growth_mb: float = math.nan  # that peak minus the resident memory when it started
+    compile_s: float = math.nan  # Dr.Jit's kernel compile time in this method's untimed warm-up
 
     @property
     def seconds(self) -> list[float]:
@@ -135,9 +145,11 @@ def mitsuba_curve(scene: DevScene, film: Film, box: bool, levels: list[int], ref
     """`mi.render` with the `aov` integrator at each uniform spp, then OIDN: one point per spp."""
     loaded = competitor_scene(scene, film, box)
     integrator = aov_integrator(loaded)
-    warm_up(loaded, integrator, levels, MITSUBA_SEED - 1)  # compiles the kernels, untimed
     curve = Curve("mitsuba-box" if box else "mitsuba",
                   "`mi.render` + OIDN, box film" if box else "`mi.render` + OIDN, the scene's filter")
+    with kernel_compile_seconds() as compiled:  # compiles the kernels, untimed
+        warm_up(loaded, integrator, levels, MITSUBA_SEED - 1)
+    curve.compile_s = compiled[0]
     with peak_rss(curve):
         for spp in levels:
             started = time.perf_counter()
@@ -172,9 +184,50 @@ def make_loop(scene: DevScene, film: Film, networks: Networks, allocator: str, i
 
 
 def warm_up_loop(scene: DevScene, film: Film, networks: Networks) -> None:
-    """One untimed iteration: Dr.Jit compiles the scene's kernels, oneDNN builds its primitives."""
+    """One untimed iteration: oneDNN (or cuDNN) builds the networks' primitives. Its kernels are
+    not the timed loop's: Dr.Jit builds a scene's kernels per load (`compile_loop_kernels`)."""
     for _ in make_loop(scene, film, networks, "error", 1).run():
         pass
+
+
+def compile_loop_kernels(loop: RenderLoop) -> None:
+    """Render three passes of `loop`'s own frame-0 scene into a copy of its buffer, so that
+    Dr.Jit builds every kernel the loop's iterations launch before it is timed, as `mi.render`'s
+    warm-up does for each sample count. Kernels are per scene *load*: a loaded scene's objects
+    reach them as literals (registry ids, offsets into its call tables), so a warm-up on another
+    load of the same file builds other kernels. The passes: the first iteration's (`spp_first`
+    everywhere: the uniform lane map, and a film filter's splat into an empty buffer, a kernel of
+    its own); two neighbouring pixels with one count, and two pixels apart (lane_map.py: the
+    uniform and the uneven lane map of a stratifying scene's digit groups, every sequence length
+    to 1024 — stratified_lanes.py, WARM_UP_COUNT). On a GPU, where OptiX builds each new kernel,
+    these compiles were most of the loop's render time (docs/gpu.md)."""
+    buffer = loop.state.buffers[0].copy()
+    passes = [np.full(buffer.spp.shape, loop.spec.spp_first, dtype=np.int64)]
+    for pixels in ((0, 1), (0, 2)):
+        counts = np.zeros(buffer.spp.shape, dtype=np.int64)
+        counts.flat[list(pixels)] = WARM_UP_COUNT
+        passes.append(counts)
+    for counts in passes:
+        render_samples(loop.scenes[0], counts, buffer, integrator=loop.integrator, seed=loop.spec.seed * 7919,
+                       prev_shapes=loop.shape_motions[0])
+
+
+@contextmanager
+def kernel_compile_seconds() -> Iterator[list[float]]:
+    """Seconds Dr.Jit spent building kernels (its backend's compile of each kernel not found in its
+    caches: LLVM, or CUDA/OptiX) while the block ran, from Dr.Jit's kernel history; yields a
+    one-element list filled on exit."""
+    result = [math.nan]
+    enabled = dr.flag(dr.JitFlag.KernelHistory)
+    dr.kernel_history()  # drop what came before
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        yield result
+    finally:
+        history = dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, enabled)
+        result[0] = sum(entry.get("backend_time", 0.0) for entry in history
+                        if entry.get("type") == dr.KernelType.JIT and not entry.get("cache_hit")) / 1000.0
 
 
 def loop_curve(key: str, label: str, scene: DevScene, film: Film, networks: Networks, allocator: str,
@@ -183,6 +236,9 @@ def loop_curve(key: str, label: str, scene: DevScene, film: Film, networks: Netw
     relMSE (nan without a reference: a run for its costs and memory only)."""
     curve = Curve(key, label)
     loop = make_loop(scene, film, networks, allocator, len(levels))
+    with kernel_compile_seconds() as compiled:  # untimed, as mi.render's warm-up
+        compile_loop_kernels(loop)
+    curve.compile_s = compiled[0]
     elapsed, last = 0.0, None
     with peak_rss(curve):
         for record in loop.run():

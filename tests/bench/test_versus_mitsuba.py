@@ -8,6 +8,7 @@ import math
 import resource
 from pathlib import Path
 
+import drjit as dr
 import numpy as np
 import pytest
 
@@ -17,10 +18,10 @@ from bench.versus_mitsuba import (add_arguments, measure_versus_mitsuba, report_
                                   suite_scenes, write_report)
 from bench.versus_mitsuba_costs import FixedCosts
 from bench.versus_mitsuba_report import LOOP, UNIFORM, headline_table
-from bench.common import Reference
-from bench.versus_mitsuba_run import (Curve, CurvePoint, better_of, compare, debiased_relmse, error_at_time,
-                                      time_at_error)
-from bench.versus_mitsuba_scene import pass_plan
+from bench.common import Reference, load_bench_networks
+from bench.versus_mitsuba_run import (Curve, CurvePoint, better_of, compare, compile_loop_kernels, debiased_relmse,
+                                      error_at_time, kernel_compile_seconds, make_loop, time_at_error)
+from bench.versus_mitsuba_scene import pass_plan, scaled_film
 
 TINY_SCENE = "sun_room"  # a Gaussian film: both mi.render films run
 
@@ -75,7 +76,7 @@ def test_tiny_run_writes_a_filled_report_with_every_section(tiny_results, tmp_pa
                    "## Fixed costs per iteration", "state snapshot on the loop's thread", "checkpoint write",
                    "preview write", "What the writes cost the render",
                    "**A small run**", "renderloop bench --versus-mitsuba -o docs", "256 spp", "quality high",
-                   "Our denoise (the full pass with its OIDN call) takes"):
+                   "Our denoise (the full pass with its OIDN call) takes", "Kernel compiles, not in any time above"):
         assert needed in text, needed
     assert "nan" not in text.lower().replace("nanos", "")
     assert f"{TINY_SCENE}:** one 16-spp iteration" in text  # the --costs-megapixels probe's table
@@ -267,3 +268,44 @@ def test_the_final_images_composition_is_a_row_of_the_fixed_costs_with_a_plausib
     text = write_report(tiny_results, tmp_path).read_text()
     row = next(line for line in text.splitlines() if line.startswith("| final image (raw image"))
     assert float(row.split("|")[3]) == pytest.approx(costs.ms["final_image"], abs=0.051), row
+
+
+def kernels_new_to_this_process() -> int:
+    """JIT kernels launched since the last call that this process had not launched before: built,
+    or loaded from Dr.Jit's cache on disk (so the count does not depend on what that cache holds)."""
+    return sum(1 for entry in dr.kernel_history()
+               if entry.get("type") == dr.KernelType.JIT and (not entry.get("cache_hit") or entry.get("cache_disk")))
+
+
+def test_the_warm_up_builds_every_kernel_the_timed_loop_launches(tiny_weights_dir: Path) -> None:
+    # sun_room stratifies: its later iterations launch a kernel per sequence length and lane map
+    scene = suite_scenes([TINY_SCENE])[0]
+    # a film size no other test renders: the film's width is a literal in the kernels, so these are
+    # new to the process whatever ran before (a kernel also names the loaded scene's registry ids,
+    # which a later load may reuse once the earlier scene is freed)
+    film = scaled_film(scene, 0.0031)
+    networks = load_bench_networks(tiny_weights_dir).networks
+    enabled = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        cold = make_loop(scene, film, networks, "error", 3)
+        kernels_new_to_this_process()
+        cold_counts = []
+        for _ in cold.run():
+            cold_counts.append(kernels_new_to_this_process())
+        warm = make_loop(scene, film, networks, "error", 3)
+        with kernel_compile_seconds() as compiled:
+            compile_loop_kernels(warm)
+        kernels_new_to_this_process()
+        warm_counts = []
+        for _ in warm.run():
+            warm_counts.append(kernels_new_to_this_process())
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, enabled)
+    # Without the warm-up the later iterations build kernels of their own (uneven counts: 4-5
+    # measured), so this check can fail; with it, on the same scene file loaded again, at most one
+    # is left: the LLVM backend writes a numpy input's alignment into a kernel, so now and then a
+    # host array that malloc placed elsewhere builds a twin (lane_map.aligned; not on CUDA).
+    assert sum(cold_counts[1:]) >= 3, cold_counts
+    assert sum(warm_counts) <= 1, warm_counts
+    assert compiled[0] >= 0.0
