@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU half of the benchmarks in one run (a lent GPU machine, ~9 minutes): the renderer's
+# The GPU half of the benchmarks in one run (a lent GPU machine, ~7 minutes at the defaults below): the renderer's
 # throughput against mi.render at 1080p per wavefront size, the loop against mi.render + OIDN at
 # ~2 MP (bench --versus-mitsuba on cuda_ad_rgb, networks and OIDN on CUDA), the fidelity suite on
 # cuda_ad_rgb, and the sampler report. Each step has its own time limit and a failed step does not
