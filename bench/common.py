@@ -22,6 +22,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from string import Template
 
+import drjit as dr
 import numpy as np
 import torch
 
@@ -138,6 +139,21 @@ def pinned_torch_threads(threads: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(previous)
+
+
+@contextmanager
+def recorded_kernels() -> Iterator[list[dict]]:
+    """Dr.Jit's kernel history of the block (each launch: its type, hash, size, whether a cache held
+    it, its compile and run times): a list filled on exit; the history flag is restored."""
+    kernels: list[dict] = []
+    enabled = dr.flag(dr.JitFlag.KernelHistory)
+    dr.kernel_history_clear()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        yield kernels
+    finally:
+        kernels.extend(dr.kernel_history())
+        dr.set_flag(dr.JitFlag.KernelHistory, enabled)
 
 
 @contextmanager

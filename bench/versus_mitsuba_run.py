@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import drjit as dr
 import numpy as np
 
-from bench.common import OidnDenoise, Reference, sanitize
+from bench.common import OidnDenoise, Reference, recorded_kernels, sanitize
 from bench.dev_references import DevScene
 from bench.loop_run import LOOP_SEED, STAGES, NoErrorPrediction
 from bench.versus_mitsuba_scene import Film, aov_integrator, competitor_scene, render_with_aovs, warm_up
@@ -214,20 +214,13 @@ def compile_loop_kernels(loop: RenderLoop) -> None:
 
 @contextmanager
 def kernel_compile_seconds() -> Iterator[list[float]]:
-    """Seconds Dr.Jit spent building kernels (its backend's compile of each kernel not found in its
-    caches: LLVM, or CUDA/OptiX) while the block ran, from Dr.Jit's kernel history; yields a
-    one-element list filled on exit."""
+    """Seconds Dr.Jit spent building kernels (its backend's compile of each kernel that no cache
+    held: LLVM, or CUDA/OptiX) while the block ran; yields a one-element list filled on exit."""
     result = [math.nan]
-    enabled = dr.flag(dr.JitFlag.KernelHistory)
-    dr.kernel_history()  # drop what came before
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
+    with recorded_kernels() as kernels:
         yield result
-    finally:
-        history = dr.kernel_history()
-        dr.set_flag(dr.JitFlag.KernelHistory, enabled)
-        result[0] = sum(entry.get("backend_time", 0.0) for entry in history
-                        if entry.get("type") == dr.KernelType.JIT and not entry.get("cache_hit")) / 1000.0
+    result[0] = sum(k.get("backend_time", 0.0) for k in kernels
+                    if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit")) / 1000.0
 
 
 def loop_curve(key: str, label: str, scene: DevScene, film: Film, networks: Networks, allocator: str,

@@ -18,6 +18,7 @@ import time
 import drjit as dr
 import numpy as np
 
+from bench.common import recorded_kernels
 from service.render.framebuffer import FrameBuffer
 from service.render.renderer import render_samples
 from service.render.runtime import active_variant, mitsuba
@@ -71,13 +72,10 @@ def count_maps(width: int, height: int, spp: int) -> dict[str, np.ndarray]:
 def kernel_history(label: str, call) -> None:
     """Dr.Jit's kernel history of one call: how many kernels it launched and their GPU time
     against the call's wall time (where the rest goes: the host)."""
-    dr.kernel_history_clear()
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    started = time.perf_counter()
-    call()
-    wall = time.perf_counter() - started
-    dr.set_flag(dr.JitFlag.KernelHistory, False)
-    history = dr.kernel_history()
+    with recorded_kernels() as history:
+        started = time.perf_counter()
+        call()
+        wall = time.perf_counter() - started
     kernels = [k for k in history if "execution_time" in k]
     gpu_ms = sum(float(k["execution_time"]) for k in kernels)
     print(f"kernel history {label}: wall {wall * 1e3:.0f} ms, {len(history)} entries, {len(kernels)} timed, "
