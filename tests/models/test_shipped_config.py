@@ -83,8 +83,8 @@ def test_shipped_networks_give_the_outputs_recorded_before_their_options_were_re
     disagreement = torch.rand(1, 1, 40, 48, generator=torch.Generator().manual_seed(9))
     error = error_net(center[0], recorded["lambda1"], disagreement)
     # One pixel in 1920 (0.1485 against 0.1496) reads differently on an AVX-512 host than where the
-    # file was written, whatever torch's CPU capability is capped to: a near-tie inside the network
-    # decided the other way. A removed option would move most pixels, so this allows two such.
+    # file was written, whatever torch's CPU capability is capped to (likely a near-tie inside the
+    # network decided the other way). A removed option would move most pixels: two such are allowed.
     off = ~torch.isclose(error, recorded["error"], rtol=1e-4, atol=1e-5)
     assert int(off.sum()) <= 2, int(off.sum())
     torch.testing.assert_close(error, recorded["error"], rtol=0.0, atol=0.01)
