@@ -125,6 +125,9 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.loop:
         from bench.loop_report import run_loop_command
         return run_loop_command(args)
+    if args.versus_mitsuba_suite:
+        from bench.versus_mitsuba_suite import run_suite_summary_command
+        return run_suite_summary_command(args)
     if args.versus_mitsuba:
         from bench.versus_mitsuba import run_versus_mitsuba_command
         return run_versus_mitsuba_command(args)

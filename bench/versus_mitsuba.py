@@ -153,6 +153,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the loop vs mi.render + OIDN (scene's filter and box) on scenes/dev and scenes/val as "
                              f"written, films scaled to --megapixels → {REPORT_NAME} ({GPU_REPORT_NAME} with "
                              "the networks on CUDA)")
+    parser.add_argument("--versus-mitsuba-suite", action="store_true",
+                        help="the suite's standing over every --versus-mitsuba report in -o (each scene's newest "
+                             "reading, the bars counted against all of scenes/dev and scenes/val) → "
+                             "benchmarks-versus-mitsuba-suite.md there")
     parser.add_argument("--megapixels", type=positive_megapixels, default=DEFAULT_MEGAPIXELS,
                         help=f"with --versus-mitsuba: each film scaled to about this many MP, aspect kept "
                              f"(default {DEFAULT_MEGAPIXELS:g}, about 1080p)")

@@ -1,0 +1,219 @@
+"""`renderloop bench --versus-mitsuba-suite`: the suite's standing against `mi.render` + OIDN at ~2 MP,
+read from the `--versus-mitsuba` reports already written (benchmarks-versus-mitsuba*.md in docs/).
+
+A 2 MP run of one scene takes 25–40 min on the 2-core CPU, so the suite's 21 scenes are measured
+over several runs, each writing a report of its own. This module reads their headline tables
+(SMAPE and relMSE), keeps each scene's newest reading per Mitsuba variant, and measures the
+issue's bars against the *whole* suite: a scene not yet measured counts as not ahead, so the
+share of the suite the loop wins on cannot be read as met from a subset.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import statistics
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from bench.common import command_line
+from bench.versus_mitsuba import DEFAULT_MAX_SPP, DEFAULT_REFERENCE_SPP, suite_scenes
+
+SUMMARY_NAME = "benchmarks-versus-mitsuba-suite.md"
+REPORT_GLOB = "benchmarks-versus-mitsuba*.md"
+SMAPE_HEADER = "| scene (film, filter) | loop SMAPE |"
+RELMSE_HEADER = "| scene (film, filter) | reference's relative error | loop relMSE |"
+# The issue's bars (43): the loop ahead on ≥ 75 % of the suite, median equal-error speed-up ≥ 1.5×
+# (goal 2×), peak RSS ≤ 8 GB for a 2 MP job.
+SHARE_BAR, MEDIAN_BAR, MEDIAN_GOAL, RSS_BAR_GB = 0.75, 1.5, 2.0, 8.0
+VARIANT_LABELS = {"llvm_ad_rgb": "CPU (`llvm_ad_rgb`)", "cuda_ad_rgb": "GPU (`cuda_ad_rgb`)"}
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One scene's headline figures in one report."""
+    scene: str
+    film: str                 # "1633×1225, gaussian"
+    speedup: float            # equal-error speed-up in SMAPE (> 1: the loop ahead)
+    extrapolated: bool        # read off a fitted power law, not between measured points
+    equal_time: str           # the equal-time SMAPE ratio as printed
+    relmse_speedup: str       # the equal-error speed-up in relMSE as printed ("n/a" where unreadable)
+    peak_rss_mb: float
+    report: str               # the report's file name
+    commit: str
+    date: str                 # ISO, as the report prints it: newer sorts later
+    settings: str             # "16–128 spp, 1024-spp references": runs may differ
+
+
+@dataclass
+class VariantStanding:
+    """The suite's standing for one Mitsuba variant: the newest reading per scene."""
+    variant: str
+    suite: list[str]
+    newest: dict[str, Reading] = field(default_factory=dict)
+    older: dict[str, list[Reading]] = field(default_factory=dict)
+
+    @property
+    def ahead(self) -> list[Reading]:
+        return [r for r in self.newest.values() if r.speedup > 1.0]
+
+    @property
+    def unmeasured(self) -> list[str]:
+        return [name for name in self.suite if name not in self.newest]
+
+    @property
+    def median_speedup(self) -> float:
+        return statistics.median(r.speedup for r in self.newest.values())
+
+
+def _cells(line: str) -> list[str]:
+    return [cell.strip() for cell in line.strip().strip("|").split("|")]
+
+
+def _number(text: str) -> tuple[float, bool]:
+    """A printed figure such as `**~5.27×**` → (5.27, extrapolated)."""
+    plain = text.replace("*", "").replace("×", "").strip()
+    return float(plain.lstrip("~")), plain.startswith("~")
+
+
+def _table_rows(lines: list[str], header: str) -> list[list[str]]:
+    """The body rows of the first table whose header line starts with `header`."""
+    for i, line in enumerate(lines):
+        if line.startswith(header):
+            rows = []
+            for body in lines[i + 2:]:  # past the header and its |---| rule
+                if not body.startswith("|"):
+                    break
+                rows.append(_cells(body))
+            return rows
+    return []
+
+
+def _run_settings(text: str) -> str:
+    """The sample range and reference spp of a report's command (the command's defaults where unset)."""
+    command = re.search(r"^Command: `([^`]+)`", text, re.M)
+    flags = command.group(1) if command else ""
+    max_spp = re.search(r"--max-spp (\d+)", flags)
+    reference_spp = re.search(r"--reference-spp (\d+)", flags)
+    return (f"16–{max_spp.group(1) if max_spp else DEFAULT_MAX_SPP} spp, "
+            f"{reference_spp.group(1) if reference_spp else DEFAULT_REFERENCE_SPP}-spp references")
+
+
+def parse_report(path: Path) -> tuple[str, list[Reading]]:
+    """(Mitsuba variant, the headline readings) of one `--versus-mitsuba` report."""
+    text = Path(path).read_text()
+    lines = text.splitlines()
+    variant = re.search(r"^Mitsuba variant: `([^`]+)`", text, re.M)
+    stamp = re.search(r"^Date: (\S+); commit (\w+)", text, re.M)
+    if variant is None or stamp is None:
+        raise ValueError(f"{path}: not a --versus-mitsuba report (no 'Mitsuba variant' or 'Date' line)")
+    settings = _run_settings(text)
+    relmse = {row[0]: row[5].replace("*", "") for row in _table_rows(lines, RELMSE_HEADER)}
+    readings = []
+    for row in _table_rows(lines, SMAPE_HEADER):
+        label = re.fullmatch(r"(\w+) \((.+)\)", row[0])
+        if label is None:
+            raise ValueError(f"{path}: unreadable scene cell {row[0]!r}")
+        speedup, extrapolated = _number(row[5])
+        readings.append(Reading(scene=label.group(1), film=label.group(2), speedup=speedup,
+                                extrapolated=extrapolated, equal_time=row[6],
+                                relmse_speedup=relmse.get(row[0], "n/a"), peak_rss_mb=float(row[8]),
+                                report=Path(path).name, commit=stamp.group(2), date=stamp.group(1),
+                                settings=settings))
+    return variant.group(1), readings
+
+
+def suite_names() -> list[str]:
+    """scenes/dev then scenes/val, as `--versus-mitsuba` runs them with no --scenes."""
+    return [scene.name for scene in suite_scenes(None)]
+
+
+def suite_standing(reports: list[Path], suite: list[str]) -> list[VariantStanding]:
+    """Each variant's standing over `reports`, CPU first; a scene's newest reading wins, the
+    others are kept to show how far runs of one scene disagree."""
+    by_variant: dict[str, list[Reading]] = {}
+    for path in reports:
+        variant, readings = parse_report(path)
+        by_variant.setdefault(variant, []).extend(readings)
+    order = sorted(by_variant, key=lambda v: (v != "llvm_ad_rgb", v))
+    standings = []
+    for variant in order:
+        standing = VariantStanding(variant, suite)
+        for reading in sorted(by_variant[variant], key=lambda r: r.date):
+            previous = standing.newest.get(reading.scene)
+            if previous is not None:
+                standing.older.setdefault(reading.scene, []).append(previous)
+            standing.newest[reading.scene] = reading
+        standings.append(standing)
+    return standings
+
+
+def _speedup_text(r: Reading) -> str:
+    return f"{'~' if r.extrapolated else ''}{r.speedup:.2f}×"
+
+
+def _verdict(standing: VariantStanding) -> str:
+    measured, total = len(standing.newest), len(standing.suite)
+    ahead = len(standing.ahead)
+    share = ahead / total if total else 0.0
+    peak = max(r.peak_rss_mb for r in standing.newest.values()) / 1000.0
+    share_word = "met" if share >= SHARE_BAR else ("not met" if ahead + len(standing.unmeasured) < SHARE_BAR * total
+                                                    else "not yet (scenes unmeasured)")
+    extrapolated = sum(r.extrapolated for r in standing.newest.values())
+    return (f"Measured **{measured} of the suite's {total}** scenes. The loop reaches the better `mi.render` + "
+            f"OIDN's error sooner on **{ahead} of {measured}** measured, {ahead} of {total} of the suite "
+            f"({100 * share:.0f} %; bar ≥ {100 * SHARE_BAR:.0f} % of the suite: {share_word}). Median "
+            f"equal-error speed-up over the measured scenes **{standing.median_speedup:.2f}×** (bar ≥ "
+            f"{MEDIAN_BAR}×, goal {MEDIAN_GOAL}×; {extrapolated} of {measured} readings extrapolated). Peak RSS "
+            f"**{peak:.2f} GB** at most (bar ≤ {RSS_BAR_GB:.0f} GB).")
+
+
+def summary_text(standings: list[VariantStanding], reports: list[Path], command: str) -> str:
+    out = ["# The suite against `mi.render` + OIDN at ~2 MP, over every run", "",
+           f"Command: `{command}`  ",
+           f"Read from: {', '.join(f'[{p.name}]({p.name})' for p in sorted(reports))}", "",
+           "Each `renderloop bench --versus-mitsuba` run writes its own report; this page keeps each scene's "
+           "newest reading (per Mitsuba variant) and counts the issue's bars against the whole suite "
+           "(scenes/dev and scenes/val): an unmeasured scene is not counted as ahead. Equal-error speed-up "
+           "= the time the better `mi.render` + OIDN (the scene's own filter or a box film) needs to reach "
+           "the loop's final SMAPE ÷ the loop's time; `~` marks a reading extrapolated from a power law "
+           "fitted to the competitor's curve (each report says how). Runs differ in load and commit: "
+           "each row names its report.", ""]
+    for standing in standings:
+        out += [f"## {VARIANT_LABELS.get(standing.variant, f'`{standing.variant}`')}", "", _verdict(standing), "",
+                "| scene (film, filter) | equal-error speed-up (SMAPE) | equal-time SMAPE ratio | "
+                "equal-error speed-up (relMSE) | loop peak RSS MB | report (commit, date; run) | earlier runs |",
+                "|---|---:|---:|---:|---:|---|---|"]
+        for name in standing.suite:
+            r = standing.newest.get(name)
+            if r is None:
+                continue
+            earlier = ", ".join(f"{_speedup_text(o)} ({o.report}, {o.commit})" for o in standing.older.get(name, []))
+            out.append(f"| {r.scene} ({r.film}) | **{_speedup_text(r)}** | {r.equal_time} | {r.relmse_speedup} | "
+                       f"{r.peak_rss_mb:.0f} | [{r.report}]({r.report}) ({r.commit}, {r.date[:10]}; {r.settings}) | "
+                       f"{earlier} |")
+        if standing.unmeasured:
+            out += ["", f"Not yet measured ({len(standing.unmeasured)}): {', '.join(standing.unmeasured)}."]
+        out.append("")
+    return "\n".join(out)
+
+
+def write_suite_summary(folder: Path, command: str) -> Path:
+    """Read every `--versus-mitsuba` report in `folder` and write the summary next to them."""
+    folder = Path(folder)
+    reports = sorted(p for p in folder.glob(REPORT_GLOB) if p.name != SUMMARY_NAME)
+    if not reports:
+        raise ValueError(f"no {REPORT_GLOB} reports in {folder}/ (run renderloop bench --versus-mitsuba first)")
+    out = folder / SUMMARY_NAME
+    out.write_text(summary_text(suite_standing(reports, suite_names()), reports, command))
+    return out
+
+
+def run_suite_summary_command(args: argparse.Namespace) -> int:
+    try:
+        path = write_suite_summary(args.out, command_line())
+    except ValueError as exc:  # no reports there, or a file that is not one
+        print(f"renderloop bench: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {path}")
+    return 0

@@ -1,0 +1,99 @@
+"""The suite summary over `--versus-mitsuba` reports: newest reading per scene, bars counted
+against the whole suite, and the committed reports read as they print their headlines."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from bench.cli import main as bench_main
+from bench.versus_mitsuba_suite import SUMMARY_NAME, parse_report, suite_names, suite_standing, summary_text
+
+DOCS = Path(__file__).resolve().parents[2] / "docs"
+COMMITTED = sorted(p for p in DOCS.glob("benchmarks-versus-mitsuba*.md") if p.name != SUMMARY_NAME)
+
+
+def report(date: str, commit: str, rows: dict[str, str], variant: str = "llvm_ad_rgb") -> str:
+    """A report's header lines and its two headline tables, with each scene's SMAPE speed-up."""
+    head = ["# Where users render", "",
+            "Command: `renderloop bench --versus-mitsuba --max-spp 128 --reference-spp 1024 -o x`  ",
+            f"Mitsuba variant: `{variant}`  ", f"Date: {date}; commit {commit}; load average 1.0/1.0/1.0", "",
+            "| scene (film, filter) | loop SMAPE | loop s | better `mi.render` + OIDN | its s to that SMAPE | "
+            "equal-error speed-up | equal-time SMAPE ratio | vs uniform + ours | loop peak RSS MB |",
+            "|---|---:|---:|---|---:|---:|---:|---:|---:|"]
+    body = [f"| {name} (1633×1225, box) | 0.01 | 50.0 | `mi.render` + OIDN, box film | 60.0 | **{speedup}** | 0.9× | "
+            f"1.0× | 5000 |" for name, speedup in rows.items()]
+    relmse = ["", "| scene (film, filter) | reference's relative error | loop relMSE | better `mi.render` + OIDN | "
+              "its s to that relMSE | equal-error speed-up | equal-time relMSE ratio |", "|---|---:|---:|---|---:|---:|---:|"]
+    relmse += [f"| {name} (1633×1225, box) | 0.02 | 1e-05 | `mi.render` + OIDN, box film | 9.0 | **3.00×** | 0.5× |"
+               for name in rows]
+    return "\n".join(head + body + relmse) + "\n"
+
+
+def write(folder: Path, name: str, text: str) -> Path:
+    path = folder / name
+    path.write_text(text)
+    return path
+
+
+def test_a_scene_measured_twice_keeps_its_newest_reading(tmp_path):
+    old = write(tmp_path, "benchmarks-versus-mitsuba.md", report("2026-11-27T07:14+00:00", "aaa1111",
+                                                                 {"metals": "~5.59×", "sun_room": "0.70×"}))
+    new = write(tmp_path, "benchmarks-versus-mitsuba-more.md", report("2026-11-28T23:21+00:00", "bbb2222",
+                                                                      {"metals": "0.36×"}))
+    (standing,) = suite_standing([new, old], ["metals", "sun_room", "lamp_room"])
+    assert standing.newest["metals"].speedup == 0.36 and standing.newest["metals"].commit == "bbb2222"
+    assert [r.speedup for r in standing.older["metals"]] == [5.59]
+    assert standing.newest["sun_room"].commit == "aaa1111"
+    assert standing.unmeasured == ["lamp_room"]
+    assert standing.median_speedup == pytest.approx((0.36 + 0.70) / 2)
+
+
+def test_an_extrapolated_reading_keeps_its_mark(tmp_path):
+    path = write(tmp_path, "benchmarks-versus-mitsuba.md", report("2026-11-27T07:14+00:00", "aaa1111",
+                                                                  {"metals": "~5.59×", "sun_room": "0.70×"}))
+    _, readings = parse_report(path)
+    assert [(r.scene, r.speedup, r.extrapolated) for r in readings] == [("metals", 5.59, True), ("sun_room", 0.70, False)]
+    assert readings[0].settings == "16–128 spp, 1024-spp references"
+    assert readings[0].relmse_speedup == "3.00×"
+
+
+def test_unmeasured_scenes_keep_the_share_bar_from_reading_met(tmp_path):
+    path = write(tmp_path, "benchmarks-versus-mitsuba.md",
+                 report("2026-11-27T07:14+00:00", "aaa1111", {"a": "2.0×", "b": "3.0×", "c": "1.5×"}))
+    suite = ["a", "b", "c", "d", "e"]
+    text = summary_text(suite_standing([path], suite), [path], "renderloop bench --versus-mitsuba-suite")
+    assert "3 of 5 of the suite (60 %" in text and "not yet (scenes unmeasured)" in text
+    assert "Not yet measured (2): d, e." in text
+
+
+def test_the_share_bar_reads_met_at_three_quarters_of_the_suite_and_not_met_when_out_of_reach(tmp_path):
+    ahead = write(tmp_path, "benchmarks-versus-mitsuba.md",
+                  report("2026-11-27T07:14+00:00", "aaa1111", {"a": "2.0×", "b": "3.0×", "c": "1.5×", "d": "0.5×"}))
+    assert "bar ≥ 75 % of the suite: met" in summary_text(suite_standing([ahead], list("abcd")), [ahead], "x")
+    behind = write(tmp_path, "benchmarks-versus-mitsuba-gpu.md",
+                   report("2026-11-28T07:14+00:00", "bbb2222", {"a": "0.5×", "b": "0.4×"}, variant="cuda_ad_rgb"))
+    cpu, gpu = suite_standing([behind, ahead], list("abcde"))
+    assert (cpu.variant, gpu.variant) == ("llvm_ad_rgb", "cuda_ad_rgb")
+    # two behind of five: even with the other three ahead the share is 60 %
+    assert "bar ≥ 75 % of the suite: not met" in summary_text([gpu], [behind], "x")
+
+
+@pytest.mark.parametrize("path", COMMITTED, ids=lambda p: p.name)
+def test_each_committed_report_parses_to_the_count_its_headline_states(path):
+    _, readings = parse_report(path)
+    stated = re.search(r"error in less wall time on \*\*(\d+) of (\d+)\*\* scenes", path.read_text())
+    assert stated is not None
+    assert (sum(r.speedup > 1 for r in readings), len(readings)) == (int(stated.group(1)), int(stated.group(2)))
+    assert set(r.scene for r in readings) <= set(suite_names())
+
+
+def test_the_command_writes_the_summary_and_refuses_a_folder_without_reports(tmp_path, capsys):
+    assert bench_main(["--versus-mitsuba-suite", "-o", str(tmp_path)]) == 2
+    assert "no benchmarks-versus-mitsuba*.md reports" in capsys.readouterr().err
+    write(tmp_path, "benchmarks-versus-mitsuba.md", report("2026-11-27T07:14+00:00", "aaa1111", {"metals": "~5.59×"}))
+    assert bench_main(["--versus-mitsuba-suite", "-o", str(tmp_path)]) == 0
+    text = (tmp_path / SUMMARY_NAME).read_text()
+    assert "| metals (1633×1225, box) | **~5.59×** |" in text
+    assert f"Measured **1 of the suite's {len(suite_names())}** scenes" in text
