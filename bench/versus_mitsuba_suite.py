@@ -10,6 +10,7 @@ share of the suite the loop wins on cannot be read as met from a subset.
 from __future__ import annotations
 
 import argparse
+import math
 import re
 import statistics
 import sys
@@ -34,10 +35,12 @@ class Reading:
     """One scene's headline figures in one report."""
     scene: str
     film: str                 # "1633×1225, gaussian"
+    loop_smape: float         # the loop's final SMAPE
     speedup: float            # equal-error speed-up in SMAPE (> 1: the loop ahead)
     extrapolated: bool        # read off a fitted power law, not between measured points
     equal_time: str           # the equal-time SMAPE ratio as printed
     relmse_speedup: str       # the equal-error speed-up in relMSE as printed ("n/a" where unreadable)
+    reference_error: float    # the reference's own mean relative standard error: SMAPE's floor
     peak_rss_mb: float
     report: str               # the report's file name
     commit: str
@@ -56,6 +59,10 @@ class VariantStanding:
     @property
     def ahead(self) -> list[Reading]:
         return [r for r in self.newest.values() if r.speedup > 1.0]
+
+    @property
+    def ahead_in_relmse(self) -> list[Reading]:
+        return [r for r in self.newest.values() if _relmse_speedup(r) > 1.0]
 
     @property
     def unmeasured(self) -> list[str]:
@@ -108,16 +115,17 @@ def parse_report(path: Path) -> tuple[str, list[Reading]]:
     if variant is None or stamp is None:
         raise ValueError(f"{path}: not a --versus-mitsuba report (no 'Mitsuba variant' or 'Date' line)")
     settings = _run_settings(text)
-    relmse = {row[0]: row[5].replace("*", "") for row in _table_rows(lines, RELMSE_HEADER)}
+    relmse = {row[0]: (row[5].replace("*", ""), float(row[1])) for row in _table_rows(lines, RELMSE_HEADER)}
     readings = []
     for row in _table_rows(lines, SMAPE_HEADER):
         label = re.fullmatch(r"(\w+) \((.+)\)", row[0])
         if label is None:
             raise ValueError(f"{path}: unreadable scene cell {row[0]!r}")
         speedup, extrapolated = _number(row[5])
-        readings.append(Reading(scene=label.group(1), film=label.group(2), speedup=speedup,
+        readings.append(Reading(scene=label.group(1), film=label.group(2), loop_smape=float(row[1]), speedup=speedup,
                                 extrapolated=extrapolated, equal_time=row[6],
-                                relmse_speedup=relmse.get(row[0], "n/a"), peak_rss_mb=float(row[8]),
+                                relmse_speedup=relmse.get(row[0], ("n/a", math.nan))[0],
+                                reference_error=relmse.get(row[0], ("n/a", math.nan))[1], peak_rss_mb=float(row[8]),
                                 report=Path(path).name, commit=stamp.group(2), date=stamp.group(1),
                                 settings=settings))
     return variant.group(1), readings
@@ -148,6 +156,14 @@ def suite_standing(reports: list[Path], suite: list[str]) -> list[VariantStandin
     return standings
 
 
+def _relmse_speedup(r: Reading) -> float:
+    """The relMSE speed-up as a number; nan where the report could not read it ("n/a")."""
+    try:
+        return _number(r.relmse_speedup)[0]
+    except ValueError:
+        return math.nan
+
+
 def _speedup_text(r: Reading) -> str:
     return f"{'~' if r.extrapolated else ''}{r.speedup:.2f}×"
 
@@ -165,7 +181,8 @@ def _verdict(standing: VariantStanding) -> str:
             f"({100 * share:.0f} %; bar ≥ {100 * SHARE_BAR:.0f} % of the suite: {share_word}). Median "
             f"equal-error speed-up over the measured scenes **{standing.median_speedup:.2f}×** (bar ≥ "
             f"{MEDIAN_BAR}×, goal {MEDIAN_GOAL}×; {extrapolated} of {measured} readings extrapolated). Peak RSS "
-            f"**{peak:.2f} GB** at most (bar ≤ {RSS_BAR_GB:.0f} GB).")
+            f"**{peak:.2f} GB** at most (bar ≤ {RSS_BAR_GB:.0f} GB). In relMSE with the references' noise taken out: "
+            f"ahead on **{len(standing.ahead_in_relmse)} of {measured}** measured.")
 
 
 def summary_text(standings: list[VariantStanding], reports: list[Path], command: str) -> str:
@@ -178,18 +195,24 @@ def summary_text(standings: list[VariantStanding], reports: list[Path], command:
            "= the time the better `mi.render` + OIDN (the scene's own filter or a box film) needs to reach "
            "the loop's final SMAPE ÷ the loop's time; `~` marks a reading extrapolated from a power law "
            "fitted to the competitor's curve (each report says how). Runs differ in load and commit: "
-           "each row names its report.", ""]
+           "each row names its report. SMAPE cannot fall below the reference's own error: where that "
+           "error is above the loop's SMAPE (marked), SMAPE mostly reads the reference's noise and both "
+           "methods sit at that floor; the relMSE columns, with the references' variance taken out, "
+           "separate them there.", ""]
     for standing in standings:
         out += [f"## {VARIANT_LABELS.get(standing.variant, f'`{standing.variant}`')}", "", _verdict(standing), "",
-                "| scene (film, filter) | equal-error speed-up (SMAPE) | equal-time SMAPE ratio | "
-                "equal-error speed-up (relMSE) | loop peak RSS MB | report (commit, date; run) | earlier runs |",
-                "|---|---:|---:|---:|---:|---|---|"]
+                "| scene (film, filter) | equal-error speed-up (SMAPE) | equal-time SMAPE ratio | reference's "
+                "relative error | equal-error speed-up (relMSE) | loop peak RSS MB | report (commit, date; run) | "
+                "earlier runs |",
+                "|---|---:|---:|---:|---:|---:|---|---|"]
         for name in standing.suite:
             r = standing.newest.get(name)
             if r is None:
                 continue
             earlier = ", ".join(f"{_speedup_text(o)} ({o.report}, {o.commit})" for o in standing.older.get(name, []))
-            out.append(f"| {r.scene} ({r.film}) | **{_speedup_text(r)}** | {r.equal_time} | {r.relmse_speedup} | "
+            floor = " (above the loop's SMAPE)" if r.reference_error > r.loop_smape else ""
+            out.append(f"| {r.scene} ({r.film}) | **{_speedup_text(r)}** | {r.equal_time} | "
+                       f"{r.reference_error:.4f}{floor} | {r.relmse_speedup} | "
                        f"{r.peak_rss_mb:.0f} | [{r.report}]({r.report}) ({r.commit}, {r.date[:10]}; {r.settings}) | "
                        f"{earlier} |")
         if standing.unmeasured:

@@ -25,7 +25,8 @@ def report(date: str, commit: str, rows: dict[str, str], variant: str = "llvm_ad
     body = [f"| {name} (1633×1225, box) | 0.01 | 50.0 | `mi.render` + OIDN, box film | 60.0 | **{speedup}** | 0.9× | "
             f"1.0× | 5000 |" for name, speedup in rows.items()]
     relmse = ["", "| scene (film, filter) | reference's relative error | loop relMSE | better `mi.render` + OIDN | "
-              "its s to that relMSE | equal-error speed-up | equal-time relMSE ratio |", "|---|---:|---:|---|---:|---:|---:|"]
+              "its s to that relMSE | equal-error speed-up | equal-time relMSE ratio |",
+              "|---|---:|---:|---|---:|---:|---:|"]
     relmse += [f"| {name} (1633×1225, box) | 0.02 | 1e-05 | `mi.render` + OIDN, box film | 9.0 | **3.00×** | 0.5× |"
                for name in rows]
     return "\n".join(head + body + relmse) + "\n"
@@ -54,9 +55,20 @@ def test_an_extrapolated_reading_keeps_its_mark(tmp_path):
     path = write(tmp_path, "benchmarks-versus-mitsuba.md", report("2026-11-27T07:14+00:00", "aaa1111",
                                                                   {"metals": "~5.59×", "sun_room": "0.70×"}))
     _, readings = parse_report(path)
-    assert [(r.scene, r.speedup, r.extrapolated) for r in readings] == [("metals", 5.59, True), ("sun_room", 0.70, False)]
+    assert [(r.scene, r.speedup, r.extrapolated) for r in readings] == [("metals", 5.59, True),
+                                                                         ("sun_room", 0.70, False)]
     assert readings[0].settings == "16–128 spp, 1024-spp references"
-    assert readings[0].relmse_speedup == "3.00×"
+    assert (readings[0].relmse_speedup, readings[0].reference_error, readings[0].loop_smape) == ("3.00×", 0.02, 0.01)
+
+
+def test_a_reference_noisier_than_the_loop_is_marked_and_relmse_counted_apart(tmp_path):
+    path = write(tmp_path, "benchmarks-versus-mitsuba.md",
+                 report("2026-11-27T07:14+00:00", "aaa1111", {"glass_box": "0.74×", "metals": "2.0×"}))
+    (standing,) = suite_standing([path], ["glass_box", "metals"])
+    text = summary_text([standing], [path], "x")
+    # the fixture's references have relative error 0.02 against a loop SMAPE of 0.01, relMSE speed-up 3×
+    assert "| 0.0200 (above the loop's SMAPE) | 3.00× |" in text
+    assert "sooner on **1 of 2** measured" in text and "ahead on **2 of 2** measured" in text
 
 
 def test_unmeasured_scenes_keep_the_share_bar_from_reading_met(tmp_path):
