@@ -18,7 +18,7 @@ from bench.common import REFERENCE_SEED, Reference, cached_reference
 from bench.dev_references import DevScene
 from service.render.flatten import flatten_scene
 from service.render.runtime import active_variant, mitsuba
-from service.render.scenes import FRAME_PARAMETER, film_size, load_scene
+from service.render.scenes import FRAME_PARAMETER, film_size
 
 # OIDN's auxiliary features as a user asks Mitsuba for them (Mitsuba's `aov` plugin names).
 AOVS = "albedo:albedo,nn:sh_normal"
@@ -85,6 +85,33 @@ def competitor_scene(scene: DevScene, film: Film, box: bool = False):
     return mitsuba().load_string(_set_film(flat.document, film, box))
 
 
+def reference_scene(scene: DevScene, film: Film):
+    """The scene as written at `film`'s size with its sampler replaced by `independent` (its
+    sample count kept). A reference is rendered in calls of at most MAX_LANES samples, 16 spp
+    each at 2 MP, and Mitsuba's stratifying samplers are not unbiased over so short a sequence:
+    `stratified` ties the dimensions of a sample (consecutive permutation seeds,
+    service/render/stratified_lanes.py), and on living_room at ~2 MP its 16-spp image mean sits
+    0.25 % below the `independent` sampler's (docs/decisions.md). The reference estimates the
+    image itself, so only the unbiased sampler will do; `mi.render` as a competitor keeps the
+    scene's own (competitor_scene)."""
+    path = scene.path.resolve()
+    flat = flatten_scene(path, root=path.parent, optional_params={FRAME_PARAMETER: "0"})
+    return mitsuba().load_string(_independent_sampler(_set_film(flat.document, film, False)))
+
+
+def _independent_sampler(document: str) -> str:
+    """The flattened scene with every sensor's sampler turned into `independent`: its type
+    changed, every property but the sample count and seed dropped (an `independent` sampler
+    refuses the others). A sensor without a sampler has Mitsuba's default, `independent`."""
+    root = ElementTree.fromstring(document)
+    for element in root.iter("sampler"):
+        element.set("type", "independent")
+        for child in list(element):
+            if child.get("name") not in ("sample_count", "seed"):
+                element.remove(child)
+    return ET.tostring(root, encoding="unicode")
+
+
 def aov_integrator(scene):
     """The `aov` integrator wrapping the scene's own: colour as written, plus albedo and normals."""
     return mitsuba().load_dict({"type": "aov", "aovs": AOVS, "img": scene.integrator()})
@@ -135,15 +162,15 @@ def warm_up(scene, integrator, levels: list[int], seed: int) -> None:
 
 
 def reference(scene: DevScene, film: Film, spp: int, cache_dir: Path) -> Reference:
-    """`mi.render` of the scene as written at `film`'s size and `spp` (independent sampler, as the
-    suite's committed references), in passes, with the passes' spread as its variance; rendered
-    once into `cache_dir` (the bench cache), keyed by the scene's content, size, spp and variant."""
+    """`mi.render` of the scene as written at `film`'s size and `spp` with the `independent`
+    sampler (reference_scene), in passes, with the passes' spread as its variance; rendered once
+    into `cache_dir` (the bench cache), keyed by the scene's content, size, spp and variant."""
     name = (f"{scene.name}_{scene.content_hash}_{film.width}x{film.height}_{spp}spp_{active_variant()}"
-            f"_seed{REFERENCE_SEED}.npz")
+            f"_seed{REFERENCE_SEED}_independent.npz")
 
     def render(seed: int) -> tuple[np.ndarray, np.ndarray]:
         mi = mitsuba()
-        loaded = load_scene(str(scene.path), width=film.width, height=film.height)
+        loaded = reference_scene(scene, film)
         # at least REFERENCE_CALLS calls: their spread is the reference's variance
         per_call, calls = pass_plan(spp, film.width * film.height, REFERENCE_CALLS)
         total = squares = 0.0  # running sums: at 2 MP a pass list would hold gigabytes

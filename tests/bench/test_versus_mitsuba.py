@@ -21,7 +21,7 @@ from bench.versus_mitsuba_report import LOOP, UNIFORM, headline_table
 from bench.common import Reference, load_bench_networks
 from bench.versus_mitsuba_run import (Curve, CurvePoint, better_of, compare, compile_loop_kernels, debiased_relmse,
                                       error_at_time, kernel_compile_seconds, make_loop, time_at_error)
-from bench.versus_mitsuba_scene import pass_plan, scaled_film
+from bench.versus_mitsuba_scene import Film, competitor_scene, pass_plan, reference_scene, scaled_film
 
 TINY_SCENE = "sun_room"  # a Gaussian film: both mi.render films run
 
@@ -227,6 +227,20 @@ def test_pass_plan_keeps_powers_of_four_within_the_lane_cap() -> None:
     assert pass_plan(1024, 2_000_000) == (16, 64)
     assert pass_plan(64, 10_000) == (64, 1)
     assert pass_plan(256, 10_000, min_calls=4) == (64, 4)
+
+
+def test_references_render_with_the_independent_sampler_and_competitors_with_the_scenes_own() -> None:
+    # living_room declares `stratified`, which is biased over the 16-spp calls a 2 MP reference
+    # is rendered in; the reference must be unbiased, the competitor the scene as written.
+    (scene,) = suite_scenes(["living_room"])
+    film = Film(64, 40)
+    reference_sampler = reference_scene(scene, film).sensors()[0].sampler()
+    competitor_sampler = competitor_scene(scene, film).sensors()[0].sampler()
+    assert reference_sampler.class_name() == "IndependentSampler"
+    assert competitor_sampler.class_name() == "StratifiedSampler"
+    assert reference_sampler.sample_count() == competitor_sampler.sample_count()
+    film_size = reference_scene(scene, film).sensors()[0].film().crop_size()
+    assert (int(film_size[0]), int(film_size[1])) == (64, 40)
 
 
 def versus_mitsuba_parser() -> argparse.ArgumentParser:
