@@ -68,12 +68,22 @@ def _set_film(document: str, film: Film, box: bool) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
+def _flat_root(scene: DevScene):
+    """The scene's flattened XML (frame 0), parsed."""
+    path = scene.path.resolve()
+    return ElementTree.fromstring(flatten_scene(path, root=path.parent, optional_params={FRAME_PARAMETER: "0"}).document)
+
+
 def scene_filter(scene: DevScene) -> str:
     """The reconstruction filter the scene's film declares (Mitsuba's default: gaussian)."""
-    path = scene.path.resolve()
-    root = ElementTree.fromstring(flatten_scene(path, root=path.parent, optional_params={FRAME_PARAMETER: "0"}).document)
-    rfilter = root.find(".//film/rfilter")
+    rfilter = _flat_root(scene).find(".//film/rfilter")
     return "gaussian" if rfilter is None else str(rfilter.get("type"))
+
+
+def scene_sampler(scene: DevScene) -> str:
+    """The sampler the scene's sensor declares (Mitsuba's default: independent)."""
+    sampler = _flat_root(scene).find(".//sensor/sampler")
+    return "independent" if sampler is None else str(sampler.get("type"))
 
 
 def competitor_scene(scene: DevScene, film: Film, box: bool = False):

@@ -14,11 +14,13 @@ import math
 import re
 import statistics
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from bench.common import command_line
 from bench.versus_mitsuba import DEFAULT_MAX_SPP, DEFAULT_REFERENCE_SPP, suite_scenes
+from bench.versus_mitsuba_scene import scene_sampler
+from service.render.scenes import STRATIFYING_SAMPLER_PLUGINS
 
 SUMMARY_NAME = "benchmarks-versus-mitsuba-suite.md"
 REPORT_GLOB = "benchmarks-versus-mitsuba*.md"
@@ -28,6 +30,10 @@ RELMSE_HEADER = "| scene (film, filter) | reference's relative error | loop relM
 # (goal 2×), peak RSS ≤ 8 GB for a 2 MP job.
 SHARE_BAR, MEDIAN_BAR, MEDIAN_GOAL, RSS_BAR_GB = 0.75, 1.5, 2.0, 8.0
 VARIANT_LABELS = {"llvm_ad_rgb": "CPU (`llvm_ad_rgb`)", "cuda_ad_rgb": "GPU (`cuda_ad_rgb`)"}
+# What a report says when its references were rendered with the `independent` sampler in place of
+# the scene's own (bench/templates/versus_mitsuba.md). Reports without it rendered a stratifying
+# scene's reference with the scene's sampler in 16-spp calls, which Mitsuba's `stratified` biases.
+INDEPENDENT_REFERENCE_MARK = "the scene's sampler replaced by `independent`"
 
 
 @dataclass(frozen=True)
@@ -46,6 +52,7 @@ class Reading:
     commit: str
     date: str                 # ISO, as the report prints it: newer sorts later
     settings: str             # "16–128 spp, 1024-spp references": runs may differ
+    independent_reference: bool = True  # the reference took the `independent` sampler (or the scene did)
 
 
 @dataclass
@@ -63,6 +70,10 @@ class VariantStanding:
     @property
     def ahead_in_relmse(self) -> list[Reading]:
         return [r for r in self.newest.values() if _relmse_speedup(r) > 1.0]
+
+    @property
+    def scene_sampler_references(self) -> list[Reading]:
+        return [r for r in self.newest.values() if not r.independent_reference]
 
     @property
     def unmeasured(self) -> list[str]:
@@ -115,6 +126,7 @@ def parse_report(path: Path) -> tuple[str, list[Reading]]:
     if variant is None or stamp is None:
         raise ValueError(f"{path}: not a --versus-mitsuba report (no 'Mitsuba variant' or 'Date' line)")
     settings = _run_settings(text)
+    independent_reference = INDEPENDENT_REFERENCE_MARK in " ".join(text.split())
     relmse = {row[0]: (row[5].replace("*", ""), float(row[1])) for row in _table_rows(lines, RELMSE_HEADER)}
     readings = []
     for row in _table_rows(lines, SMAPE_HEADER):
@@ -127,7 +139,7 @@ def parse_report(path: Path) -> tuple[str, list[Reading]]:
                                 relmse_speedup=relmse.get(row[0], ("n/a", math.nan))[0],
                                 reference_error=relmse.get(row[0], ("n/a", math.nan))[1], peak_rss_mb=float(row[8]),
                                 report=Path(path).name, commit=stamp.group(2), date=stamp.group(1),
-                                settings=settings))
+                                settings=settings, independent_reference=independent_reference))
     return variant.group(1), readings
 
 
@@ -136,13 +148,20 @@ def suite_names() -> list[str]:
     return [scene.name for scene in suite_scenes(None)]
 
 
-def suite_standing(reports: list[Path], suite: list[str]) -> list[VariantStanding]:
+def stratifying_scenes() -> set[str]:
+    """The suite's scenes whose sampler stratifies: their references differ by sampler across runs."""
+    return {scene.name for scene in suite_scenes(None) if scene_sampler(scene) in STRATIFYING_SAMPLER_PLUGINS}
+
+
+def suite_standing(reports: list[Path], suite: list[str], stratifying: set[str] = frozenset()) -> list[VariantStanding]:
     """Each variant's standing over `reports`, CPU first; a scene's newest reading wins, the
-    others are kept to show how far runs of one scene disagree."""
+    others are kept to show how far runs of one scene disagree. A reading of a `stratifying` scene
+    from a report whose references kept the scene's sampler is marked (Reading.independent_reference)."""
     by_variant: dict[str, list[Reading]] = {}
     for path in reports:
         variant, readings = parse_report(path)
-        by_variant.setdefault(variant, []).extend(readings)
+        by_variant.setdefault(variant, []).extend(
+            replace(r, independent_reference=r.independent_reference or r.scene not in stratifying) for r in readings)
     order = sorted(by_variant, key=lambda v: (v != "llvm_ad_rgb", v))
     standings = []
     for variant in order:
@@ -165,7 +184,7 @@ def _relmse_speedup(r: Reading) -> float:
 
 
 def _speedup_text(r: Reading) -> str:
-    return f"{'~' if r.extrapolated else ''}{r.speedup:.2f}×"
+    return f"{'~' if r.extrapolated else ''}{r.speedup:.2f}×{'' if r.independent_reference else ' †'}"
 
 
 def _verdict(standing: VariantStanding) -> str:
@@ -182,7 +201,10 @@ def _verdict(standing: VariantStanding) -> str:
             f"equal-error speed-up over the measured scenes **{standing.median_speedup:.2f}×** (bar ≥ "
             f"{MEDIAN_BAR}×, goal {MEDIAN_GOAL}×; {extrapolated} of {measured} readings extrapolated). Peak RSS "
             f"**{peak:.2f} GB** at most (bar ≤ {RSS_BAR_GB:.0f} GB). In relMSE with the references' noise taken out: "
-            f"ahead on **{len(standing.ahead_in_relmse)} of {measured}** measured.")
+            f"ahead on **{len(standing.ahead_in_relmse)} of {measured}** measured."
+            + (f" {len(standing.scene_sampler_references)} of the {measured} readings (†) rest on a reference "
+               "rendered with the scene's own stratifying sampler: re-measure them." if standing.scene_sampler_references
+               else ""))
 
 
 def summary_text(standings: list[VariantStanding], reports: list[Path], command: str) -> str:
@@ -214,6 +236,10 @@ def summary_text(standings: list[VariantStanding], reports: list[Path], command:
                        f"{r.reference_error:.4f} | {r.relmse_speedup} | "
                        f"{r.peak_rss_mb:.0f} | [{r.report}]({r.report}) ({r.commit}, {r.date[:10]}; {r.settings}) | "
                        f"{earlier} |")
+        if standing.scene_sampler_references:
+            out += ["", "† The reference kept the scene's stratifying sampler (reports written before the references "
+                    "took `independent`): at 2 MP it is rendered in 16-spp calls, over which Mitsuba's `stratified` "
+                    "sampler is biased, and `mi.render` + OIDN as written shares that bias; see docs/decisions.md."]
         if standing.unmeasured:
             out += ["", f"Not yet measured ({len(standing.unmeasured)}): {', '.join(standing.unmeasured)}."]
         out.append("")
@@ -227,7 +253,7 @@ def write_suite_summary(folder: Path, command: str) -> Path:
     if not reports:
         raise ValueError(f"no {REPORT_GLOB} reports in {folder}/ (run renderloop bench --versus-mitsuba first)")
     out = folder / SUMMARY_NAME
-    out.write_text(summary_text(suite_standing(reports, suite_names()), reports, command))
+    out.write_text(summary_text(suite_standing(reports, suite_names(), stratifying_scenes()), reports, command))
     return out
 
 

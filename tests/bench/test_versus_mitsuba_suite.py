@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 
 from bench.cli import main as bench_main
-from bench.versus_mitsuba_suite import SUMMARY_NAME, parse_report, suite_names, suite_standing, summary_text
+from bench.versus_mitsuba_suite import (INDEPENDENT_REFERENCE_MARK, SUMMARY_NAME, parse_report, stratifying_scenes,
+                                        suite_names, suite_standing, summary_text)
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 COMMITTED = sorted(p for p in DOCS.glob("benchmarks-versus-mitsuba*.md") if p.name != SUMMARY_NAME)
@@ -61,6 +62,21 @@ def test_an_extrapolated_reading_keeps_its_mark(tmp_path):
     assert (readings[0].relmse_speedup, readings[0].reference_error, readings[0].loop_smape) == ("3.00×", 0.02, 0.01)
 
 
+def test_a_stratifying_scene_read_against_a_reference_with_its_own_sampler_is_marked(tmp_path):
+    rows = {"living_room": "0.39×", "lamp_room": "~2.96×"}
+    old = write(tmp_path, "benchmarks-versus-mitsuba.md", report("2026-11-28T07:14+00:00", "aaa1111", rows))
+    new_text = report("2026-11-29T07:14+00:00", "bbb2222", {"metals": "1.20×"}).replace(
+        "Command:", f"References: with {INDEPENDENT_REFERENCE_MARK}.\n\nCommand:")
+    new = write(tmp_path, "benchmarks-versus-mitsuba-more.md", new_text)
+    suite = ["living_room", "lamp_room", "metals"]
+    (standing,) = suite_standing([old, new], suite, {"living_room", "metals"})
+    assert [r.scene for r in standing.scene_sampler_references] == ["living_room"]
+    text = summary_text([standing], [old, new], "x")
+    assert "**0.39× †**" in text and "**~2.96×**" in text and "**1.20×**" in text
+    assert "1 of the 3 readings (†) rest on a reference" in text
+    assert {"living_room", "dof_desk", "metals"} <= stratifying_scenes() and "lamp_room" not in stratifying_scenes()
+
+
 def test_the_reference_error_is_shown_and_relmse_counted_apart(tmp_path):
     path = write(tmp_path, "benchmarks-versus-mitsuba.md",
                  report("2026-11-27T07:14+00:00", "aaa1111", {"glass_box": "0.74×", "metals": "2.0×"}))
@@ -107,5 +123,5 @@ def test_the_command_writes_the_summary_and_refuses_a_folder_without_reports(tmp
     write(tmp_path, "benchmarks-versus-mitsuba.md", report("2026-11-27T07:14+00:00", "aaa1111", {"metals": "~5.59×"}))
     assert bench_main(["--versus-mitsuba-suite", "-o", str(tmp_path)]) == 0
     text = (tmp_path / SUMMARY_NAME).read_text()
-    assert "| metals (1633×1225, box) | **~5.59×** |" in text
+    assert "| metals (1633×1225, box) | **~5.59× †** |" in text  # ldsampler: its reference kept it
     assert f"Measured **1 of the suite's {len(suite_names())}** scenes" in text
