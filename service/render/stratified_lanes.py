@@ -46,9 +46,12 @@ from service.render.lane_map import ChunkRows, lane_rows, lane_within_row, row_p
 # neighbouring dimensions (32 900 at 4, 1 970 at 16, 168 at 64), `multijitter` 1 970 at 4, 290–460
 # at 16, ≤ 64 from 64 on; `orthogonal` (a Bose orthogonal array, prime² counts only) 47–75 at 4.
 # Multijitter's tie at 16 was kept: no bias seen (tests/fidelity scenes at 16 spp, mean within
-# 0.4 % of mi.render and 1.7 standard errors), and it cut the lit plane's variance (the test
-# scene in tests/render/test_stratified_sampling.py) at 16 spp to 0.04× independent's where four
-# orthogonal sequences of 4 gave 0.15×.
+# 0.4 % of mi.render and 1.7 standard errors; living_room at 256², 24 seeds: image mean −0.02 %
+# against independent's +0.01 %, where `stratified` reads −0.23 %), and it cut the lit plane's
+# variance (the test scene in tests/render/test_stratified_sampling.py) at 16 spp to 0.04×
+# independent's where four orthogonal sequences of 4 gave 0.15×. `stratified` for the long
+# sequences read 1.07× multijitter's denoised SMAPE on the 12 stratifying suite scenes at 16 spp
+# (docs/decisions.md).
 SEQUENCE_SAMPLERS = {1: "independent", 4: "orthogonal"}
 LONG_SEQUENCE_SAMPLER = "multijitter"
 
