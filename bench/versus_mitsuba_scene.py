@@ -68,10 +68,16 @@ def _set_film(document: str, film: Film, box: bool) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
-def _flat_root(scene: DevScene):
-    """The scene's flattened XML (frame 0), parsed."""
+def _flat_document(scene: DevScene) -> str:
+    """The scene file flattened by the service's resolver (defaults, `$`, includes → absolute
+    paths), frame 0."""
     path = scene.path.resolve()
-    return ElementTree.fromstring(flatten_scene(path, root=path.parent, optional_params={FRAME_PARAMETER: "0"}).document)
+    return flatten_scene(path, root=path.parent, optional_params={FRAME_PARAMETER: "0"}).document
+
+
+def _flat_root(scene: DevScene):
+    """The scene's flattened XML, parsed."""
+    return ElementTree.fromstring(_flat_document(scene))
 
 
 def scene_filter(scene: DevScene) -> str:
@@ -88,11 +94,8 @@ def scene_sampler(scene: DevScene) -> str:
 
 def competitor_scene(scene: DevScene, film: Film, box: bool = False):
     """The `mi.Scene` a user renders with `mi.render`: the file as written (its sampler too), frame 0,
-    the film at `film`'s size; `box`: its reconstruction filter replaced by a box. The file is
-    flattened by the service's resolver (defaults, `$`, includes → absolute paths) first."""
-    path = scene.path.resolve()
-    flat = flatten_scene(path, root=path.parent, optional_params={FRAME_PARAMETER: "0"})
-    return mitsuba().load_string(_set_film(flat.document, film, box))
+    the film at `film`'s size; `box`: its reconstruction filter replaced by a box."""
+    return mitsuba().load_string(_set_film(_flat_document(scene), film, box))
 
 
 def reference_scene(scene: DevScene, film: Film):
@@ -104,9 +107,7 @@ def reference_scene(scene: DevScene, film: Film):
     0.25 % below the `independent` sampler's (docs/decisions.md). The reference estimates the
     image itself, so only the unbiased sampler will do; `mi.render` as a competitor keeps the
     scene's own (competitor_scene)."""
-    path = scene.path.resolve()
-    flat = flatten_scene(path, root=path.parent, optional_params={FRAME_PARAMETER: "0"})
-    return mitsuba().load_string(_independent_sampler(_set_film(flat.document, film, False)))
+    return mitsuba().load_string(_independent_sampler(_set_film(_flat_document(scene), film, False)))
 
 
 def _independent_sampler(document: str) -> str:
