@@ -239,7 +239,8 @@ def summary_text(standings: list[VariantStanding], reports: list[Path], command:
         if standing.scene_sampler_references:
             out += ["", "† The reference kept the scene's stratifying sampler (reports written before the references "
                     "took `independent`): at 2 MP it is rendered in 16-spp calls, over which Mitsuba's `stratified` "
-                    "sampler is biased, and `mi.render` + OIDN as written shares that bias; see docs/decisions.md."]
+                    "sampler is measurably biased (`multijitter` and `ldsampler` not measured), and `mi.render` + "
+                    "OIDN as written shares that bias; see docs/decisions.md."]
         if standing.unmeasured:
             out += ["", f"Not yet measured ({len(standing.unmeasured)}): {', '.join(standing.unmeasured)}."]
         out.append("")
