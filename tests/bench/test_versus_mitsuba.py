@@ -234,13 +234,13 @@ def test_references_render_with_the_independent_sampler_and_competitors_with_the
     # is rendered in; the reference must be unbiased, the competitor the scene as written.
     (scene,) = suite_scenes(["living_room"])
     film = Film(64, 40)
-    reference_sampler = reference_scene(scene, film).sensors()[0].sampler()
+    reference_sensor = reference_scene(scene, film).sensors()[0]
     competitor_sampler = competitor_scene(scene, film).sensors()[0].sampler()
-    assert reference_sampler.class_name() == "IndependentSampler"
+    assert reference_sensor.sampler().class_name() == "IndependentSampler"
     assert competitor_sampler.class_name() == "StratifiedSampler"
-    assert reference_sampler.sample_count() == competitor_sampler.sample_count()
-    film_size = reference_scene(scene, film).sensors()[0].film().crop_size()
-    assert (int(film_size[0]), int(film_size[1])) == (64, 40)
+    assert reference_sensor.sampler().sample_count() == competitor_sampler.sample_count()
+    width, height = (int(v) for v in reference_sensor.film().crop_size())
+    assert (width, height) == (64, 40)
 
 
 def versus_mitsuba_parser() -> argparse.ArgumentParser:
