@@ -11,7 +11,7 @@ from bench.common import BenchNetworks, fill, fmt, load_average, provenance
 from bench.dev_references import DevScene
 from bench.versus_mitsuba_costs import STAGES as COST_STAGES, FixedCosts
 from bench.versus_mitsuba_run import Comparison, Curve, Reading
-from bench.versus_mitsuba_scene import AOVS, MAX_LANES, Film
+from bench.versus_mitsuba_scene import AOVS, COMPETITOR_CALL_LANES, Film
 from service.render.runtime import active_variant
 
 LOOP, UNIFORM = "loop", "uniform"
@@ -333,7 +333,7 @@ def report_text(results: Results) -> str:
         suites=("scenes/dev and scenes/val" if not s.subset else
                 f"scenes/dev and scenes/val named by `--scenes` ({', '.join(s.subset)})"),
         megapixels=f"{s.megapixels:g}", levels=", ".join(f"{x:g}" for x in levels), threads=s.threads,
-        aovs=AOVS, max_lanes=f"{MAX_LANES:,}", iterations=len(levels), reference_spp=s.reference_spp,
+        aovs=AOVS, max_lanes=f"{COMPETITOR_CALL_LANES:,}", iterations=len(levels), reference_spp=s.reference_spp,
         max_spp=s.max_spp, headline_table=headline_table(scenes), summary=summary(scenes, s.megapixels),
         relmse_table=relmse_table(scenes), relmse_summary=relmse_summary(scenes),
         curve_tables=curve_tables(scenes), stage_tables=stage_tables(scenes), compile_table=compile_table(scenes), memory_table=memory_table(scenes),

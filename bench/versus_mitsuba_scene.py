@@ -23,9 +23,14 @@ from service.render.scenes import FRAME_PARAMETER, film_size
 # OIDN's auxiliary features as a user asks Mitsuba for them (Mitsuba's `aov` plugin names).
 AOVS = "albedo:albedo,nn:sh_normal"
 AOV_CHANNELS = 6  # albedo RGB + normal XYZ, the last channels of the developed film
-# At most this many samples in flight per `mi.render` call: one call of 1024 spp at 2 MP would be
-# a 2-billion-lane wavefront (tens of GB on the LLVM backend). 2**25 lanes is 16 spp at 2 MP.
-MAX_LANES = 2 ** 25
+# At most this many samples in flight per competitor `mi.render` call: a user renders a level in one
+# call. Memory does not bind (Mitsuba draws each lane's samples inside the kernel: at ~2 MP one
+# 64-spp call of living_room peaked at 0.60 GB RSS, one 16-spp call at 0.58 GB); the cap keeps a
+# wavefront's index well inside Dr.Jit's 32-bit array sizes.
+COMPETITOR_CALL_LANES = 2 ** 30
+# A reference's calls: their spread is its variance, so it is rendered in many calls (64 at 2 MP
+# and 1024 spp); its `independent` sampler makes the split cost nothing in bias.
+REFERENCE_CALL_LANES = 2 ** 25
 REFERENCE_CALLS = 4
 
 
@@ -100,8 +105,8 @@ def competitor_scene(scene: DevScene, film: Film, box: bool = False):
 
 def reference_scene(scene: DevScene, film: Film):
     """The scene as written at `film`'s size with its sampler replaced by `independent` (its
-    sample count kept). A reference is rendered in calls of at most MAX_LANES samples, 16 spp
-    each at 2 MP, and Mitsuba's stratifying samplers are not unbiased over so short a sequence:
+    sample count kept). A reference is rendered in calls of at most REFERENCE_CALL_LANES samples,
+    16 spp each at 2 MP, and Mitsuba's stratifying samplers are not unbiased over so short a sequence:
     `stratified` ties the dimensions of a sample (consecutive permutation seeds,
     service/render/stratified_lanes.py), and on living_room at ~2 MP its 16-spp image mean sits
     0.25 % below the `independent` sampler's (docs/decisions.md). The reference estimates the
@@ -128,12 +133,16 @@ def aov_integrator(scene):
     return mitsuba().load_dict({"type": "aov", "aovs": AOVS, "img": scene.integrator()})
 
 
-def pass_plan(spp: int, pixels: int, min_calls: int = 1) -> tuple[int, int]:
+def pass_plan(spp: int, pixels: int, max_lanes: int = COMPETITOR_CALL_LANES, min_calls: int = 1) -> tuple[int, int]:
     """(samples per call, calls) for `spp` in total: the largest power of 4 that divides `spp`,
-    keeps a call within MAX_LANES and leaves at least `min_calls` calls. A power of 4 is what
+    keeps a call within `max_lanes` and leaves at least `min_calls` calls. A power of 4 is what
     Mitsuba's stratified, low-discrepancy and multi-jitter samplers take unrounded (ldsampler
-    renders 32 spp as 64)."""
-    cap = max(1, min(MAX_LANES // max(1, pixels), spp // max(1, min_calls)))
+    renders 32 spp as 64, `stratified` 128 as 144), so 128 spp is two calls of 64.
+
+    Fewer, longer calls matter to a stratifying sampler: over 16 samples `stratified` is biased,
+    and at ~256² 128 spp as 8 calls of 16 read 1.04× (median; up to 1.20×) the SMAPE after OIDN
+    of 2 calls of 64 on the stratifying dev/val scenes (docs/decisions.md)."""
+    cap = max(1, min(max_lanes // max(1, pixels), spp // max(1, min_calls)))
     per_call = 1
     while per_call * 4 <= min(spp, cap) and spp % (per_call * 4) == 0:
         per_call *= 4
@@ -183,7 +192,7 @@ def reference(scene: DevScene, film: Film, spp: int, cache_dir: Path) -> Referen
         mi = mitsuba()
         loaded = reference_scene(scene, film)
         # at least REFERENCE_CALLS calls: their spread is the reference's variance
-        per_call, calls = pass_plan(spp, film.width * film.height, REFERENCE_CALLS)
+        per_call, calls = pass_plan(spp, film.width * film.height, REFERENCE_CALL_LANES, REFERENCE_CALLS)
         total = squares = 0.0  # running sums: at 2 MP a pass list would hold gigabytes
         for i in range(calls):
             image = np.asarray(mi.render(loaded, spp=per_call, seed=seed + i), dtype=np.float64)[..., :3]

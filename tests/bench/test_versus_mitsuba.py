@@ -21,7 +21,8 @@ from bench.versus_mitsuba_report import LOOP, UNIFORM, headline_table
 from bench.common import Reference, load_bench_networks
 from bench.versus_mitsuba_run import (Curve, CurvePoint, better_of, compare, compile_loop_kernels, debiased_relmse,
                                       error_at_time, kernel_compile_seconds, make_loop, time_at_error)
-from bench.versus_mitsuba_scene import Film, competitor_scene, pass_plan, reference_scene, scaled_film
+from bench.versus_mitsuba_scene import (REFERENCE_CALL_LANES, REFERENCE_CALLS, Film, competitor_scene, pass_plan,
+                                        reference_scene, scaled_film)
 
 TINY_SCENE = "sun_room"  # a Gaussian film: both mi.render films run
 
@@ -222,11 +223,16 @@ def test_readings_in_relmse_use_the_points_relmse() -> None:
     assert better_of(loop, [other], "relmse") == by_relmse
 
 
-def test_pass_plan_keeps_powers_of_four_within_the_lane_cap() -> None:
+def test_pass_plan_renders_a_level_in_the_fewest_power_of_four_calls_within_the_lane_cap() -> None:
+    # the competitor at 2 MP: a power of 4 in one call, 128 spp as two of 64
+    assert pass_plan(16, 2_000_000) == (16, 1)
     assert pass_plan(32, 2_000_000) == (16, 2)
-    assert pass_plan(1024, 2_000_000) == (16, 64)
+    assert pass_plan(128, 2_000_000) == (64, 2)
     assert pass_plan(64, 10_000) == (64, 1)
-    assert pass_plan(256, 10_000, min_calls=4) == (64, 4)
+    # a reference: many calls for its spread, within its own lane cap
+    assert pass_plan(1024, 2_000_000, REFERENCE_CALL_LANES, REFERENCE_CALLS) == (16, 64)
+    assert pass_plan(256, 10_000, REFERENCE_CALL_LANES, min_calls=4) == (64, 4)
+    assert pass_plan(1024, 2_000_000, max_lanes=2 ** 27) == (64, 16)
 
 
 def test_references_render_with_the_independent_sampler_and_competitors_with_the_scenes_own() -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from bench.cli import main as bench_main
-from bench.versus_mitsuba_suite import (INDEPENDENT_REFERENCE_MARK, SUMMARY_NAME, parse_report, stratifying_scenes,
+from bench.versus_mitsuba_suite import (FEW_CALLS_MARK, INDEPENDENT_REFERENCE_MARK, SUMMARY_NAME, parse_report, stratifying_scenes,
                                         suite_names, suite_standing, summary_text)
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
@@ -62,19 +62,28 @@ def test_an_extrapolated_reading_keeps_its_mark(tmp_path):
     assert (readings[0].relmse_speedup, readings[0].reference_error, readings[0].loop_smape) == ("3.00×", 0.02, 0.01)
 
 
-def test_a_stratifying_scene_read_against_a_reference_with_its_own_sampler_is_marked(tmp_path):
+def test_a_stratifying_scene_is_marked_unless_its_report_rendered_reference_and_competitor_fairly(tmp_path):
     rows = {"living_room": "0.39×", "lamp_room": "~2.96×"}
     old = write(tmp_path, "benchmarks-versus-mitsuba.md", report("2026-11-28T07:14+00:00", "aaa1111", rows))
-    new_text = report("2026-11-29T07:14+00:00", "bbb2222", {"metals": "1.20×"}).replace(
-        "Command:", f"References: with {INDEPENDENT_REFERENCE_MARK}.\n\nCommand:")
-    new = write(tmp_path, "benchmarks-versus-mitsuba-more.md", new_text)
-    suite = ["living_room", "lamp_room", "metals"]
-    (standing,) = suite_standing([old, new], suite, {"living_room", "metals"})
-    assert [r.scene for r in standing.scene_sampler_references] == ["living_room"]
-    text = summary_text([standing], [old, new], "x")
-    assert "**0.39× †**" in text and "**~2.96×**" in text and "**1.20×**" in text
-    assert "1 of the 3 readings (†) rest on a reference" in text
+    # an independent reference but the competitor's levels split into 16-spp calls: still marked
+    split = write(tmp_path, "benchmarks-versus-mitsuba-more.md", report(
+        "2026-11-29T06:14+00:00", "bbb2222", {"dof_desk": "1.50×"}).replace(
+        "Command:", f"References: with {INDEPENDENT_REFERENCE_MARK}.\n\nCommand:"))
+    fair = write(tmp_path, "benchmarks-versus-mitsuba-more-2.md", report(
+        "2026-11-29T07:14+00:00", "ccc3333", {"metals": "1.20×"}).replace(
+        "Command:", f"`mi.render`\n{FEW_CALLS_MARK}; references: with {INDEPENDENT_REFERENCE_MARK}.\n\nCommand:"))
+    suite = ["living_room", "lamp_room", "dof_desk", "metals"]
+    (standing,) = suite_standing([old, split, fair], suite, {"living_room", "dof_desk", "metals"})
+    assert [r.scene for r in standing.unfair_to_stratifying] == ["living_room", "dof_desk"]
+    text = summary_text([standing], [old, split, fair], "x")
+    assert "**0.39× †**" in text and "**1.50× †**" in text and "**~2.96×**" in text and "**1.20×**" in text
+    assert "2 of the 4 readings (†) rest on a stratifying sampler's 16-spp bias" in text
     assert {"living_room", "dof_desk", "metals"} <= stratifying_scenes() and "lamp_room" not in stratifying_scenes()
+
+
+def test_the_report_template_carries_both_marks_of_a_fair_stratifying_run():
+    template = " ".join((Path(__file__).resolve().parents[2] / "bench/templates/versus_mitsuba.md").read_text().split())
+    assert INDEPENDENT_REFERENCE_MARK in template and FEW_CALLS_MARK in template
 
 
 def test_the_reference_error_is_shown_and_relmse_counted_apart(tmp_path):
