@@ -137,11 +137,8 @@ def pass_plan(spp: int, pixels: int, max_lanes: int = COMPETITOR_CALL_LANES, min
     """(samples per call, calls) for `spp` in total: the largest power of 4 that divides `spp`,
     keeps a call within `max_lanes` and leaves at least `min_calls` calls. A power of 4 is what
     Mitsuba's stratified, low-discrepancy and multi-jitter samplers take unrounded (ldsampler
-    renders 32 spp as 64, `stratified` 128 as 144), so 128 spp is two calls of 64.
-
-    Fewer, longer calls matter to a stratifying sampler: over 16 samples `stratified` is biased,
-    and at ~256² 128 spp as 8 calls of 16 read 1.04× (median; up to 1.20×) the SMAPE after OIDN
-    of 2 calls of 64 on the stratifying dev/val scenes (docs/decisions.md)."""
+    renders 32 spp as 64, `stratified` 128 as 144), so 128 spp is two calls of 64. Fewer, longer
+    calls matter to a stratifying sampler, biased over 16 samples (bench.experiments.competitor_calls)."""
     cap = max(1, min(max_lanes // max(1, pixels), spp // max(1, min_calls)))
     per_call = 1
     while per_call * 4 <= min(spp, cap) and spp % (per_call * 4) == 0:
@@ -156,13 +153,13 @@ class AovImage:
     normal: np.ndarray
 
 
-def render_with_aovs(scene, integrator, spp: int, seed: int) -> AovImage:
-    """`mi.render` of `spp` samples per pixel (in pass_plan's calls, averaged), split into colour,
-    albedo and normal."""
+def render_with_aovs(scene, integrator, spp: int, seed: int, max_lanes: int = COMPETITOR_CALL_LANES) -> AovImage:
+    """`mi.render` of `spp` samples per pixel (in pass_plan's calls within `max_lanes`, averaged),
+    split into colour, albedo and normal."""
     mi = mitsuba()
     film = scene.sensors()[0].film()
     width, height = (int(v) for v in film.crop_size())
-    per_call, calls = pass_plan(spp, width * height)
+    per_call, calls = pass_plan(spp, width * height, max_lanes)
     total = None
     for index in range(calls):
         image = mi.render(scene, integrator=integrator, spp=per_call, seed=seed + index)

@@ -34,8 +34,8 @@ VARIANT_LABELS = {"llvm_ad_rgb": "CPU (`llvm_ad_rgb`)", "cuda_ad_rgb": "GPU (`cu
 # the scene's own, and when `mi.render` rendered each level in as few calls as the sampler allows
 # (bench/templates/versus_mitsuba.md). Over 16 samples Mitsuba's `stratified` sampler is biased:
 # reports without the first rendered a stratifying scene's reference with it in 16-spp calls;
-# reports without the second split the competitor's levels into 16-spp calls at 2 MP, which cost
-# it 1.04× SMAPE (median) at 256² (docs/decisions.md).
+# reports without the second split the competitor's levels into 16-spp calls at 2 MP, which
+# handicaps it (bench.experiments.competitor_calls, docs/decisions.md).
 INDEPENDENT_REFERENCE_MARK = "the scene's sampler replaced by `independent`"
 FEW_CALLS_MARK = "in as few calls as the sampler allows"
 
@@ -247,9 +247,8 @@ def summary_text(standings: list[VariantStanding], reports: list[Path], command:
             out += ["", "† A stratifying scene measured before the bench rendered it fairly: its reference kept the "
                     "scene's sampler, or `mi.render` + OIDN split each level into 16-spp calls (both at 2 MP). "
                     "Over 16 samples Mitsuba's `stratified` sampler is measurably biased: the first biases the "
-                    "reference towards the competitor as written, the second handicaps the competitor (at 256², 8 "
-                    "calls of 16 spp read 1.04× the SMAPE after OIDN of 2 calls of 64, median; up to 1.20×); "
-                    "see docs/decisions.md."]
+                    "reference towards the competitor as written, the second handicaps the competitor "
+                    "(`python -m bench.experiments.competitor_calls`); see docs/decisions.md."]
         if standing.unmeasured:
             out += ["", f"Not yet measured ({len(standing.unmeasured)}): {', '.join(standing.unmeasured)}."]
         out.append("")
