@@ -78,6 +78,20 @@ class VariantStanding:
         return [r for r in self.newest.values() if _relmse_speedup(r) > 1.0]
 
     @property
+    def equal_time_measured(self) -> list[float]:
+        """The equal-time SMAPE ratios read inside the competitor's measured curve (not `~`): the
+        loop's final time falls between two of the competitor's points, so no power law is involved."""
+        ratios = []
+        for r in self.newest.values():
+            try:
+                ratio, extrapolated = _number(r.equal_time)
+            except ValueError:
+                continue
+            if not extrapolated:
+                ratios.append(ratio)
+        return ratios
+
+    @property
     def unfair_to_stratifying(self) -> list[Reading]:
         return [r for r in self.newest.values() if not r.fair_to_stratifying]
 
@@ -195,6 +209,18 @@ def _speedup_text(r: Reading) -> str:
     return f"{'~' if r.extrapolated else ''}{r.speedup:.2f}×{'' if r.fair_to_stratifying else ' †'}"
 
 
+def _equal_time_sentence(standing: VariantStanding) -> str:
+    """The readings that need no extrapolation: at the loop's own wall time, inside the competitor's
+    measured curve. A ratio printed as 1.00× counts as not ahead."""
+    ratios = standing.equal_time_measured
+    if not ratios:
+        return ""
+    ahead = sum(ratio < 1.0 for ratio in ratios)
+    return (f" Read inside the competitor's measured curve with no extrapolation (the equal-time SMAPE ratio, "
+            f"measured on {len(ratios)} of {len(standing.newest)}): the loop's SMAPE is lower on **{ahead} of "
+            f"{len(ratios)}**, median {statistics.median(ratios):.2f}×.")
+
+
 def _verdict(standing: VariantStanding) -> str:
     measured, total = len(standing.newest), len(standing.suite)
     ahead = len(standing.ahead)
@@ -209,7 +235,7 @@ def _verdict(standing: VariantStanding) -> str:
             f"equal-error speed-up over the measured scenes **{standing.median_speedup:.2f}×** (bar ≥ "
             f"{MEDIAN_BAR}×, goal {MEDIAN_GOAL}×; {extrapolated} of {measured} readings extrapolated). Peak RSS "
             f"**{peak:.2f} GB** at most (bar ≤ {RSS_BAR_GB:.0f} GB). In relMSE with the references' noise taken out: "
-            f"ahead on **{len(standing.ahead_in_relmse)} of {measured}** measured."
+            f"ahead on **{len(standing.ahead_in_relmse)} of {measured}** measured." + _equal_time_sentence(standing)
             + (f" {len(standing.unfair_to_stratifying)} of the {measured} readings (†) rest on a stratifying "
                "sampler's 16-spp bias: re-measure them." if standing.unfair_to_stratifying else ""))
 
