@@ -10,7 +10,7 @@ from pathlib import Path
 from bench.common import BenchNetworks, fill, fmt, load_average, provenance
 from bench.dev_references import DevScene
 from bench.versus_mitsuba_costs import STAGES as COST_STAGES, FixedCosts
-from bench.versus_mitsuba_run import Comparison, Curve, Reading
+from bench.versus_mitsuba_run import Comparison, Curve, EndReading, Reading, least_at_competitor_ends
 from bench.versus_mitsuba_scene import AOVS, COMPETITOR_CALL_LANES, Film
 from service.render.runtime import active_variant
 
@@ -20,6 +20,8 @@ LOOP, UNIFORM = "loop", "uniform"
 GOAL_SHARE_AHEAD, GOAL_MEDIAN_SPEEDUP, GOAL_PEAK_RSS_GB = 0.75, 1.5, 8.0
 FULL_COMMAND = "renderloop bench --versus-mitsuba -o docs"  # the defaults: 2 MP, 16…1024 spp, 4096-spp references
 FULL_MEGAPIXELS = 2.0  # what "the full figures" means
+# The table read at each competitor's last point; `--versus-mitsuba-suite` finds it by this header.
+END_HEADER = "| scene (film, filter) | `mi.render` + OIDN at its last point |"
 LOOP_STAGES = ("render", "denoise", "error", "allocate")
 
 
@@ -125,6 +127,47 @@ def summary(scenes: list[SceneRun], megapixels: float) -> str:
             f"(bar ≤ {GOAL_PEAK_RSS_GB:g} GB for a 2 MP job){at_size}.")
 
 
+def competitor_curves(run: SceneRun) -> list[Curve]:
+    return [c for key, c in run.curves.items() if key.startswith("mitsuba")]
+
+
+def end_reading(run: SceneRun) -> EndReading:
+    return least_at_competitor_ends(run.curves[LOOP], competitor_curves(run))
+
+
+def end_cells(reading: EndReading) -> tuple[str, str]:
+    """(the loop's seconds, the speed-up) as printed: `≤`/`≥` for a bound from the loop's first
+    point, `~` for an extrapolated time, "never" where the loop's curve does not fall that low."""
+    seconds = reading.loop_seconds
+    if not math.isfinite(seconds.value):
+        return "never", "0×"
+    mark = {"at most": ("≤", "≥"), "extrapolated": ("~", "~")}.get(seconds.how, ("", ""))
+    return f"{mark[0]}{seconds.value:.2f}", f"{mark[1]}{reading.speedup:.2f}×"
+
+
+def end_table(scenes: list[SceneRun]) -> str:
+    lines = [END_HEADER + " its SMAPE | its s | the loop's s to that SMAPE | speed-up there |",
+             "|---|---|---:|---:|---:|---:|"]
+    for run in scenes:
+        reading = end_reading(run)
+        loop_seconds, speedup = end_cells(reading)
+        lines.append(f"| {scene_cell(run)} | {run.curves[reading.other].label} | {reading.target:.4g} | "
+                     f"{reading.other_seconds:.2f} | {loop_seconds} | **{speedup}** |")
+    return "\n".join(lines)
+
+
+def end_summary(scenes: list[SceneRun]) -> str:
+    readings = [end_reading(run) for run in scenes]
+    if not readings:
+        return ""
+    ahead = sum(r.speedup > 1 for r in readings)
+    measured = sum(r.measured for r in readings)
+    return (f"At the competitors' own last points the loop gets there sooner on **{ahead} of {len(readings)}** "
+            f"scenes, median **{statistics.median(r.speedup for r in readings):.2f}×**; {measured} of "
+            f"{len(readings)} readings need no extrapolation (read between two points of the loop's curve, or "
+            f"bounded by its first: `≥`).")
+
+
 def relmse_table(scenes: list[SceneRun]) -> str:
     """The headline read in relMSE with the reference's own noise taken out (`debiased_relmse`)."""
     lines = ["| scene (film, filter) | reference's relative error | loop relMSE | better `mi.render` + OIDN | "
@@ -158,7 +201,7 @@ def curve_tables(scenes: list[SceneRun]) -> str:
         lines = [f"**{scene_cell(run)}**, reference's own relative error {run.reference_error:.4f}", "",
                  "| spp | " + " | ".join(c.label for c in curves) + " |", "|---:|" + "---:|" * len(curves)]
         for i in range(max(len(c.points) for c in curves)):
-            cells = [f"{c.points[i].smape:.4f} / {c.points[i].relmse:.3g} @ {c.points[i].seconds:.2f} s"
+            cells = [f"{c.points[i].smape:.4g} / {c.points[i].relmse:.3g} @ {c.points[i].seconds:.2f} s"
                      if i < len(c.points) else "" for c in curves]
             lines.append(f"| {curves[0].points[i].spp:g} | " + " | ".join(cells) + " |")
         blocks.append("\n".join(lines))
@@ -335,6 +378,7 @@ def report_text(results: Results) -> str:
         megapixels=f"{s.megapixels:g}", levels=", ".join(f"{x:g}" for x in levels), threads=s.threads,
         aovs=AOVS, max_lanes=f"{COMPETITOR_CALL_LANES:,}", iterations=len(levels), reference_spp=s.reference_spp,
         max_spp=s.max_spp, headline_table=headline_table(scenes), summary=summary(scenes, s.megapixels),
+        end_table=end_table(scenes), end_summary=end_summary(scenes),
         relmse_table=relmse_table(scenes), relmse_summary=relmse_summary(scenes),
         curve_tables=curve_tables(scenes), stage_tables=stage_tables(scenes), compile_table=compile_table(scenes), memory_table=memory_table(scenes),
         network_table=network_table(scenes, results.probe, s.threads), fixed_costs_note=fixed_costs_note(scenes),

@@ -349,3 +349,42 @@ def better_of(loop: Curve, competitors: list[Curve], metric: str = "smape") -> C
     """The comparison against whichever competitor reaches the loop's final error sooner."""
     comparisons = [compare(loop, c, metric) for c in competitors]
     return min(comparisons, key=lambda c: c.other_seconds.value if math.isfinite(c.other_seconds.value) else math.inf)
+
+
+@dataclass(frozen=True)
+class EndReading:
+    """The loop against one competitor at that competitor's last measured point (its highest spp):
+    the competitor's side is a measurement, and the loop's time to the same error is read off the
+    loop's own curve, "interpolated" between two of its points, "at most" its first point's time
+    when that point is already as low (the speed-up is then a lower bound), else "extrapolated"."""
+
+    other: str  # the competitor curve's key
+    target: float  # the competitor's error at its last point
+    other_seconds: float  # the competitor's time to its last point
+    loop_seconds: Reading  # the loop's time to `target`
+
+    @property
+    def speedup(self) -> float:
+        return self.other_seconds / self.loop_seconds.value
+
+    @property
+    def measured(self) -> bool:
+        return self.loop_seconds.how in ("interpolated", "at most")
+
+
+def at_competitor_end(loop: Curve, other: Curve, metric: str = "smape") -> EndReading:
+    """The loop's time to `other`'s last error (see EndReading)."""
+    end = other.points[-1]
+    target = getattr(end, metric)
+    first = next((p for p in loop.points if p.seconds > 0 and math.isfinite(getattr(p, metric))), None)
+    if first is not None and getattr(first, metric) <= target:
+        return EndReading(other.key, target, end.seconds, Reading(first.seconds, "at most"))
+    return EndReading(other.key, target, end.seconds, time_at_error(loop, target, metric))
+
+
+def least_at_competitor_ends(loop: Curve, competitors: list[Curve], metric: str = "smape") -> EndReading:
+    """The reading least favourable to the loop among the competitors' last points: the strongest
+    claim that needs no extrapolation of the competitor."""
+    readings = [at_competitor_end(loop, c, metric) for c in competitors]
+    return min(readings, key=lambda r: r.speedup if math.isfinite(r.speedup) else math.inf)
+

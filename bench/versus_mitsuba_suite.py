@@ -19,6 +19,7 @@ from pathlib import Path
 
 from bench.common import command_line
 from bench.versus_mitsuba import DEFAULT_MAX_SPP, DEFAULT_REFERENCE_SPP, suite_scenes
+from bench.versus_mitsuba_report import END_HEADER
 from bench.versus_mitsuba_scene import scene_sampler
 from service.render.scenes import STRATIFYING_SAMPLER_PLUGINS
 
@@ -59,6 +60,9 @@ class Reading:
     # the reference took the `independent` sampler and `mi.render` rendered each level in as few
     # calls as the sampler allows (or the scene's sampler does not stratify)
     fair_to_stratifying: bool = True
+    # the speed-up at the better-for-Mitsuba competitor's own last point, as printed ("≥1.52×",
+    # "2.47×", "~0.9×"); empty for a report written before it had that table
+    end_speedup: str = ""
 
 
 @dataclass
@@ -90,6 +94,17 @@ class VariantStanding:
             if not extrapolated:
                 ratios.append(ratio)
         return ratios
+
+    @property
+    def end_speedups_measured(self) -> list[float]:
+        """The speed-ups at the competitors' own last points that need no extrapolation (unmarked,
+        or `≥`: a lower bound from the loop's first point)."""
+        values = []
+        for r in self.newest.values():
+            text = r.end_speedup.lstrip("≥")
+            if text and not text.startswith("~"):
+                values.append(_number(text)[0])
+        return values
 
     @property
     def unfair_to_stratifying(self) -> list[Reading]:
@@ -149,6 +164,7 @@ def parse_report(path: Path) -> tuple[str, list[Reading]]:
     flat = " ".join(text.split())
     fair_to_stratifying = INDEPENDENT_REFERENCE_MARK in flat and FEW_CALLS_MARK in flat
     relmse = {row[0]: (row[5].replace("*", ""), float(row[1])) for row in _table_rows(lines, RELMSE_HEADER)}
+    at_end = {row[0]: row[5].replace("*", "") for row in _table_rows(lines, END_HEADER)}
     readings = []
     for row in _table_rows(lines, SMAPE_HEADER):
         label = re.fullmatch(r"(\w+) \((.+)\)", row[0])
@@ -160,7 +176,8 @@ def parse_report(path: Path) -> tuple[str, list[Reading]]:
                                 relmse_speedup=relmse.get(row[0], ("n/a", math.nan))[0],
                                 reference_error=relmse.get(row[0], ("n/a", math.nan))[1], peak_rss_mb=float(row[8]),
                                 report=Path(path).name, commit=stamp.group(2), date=stamp.group(1),
-                                settings=settings, fair_to_stratifying=fair_to_stratifying))
+                                settings=settings, fair_to_stratifying=fair_to_stratifying,
+                                end_speedup=at_end.get(row[0], "")))
     return variant.group(1), readings
 
 
@@ -221,6 +238,17 @@ def _equal_time_sentence(standing: VariantStanding) -> str:
             f"{len(ratios)}**, median {statistics.median(ratios):.2f}×.")
 
 
+def _end_sentence(standing: VariantStanding) -> str:
+    speedups = standing.end_speedups_measured
+    if not speedups:
+        return ""
+    with_table = sum(bool(r.end_speedup) for r in standing.newest.values())
+    return (f" At the competitor's own last measured point, with no extrapolation at all (the reports that have "
+            f"that table: {with_table} of {len(standing.newest)} scenes, {len(speedups)} read inside the loop's "
+            f"curve or bounded by its first point): the loop gets there sooner on **{sum(s > 1 for s in speedups)} "
+            f"of {len(speedups)}**, median {statistics.median(speedups):.2f}×.")
+
+
 def _verdict(standing: VariantStanding) -> str:
     measured, total = len(standing.newest), len(standing.suite)
     ahead = len(standing.ahead)
@@ -236,6 +264,7 @@ def _verdict(standing: VariantStanding) -> str:
             f"{MEDIAN_BAR}×, goal {MEDIAN_GOAL}×; {extrapolated} of {measured} readings extrapolated). Peak RSS "
             f"**{peak:.2f} GB** at most (bar ≤ {RSS_BAR_GB:.0f} GB). In relMSE with the references' noise taken out: "
             f"ahead on **{len(standing.ahead_in_relmse)} of {measured}** measured." + _equal_time_sentence(standing)
+            + _end_sentence(standing)
             + (f" {len(standing.unfair_to_stratifying)} of the {measured} readings (†) rest on a stratifying "
                "sampler's 16-spp bias: re-measure them." if standing.unfair_to_stratifying else ""))
 
@@ -249,7 +278,11 @@ def summary_text(standings: list[VariantStanding], reports: list[Path], command:
            "(scenes/dev and scenes/val): an unmeasured scene is not counted as ahead. Equal-error speed-up "
            "= the time the better `mi.render` + OIDN (the scene's own filter or a box film) needs to reach "
            "the loop's final SMAPE ÷ the loop's time; `~` marks a reading extrapolated from a power law "
-           "fitted to the competitor's curve (each report says how). Runs differ in load and commit: "
+           "fitted to the competitor's curve (each report says how). The speed-up at the competitor's last "
+           "point needs no power law: each `mi.render` + OIDN's own highest-spp point (measured) against the "
+           "loop's time to that error off the loop's own curve, the film least favourable to the loop (`≥`: "
+           "the loop's first iteration is already as low, a lower bound; `—`: a report from before this "
+           "reading). Runs differ in load and commit: "
            "each row names its report. SMAPE cannot read an error below the reference's own (for Gaussian "
            "noise of relative standard error s, a pixel's expected SMAPE against the truth is about "
            "s·√(2/π)/2 ≈ 0.4 s): where that floor is near the methods' SMAPE, both sit at it and the relMSE "
@@ -257,16 +290,16 @@ def summary_text(standings: list[VariantStanding], reports: list[Path], command:
     for standing in standings:
         out += [f"## {VARIANT_LABELS.get(standing.variant, f'`{standing.variant}`')}", "", _verdict(standing), "",
                 "| scene (film, filter) | equal-error speed-up (SMAPE) | equal-time SMAPE ratio | loop SMAPE | "
-                "reference's relative error | equal-error speed-up (relMSE) | loop peak RSS MB | "
-                "report (commit, date; run) | earlier runs |",
-                "|---|---:|---:|---:|---:|---:|---:|---|---|"]
+                "reference's relative error | equal-error speed-up (relMSE) | speed-up at the competitor's last point | "
+                "loop peak RSS MB | report (commit, date; run) | earlier runs |",
+                "|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
         for name in standing.suite:
             r = standing.newest.get(name)
             if r is None:
                 continue
             earlier = ", ".join(f"{_speedup_text(o)} ({o.report}, {o.commit})" for o in standing.older.get(name, []))
             out.append(f"| {r.scene} ({r.film}) | **{_speedup_text(r)}** | {r.equal_time} | {r.loop_smape:.4f} | "
-                       f"{r.reference_error:.4f} | {r.relmse_speedup} | "
+                       f"{r.reference_error:.4f} | {r.relmse_speedup} | {r.end_speedup or '—'} | "
                        f"{r.peak_rss_mb:.0f} | [{r.report}]({r.report}) ({r.commit}, {r.date[:10]}; {r.settings}) | "
                        f"{earlier} |")
         if standing.unfair_to_stratifying:

@@ -19,7 +19,8 @@ from bench.versus_mitsuba import (add_arguments, measure_versus_mitsuba, report_
 from bench.versus_mitsuba_costs import FixedCosts
 from bench.versus_mitsuba_report import LOOP, UNIFORM, headline_table
 from bench.common import Reference, load_bench_networks
-from bench.versus_mitsuba_run import (Curve, CurvePoint, better_of, compare, compile_loop_kernels, debiased_relmse,
+from bench.versus_mitsuba_run import (Curve, CurvePoint, at_competitor_end, better_of, compare,
+                                      least_at_competitor_ends, compile_loop_kernels, debiased_relmse,
                                       error_at_time, kernel_compile_seconds, make_loop, time_at_error)
 from bench.versus_mitsuba_scene import (REFERENCE_CALL_LANES, REFERENCE_CALLS, Film, competitor_scene, pass_plan,
                                         reference_scene, scaled_film)
@@ -77,7 +78,8 @@ def test_tiny_run_writes_a_filled_report_with_every_section(tiny_results, tmp_pa
                    "## Fixed costs per iteration", "state snapshot on the loop's thread", "checkpoint write",
                    "preview write", "What the writes cost the render",
                    "**A small run**", "renderloop bench --versus-mitsuba -o docs", "256 spp", "quality high",
-                   "Our denoise (the full pass with its OIDN call) takes", "Kernel compiles, not in any time above"):
+                   "Our denoise (the full pass with its OIDN call) takes", "Kernel compiles, not in any time above",
+                   "Read without extrapolating the competitor", "At the competitors' own last points the loop"):
         assert needed in text, needed
     assert "nan" not in text.lower().replace("nanos", "")
     assert f"{TINY_SCENE}:** one 16-spp iteration" in text  # the --costs-megapixels probe's table
@@ -197,6 +199,36 @@ def test_extrapolation_is_flagged_when_the_curves_do_not_meet() -> None:
     # the competitor that reaches the loop's SMAPE sooner is the one compared
     assert best.other == "mitsuba-box"
     assert best.speedup == pytest.approx(time_at_error(already_lower, 0.02).value / 2.0)
+
+
+def test_the_reading_at_a_competitors_last_point_interpolates_the_loops_curve_and_needs_no_power_law() -> None:
+    loop = curve(LOOP, [(16, 1.0, 0.08), (32, 2.0, 0.05), (64, 4.0, 0.03)])
+    other = curve("mitsuba", [(16, 1.5, 0.09), (32, 3.0, 0.07), (64, 6.0, 0.06)])
+    reading = at_competitor_end(loop, other)
+    assert reading.measured and reading.loop_seconds.how == "interpolated"
+    assert (reading.target, reading.other_seconds) == (0.06, 6.0)
+    assert reading.loop_seconds.value == pytest.approx(loglog(2.0, 0.05, 1.0, 0.08, 0.06))
+    assert reading.speedup == pytest.approx(6.0 / reading.loop_seconds.value) and reading.speedup > 1
+
+
+def test_the_reading_at_a_competitors_last_point_is_a_bound_when_the_loops_first_point_is_already_as_low() -> None:
+    loop = curve(LOOP, [(16, 2.0, 0.02), (32, 4.0, 0.015)])
+    weak = curve("mitsuba", [(16, 1.0, 0.05), (32, 3.0, 0.03)])
+    reading = at_competitor_end(loop, weak)
+    assert reading.loop_seconds.how == "at most" and reading.measured
+    assert reading.loop_seconds.value == 2.0 and reading.speedup == pytest.approx(1.5)
+
+
+def test_the_least_favourable_competitor_end_is_reported_and_a_loop_that_never_gets_there_reads_zero() -> None:
+    loop = curve(LOOP, [(16, 1.0, 0.08), (32, 2.0, 0.05), (64, 4.0, 0.04)])
+    scene_filter = curve("mitsuba", [(16, 1.0, 0.10), (32, 2.0, 0.09), (64, 4.0, 0.08)])
+    box = curve("mitsuba-box", [(16, 1.0, 0.07), (32, 2.0, 0.05), (64, 4.0, 0.045)])
+    least = least_at_competitor_ends(loop, [scene_filter, box])
+    # the box film's last point (0.045) takes the loop longer than the scene filter's (0.08): it is the one shown
+    assert least.other == "mitsuba-box" and least.speedup < at_competitor_end(loop, scene_filter).speedup
+    unreachable = curve("mitsuba-box", [(16, 1.0, 0.02), (32, 2.0, 0.01)])
+    flat_loop = curve(LOOP, [(16, 1.0, 0.05), (32, 2.0, 0.05)])
+    assert least_at_competitor_ends(flat_loop, [scene_filter, unreachable]).speedup == 0
 
 
 def test_debiased_relmse_reads_the_error_against_the_truth_through_a_noisy_reference() -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from bench.cli import main as bench_main
+from bench.versus_mitsuba_report import END_HEADER
 from bench.versus_mitsuba_suite import (FEW_CALLS_MARK, INDEPENDENT_REFERENCE_MARK, SUMMARY_NAME, parse_report, stratifying_scenes,
                                         suite_names, suite_standing, summary_text)
 
@@ -98,6 +99,25 @@ def test_equal_time_ratios_read_inside_the_competitors_curve_are_counted_apart_f
     text = summary_text([standing], [path], "x")
     # a printed 1.00× is not counted ahead; the extrapolated ~0.80× is left out
     assert "(the equal-time SMAPE ratio, measured on 2 of 3): the loop's SMAPE is lower on **1 of 2**, median 0.97×" in text
+
+
+def test_the_speedup_at_the_competitors_last_point_is_read_where_a_report_has_it_and_counted_unless_extrapolated(tmp_path):
+    old = write(tmp_path, "benchmarks-versus-mitsuba.md", report("2026-11-27T07:14+00:00", "aaa1111",
+                                                                 {"metals": "~5.59×"}))
+    end = ("\n" + END_HEADER + " its SMAPE | its s | the loop's s to that SMAPE | speed-up there |\n"
+           "|---|---|---:|---:|---:|---:|\n"
+           "| sun_room (1633×1225, box) | `mi.render` + OIDN, box film | 0.016 | 100.00 | 40.00 | **2.50×** |\n"
+           "| lamp_room (1633×1225, box) | `mi.render` + OIDN, box film | 0.03 | 50.00 | ≤10.00 | **≥5.00×** |\n"
+           "| hard_shadows (1633×1225, box) | `mi.render` + OIDN, box film | 0.01 | 50.00 | ~60.00 | **~0.83×** |\n")
+    new = write(tmp_path, "benchmarks-versus-mitsuba-more.md", report(
+        "2026-11-29T07:14+00:00", "bbb2222", {"sun_room": "~1.20×", "lamp_room": "~3.00×", "hard_shadows": "~1.10×"}) + end)
+    (standing,) = suite_standing([old, new], ["metals", "sun_room", "lamp_room", "hard_shadows"])
+    assert standing.newest["metals"].end_speedup == "" and standing.newest["lamp_room"].end_speedup == "≥5.00×"
+    assert sorted(standing.end_speedups_measured) == [2.5, 5.0]  # the extrapolated ~0.83× is left out
+    text = summary_text([standing], [old, new], "x")
+    assert "(the reports that have that table: 3 of 4 scenes, 2 read inside the loop's curve" in text
+    assert "the loop gets there sooner on **2 of 2**, median 3.75×" in text
+    assert "| ≥5.00× |" in text and "| — |" in text
 
 
 def test_the_reference_error_is_shown_and_relmse_counted_apart(tmp_path):
