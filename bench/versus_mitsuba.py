@@ -19,7 +19,7 @@ from bench.common import BenchNetworks, OidnDenoise, command_line, load_average,
 from bench.dev_references import DEV_SCENES, VAL_SCENES, DevScene, dev_scenes
 from bench.loop_report import DEFAULT_CACHE_DIR, THREAD_PROBE_SIZE, choose_torch_threads
 from bench.versus_mitsuba_costs import measure_fixed_costs
-from bench.versus_mitsuba_report import LOOP, UNIFORM, CostProbe, Results, SceneRun, Settings, report_text
+from bench.versus_mitsuba_report import LOOP, LOOP_LABEL, UNIFORM, CostProbe, Results, SceneRun, Settings, report_text
 from bench.versus_mitsuba_run import Curve, better_of, compare, loop_curve, mitsuba_curve, spp_levels, warm_up_loop
 from bench.versus_mitsuba_scene import reference, scaled_film, scene_filter
 from service.render.runtime import network_device
@@ -56,7 +56,7 @@ def run_scene(scene: DevScene, settings: Settings, nets: BenchNetworks, oidn: Oi
         curves[curve.key] = curve
         say(f"{curve.label}: SMAPE {curve.points[-1].smape:.4f} at {levels[-1]} spp, {curve.points[-1].seconds:.1f} s")
     warm_up_loop(scene, film, nets.networks)
-    loop = loop_curve(LOOP, "the loop (error allocator)", scene, film, nets.networks, "error", levels, ref)
+    loop = loop_curve(LOOP, LOOP_LABEL, scene, film, nets.networks, "error", levels, ref)
     uniform = loop_curve(UNIFORM, "uniform + ours", scene, film, nets.networks, "uniform", levels, ref)
     curves[LOOP], curves[UNIFORM] = loop.curve, uniform.curve
     say(f"loop: SMAPE {loop.curve.points[-1].smape:.4f} after {loop.curve.points[-1].seconds:.1f} s")
@@ -72,7 +72,7 @@ def probe_costs(scene: DevScene, megapixels: float, nets: BenchNetworks) -> Cost
     film = scaled_film(scene, megapixels)
     print(f"bench --versus-mitsuba: {scene.name} ({film}): fixed costs of one iteration …", flush=True)
     warm_up_loop(scene, film, nets.networks)
-    run = loop_curve(LOOP, "the loop (error allocator)", scene, film, nets.networks, "error", [16], None)
+    run = loop_curve(LOOP, LOOP_LABEL, scene, film, nets.networks, "error", [16], None)
     return CostProbe(scene.name, film, measure_fixed_costs(scene.name, run), run.curve.peak_rss_mb,
                      run.curve.rss_growth_mb)
 

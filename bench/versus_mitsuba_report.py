@@ -15,6 +15,7 @@ from bench.versus_mitsuba_scene import AOVS, COMPETITOR_CALL_LANES, Film
 from service.render.runtime import active_variant
 
 LOOP, UNIFORM = "loop", "uniform"
+LOOP_LABEL = "the loop (error allocator)"  # its column in the curve tables
 # The bars the loop is held to against mi.render on the CPU at ~2 MP: ahead on at least 75 % of
 # the scenes, a median 1.5× speed-up at equal error, a peak resident memory within 8 GB.
 GOAL_SHARE_AHEAD, GOAL_MEDIAN_SPEEDUP, GOAL_PEAK_RSS_GB = 0.75, 1.5, 8.0

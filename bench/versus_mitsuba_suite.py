@@ -19,7 +19,8 @@ from pathlib import Path
 
 from bench.common import command_line
 from bench.versus_mitsuba import DEFAULT_MAX_SPP, DEFAULT_REFERENCE_SPP, suite_scenes
-from bench.versus_mitsuba_report import END_HEADER
+from bench.versus_mitsuba_report import END_HEADER, LOOP_LABEL
+from bench.versus_mitsuba_run import Curve, CurvePoint, least_at_competitor_ends
 from bench.versus_mitsuba_scene import scene_sampler
 from service.render.scenes import STRATIFYING_SAMPLER_PLUGINS
 
@@ -60,8 +61,9 @@ class Reading:
     # the reference took the `independent` sampler and `mi.render` rendered each level in as few
     # calls as the sampler allows (or the scene's sampler does not stratify)
     fair_to_stratifying: bool = True
-    # the speed-up at the better-for-Mitsuba competitor's own last point, as printed ("≥1.52×",
-    # "2.47×", "~0.9×"); empty for a report written before it had that table
+    # the speed-up at the competitors' own last points, as printed ("≥1.52×", "2.47×", "~0.9×"), or
+    # recomputed from the printed curves of a report from before that table ("2.47× ‡"); empty
+    # where neither can be read
     end_speedup: str = ""
 
 
@@ -101,7 +103,7 @@ class VariantStanding:
         or `≥`: a lower bound from the loop's first point)."""
         values = []
         for r in self.newest.values():
-            text = r.end_speedup.lstrip("≥")
+            text = r.end_speedup.removesuffix(FROM_PRINTED_CURVES).lstrip("≥")
             if text and not text.startswith("~"):
                 values.append(_number(text)[0])
         return values
@@ -152,6 +154,43 @@ def _run_settings(text: str) -> str:
             f"{reference_spp.group(1) if reference_spp else DEFAULT_REFERENCE_SPP}-spp references")
 
 
+# A cell of a report's per-scene curve table: "0.0160 / 5.22e-05 @ 101.95 s" (SMAPE / relMSE @ seconds).
+CURVE_CELL = re.compile(r"([0-9.e+-]+) / \S+ @ ([0-9.]+) s")
+# Marks a speed-up at the competitor's last point recomputed from a report's printed curve table
+# (a report from before that reading; its SMAPE printed to 4 decimals, so the figure is approximate).
+FROM_PRINTED_CURVES = " ‡"
+
+
+def _printed_curves(lines: list[str], label: str) -> list[Curve]:
+    """The curves of the per-scene table headed by `**{label}**` (SMAPE and seconds only)."""
+    start = next((i for i, line in enumerate(lines) if line.startswith(f"**{label}**")), None)
+    if start is None or start + 2 >= len(lines) or not lines[start + 2].startswith("| spp |"):
+        return []
+    names = _cells(lines[start + 2])[1:]
+    points: dict[str, list[CurvePoint]] = {name: [] for name in names}
+    for line in lines[start + 4:]:
+        if not line.startswith("|"):
+            break
+        cells = _cells(line)
+        for name, cell in zip(names, cells[1:]):
+            match = CURVE_CELL.match(cell)
+            if match:
+                points[name].append(CurvePoint(float(cells[0]), float(match.group(2)), float(match.group(1)), {}))
+    return [Curve(name, name, pts) for name, pts in points.items() if pts]
+
+
+def _end_from_printed_curves(lines: list[str], label: str) -> str:
+    """The speed-up at the competitors' last points (`least_at_competitor_ends`) recomputed from a
+    report's curve table, marked FROM_PRINTED_CURVES; empty where the table cannot be read."""
+    curves = {c.key: c for c in _printed_curves(lines, label)}
+    competitors = [c for key, c in curves.items() if key.startswith("`mi.render`")]
+    if LOOP_LABEL not in curves or not competitors:
+        return ""
+    reading = least_at_competitor_ends(curves[LOOP_LABEL], competitors)
+    mark = {"at most": "≥", "extrapolated": "~"}.get(reading.loop_seconds.how, "")
+    return f"{mark}{reading.speedup:.2f}×{FROM_PRINTED_CURVES}"
+
+
 def parse_report(path: Path) -> tuple[str, list[Reading]]:
     """(Mitsuba variant, the headline readings) of one `--versus-mitsuba` report."""
     text = Path(path).read_text()
@@ -177,7 +216,7 @@ def parse_report(path: Path) -> tuple[str, list[Reading]]:
                                 reference_error=relmse.get(row[0], ("n/a", math.nan))[1], peak_rss_mb=float(row[8]),
                                 report=Path(path).name, commit=stamp.group(2), date=stamp.group(1),
                                 settings=settings, fair_to_stratifying=fair_to_stratifying,
-                                end_speedup=at_end.get(row[0], "")))
+                                end_speedup=at_end.get(row[0]) or _end_from_printed_curves(lines, row[0])))
     return variant.group(1), readings
 
 
@@ -242,11 +281,12 @@ def _end_sentence(standing: VariantStanding) -> str:
     speedups = standing.end_speedups_measured
     if not speedups:
         return ""
-    with_table = sum(bool(r.end_speedup) for r in standing.newest.values())
-    return (f" At the competitor's own last measured point, with no extrapolation at all (the reports that have "
-            f"that table: {with_table} of {len(standing.newest)} scenes, {len(speedups)} read inside the loop's "
-            f"curve or bounded by its first point): the loop gets there sooner on **{sum(s > 1 for s in speedups)} "
-            f"of {len(speedups)}**, median {statistics.median(speedups):.2f}×.")
+    recomputed = sum(r.end_speedup.endswith(FROM_PRINTED_CURVES) for r in standing.newest.values()
+                     if not r.end_speedup.startswith("~"))
+    return (f" At the competitor's own last measured point, with no extrapolation at all ({len(speedups)} of "
+            f"{len(standing.newest)} readings, {recomputed} of them recomputed from an older report's printed "
+            f"curves, ‡): the loop gets there sooner on **{sum(s > 1 for s in speedups)} of {len(speedups)}**, "
+            f"median {statistics.median(speedups):.2f}×.")
 
 
 def _verdict(standing: VariantStanding) -> str:
@@ -281,8 +321,9 @@ def summary_text(standings: list[VariantStanding], reports: list[Path], command:
            "fitted to the competitor's curve (each report says how). The speed-up at the competitor's last "
            "point needs no power law: each `mi.render` + OIDN's own highest-spp point (measured) against the "
            "loop's time to that error off the loop's own curve, the film least favourable to the loop (`≥`: "
-           "the loop's first iteration is already as low, a lower bound; `—`: a report from before this "
-           "reading). Runs differ in load and commit: "
+           "the loop's first iteration is already as low, a lower bound; ‡: recomputed from the printed curve "
+           "table of a report from before this reading, whose SMAPE has 4 decimals, so approximate). Runs "
+           "differ in load and commit: "
            "each row names its report. SMAPE cannot read an error below the reference's own (for Gaussian "
            "noise of relative standard error s, a pixel's expected SMAPE against the truth is about "
            "s·√(2/π)/2 ≈ 0.4 s): where that floor is near the methods' SMAPE, both sit at it and the relMSE "

@@ -2,6 +2,7 @@
 against the whole suite, and the committed reports read as they print their headlines."""
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
@@ -112,12 +113,30 @@ def test_the_speedup_at_the_competitors_last_point_is_read_where_a_report_has_it
     new = write(tmp_path, "benchmarks-versus-mitsuba-more.md", report(
         "2026-11-29T07:14+00:00", "bbb2222", {"sun_room": "~1.20×", "lamp_room": "~3.00×", "hard_shadows": "~1.10×"}) + end)
     (standing,) = suite_standing([old, new], ["metals", "sun_room", "lamp_room", "hard_shadows"])
+    # the old report has neither the table nor a curve table: nothing to read
     assert standing.newest["metals"].end_speedup == "" and standing.newest["lamp_room"].end_speedup == "≥5.00×"
     assert sorted(standing.end_speedups_measured) == [2.5, 5.0]  # the extrapolated ~0.83× is left out
     text = summary_text([standing], [old, new], "x")
-    assert "(the reports that have that table: 3 of 4 scenes, 2 read inside the loop's curve" in text
+    assert "(2 of 4 readings, 0 of them recomputed from an older report's printed curves, ‡)" in text
     assert "the loop gets there sooner on **2 of 2**, median 3.75×" in text
     assert "| ≥5.00× |" in text and "| — |" in text
+
+
+def test_a_report_without_that_table_has_the_reading_recomputed_from_its_printed_curves_and_marked(tmp_path):
+    curves = ("\n**sun_room (1633×1225, box)**, reference's own relative error 0.0300\n\n"
+              "| spp | `mi.render` + OIDN, box film | the loop (error allocator) | uniform + ours |\n"
+              "|---:|---:|---:|---:|\n"
+              "| 16 | 0.0200 / 1e-04 @ 10.00 s | 0.0180 / 1e-04 @ 8.00 s | 0.0190 / 1e-04 @ 8.00 s |\n"
+              "| 32 | 0.0160 / 1e-04 @ 20.00 s | 0.0150 / 1e-04 @ 16.00 s | 0.0155 / 1e-04 @ 16.00 s |\n"
+              "| 64 | 0.0140 / 1e-04 @ 40.00 s | 0.0120 / 1e-04 @ 32.00 s | 0.0130 / 1e-04 @ 32.00 s |\n")
+    path = write(tmp_path, "benchmarks-versus-mitsuba.md", report("2026-11-27T07:14+00:00", "aaa1111",
+                                                                  {"sun_room": "~1.50×"}) + curves)
+    (standing,) = suite_standing([path], ["sun_room"])
+    # the box film's last point, 0.0140 at 40 s; the loop between 0.0150 @ 16 s and 0.0120 @ 32 s
+    u = (math.log(0.0140) - math.log(0.0150)) / (math.log(0.0120) - math.log(0.0150))
+    loop_seconds = math.exp(math.log(16.0) + u * (math.log(32.0) - math.log(16.0)))
+    assert standing.newest["sun_room"].end_speedup == f"{40.0 / loop_seconds:.2f}× ‡"
+    assert "1 of them recomputed from an older report's printed curves" in summary_text([standing], [path], "x")
 
 
 def test_the_reference_error_is_shown_and_relmse_counted_apart(tmp_path):
