@@ -387,4 +387,3 @@ def least_at_competitor_ends(loop: Curve, competitors: list[Curve], metric: str 
     claim that needs no extrapolation of the competitor."""
     readings = [at_competitor_end(loop, c, metric) for c in competitors]
     return min(readings, key=lambda r: r.speedup if math.isfinite(r.speedup) else math.inf)
-
