@@ -19,7 +19,7 @@ from pathlib import Path
 
 from bench.common import command_line
 from bench.versus_mitsuba import DEFAULT_MAX_SPP, DEFAULT_REFERENCE_SPP, suite_scenes
-from bench.versus_mitsuba_report import END_HEADER, LOOP_LABEL
+from bench.versus_mitsuba_report import END_HEADER, LOOP_LABEL, end_cells
 from bench.versus_mitsuba_run import Curve, CurvePoint, least_at_competitor_ends
 from bench.versus_mitsuba_scene import scene_sampler
 from service.render.scenes import STRATIFYING_SAMPLER_PLUGINS
@@ -186,9 +186,8 @@ def _end_from_printed_curves(lines: list[str], label: str) -> str:
     competitors = [c for key, c in curves.items() if key.startswith("`mi.render`")]
     if LOOP_LABEL not in curves or not competitors:
         return ""
-    reading = least_at_competitor_ends(curves[LOOP_LABEL], competitors)
-    mark = {"at most": "≥", "extrapolated": "~"}.get(reading.loop_seconds.how, "")
-    return f"{mark}{reading.speedup:.2f}×{FROM_PRINTED_CURVES}"
+    _, speedup = end_cells(least_at_competitor_ends(curves[LOOP_LABEL], competitors))
+    return speedup + FROM_PRINTED_CURVES
 
 
 def parse_report(path: Path) -> tuple[str, list[Reading]]:
