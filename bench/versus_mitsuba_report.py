@@ -9,6 +9,7 @@ from pathlib import Path
 
 from bench.common import BenchNetworks, fill, fmt, load_average, provenance
 from bench.dev_references import DevScene
+from bench.loop_run import EXTRAPOLATION_LIMIT
 from bench.versus_mitsuba_costs import STAGES as COST_STAGES, FixedCosts
 from bench.versus_mitsuba_run import Comparison, Curve, EndReading, Reading, least_at_competitor_ends
 from bench.versus_mitsuba_scene import AOVS, COMPETITOR_CALL_LANES, Film
@@ -76,16 +77,21 @@ class Results:
 # --- cells ------------------------------------------------------------------------------------------
 
 
+# How a Reading is marked in a cell: `~` a power law's guess, `≤` bounded by the curve's first point.
+READING_MARKS = {"extrapolated": "~", "at most": "≤"}
+
+
 def reading_cell(reading: Reading, spec: str) -> str:
     if not math.isfinite(reading.value):
         return "never"
-    return ("~" if reading.how == "extrapolated" else "") + format(reading.value, spec)
+    return READING_MARKS.get(reading.how, "") + format(reading.value, spec)
 
 
 def ratio_cell(value: float, reading: Reading) -> str:
+    """A ratio whose numerator is `reading` (a time or an error), marked as the reading is."""
     if not math.isfinite(value):
         return "n/a"
-    return ("~" if reading.how == "extrapolated" else "") + f"{value:.2f}×"
+    return READING_MARKS.get(reading.how, "") + f"{value:.2f}×"
 
 
 def scene_cell(run: SceneRun) -> str:
@@ -186,7 +192,9 @@ def relmse_table(scenes: list[SceneRun]) -> str:
 
 def relmse_summary(scenes: list[SceneRun]) -> str:
     readings = [run.versus_mitsuba_relmse for run in scenes if run.versus_mitsuba_relmse is not None]
-    speedups = [v.speedup for v in readings if math.isfinite(v.speedup)]
+    # A loop relMSE ≤ 0 is below what the reference's noise lets one read: no reading. Above it, an
+    # infinite speed-up is a competitor that never gets that low: the loop ahead.
+    speedups = [v.speedup for v in readings if v.target > 0 and not math.isnan(v.speedup)]
     if not speedups:
         return "No scene has a relMSE reading."
     ahead = sum(s > 1 for s in speedups)
@@ -378,7 +386,8 @@ def report_text(results: Results) -> str:
                 f"scenes/dev and scenes/val named by `--scenes` ({', '.join(s.subset)})"),
         megapixels=f"{s.megapixels:g}", levels=", ".join(f"{x:g}" for x in levels), threads=s.threads,
         aovs=AOVS, max_lanes=f"{COMPETITOR_CALL_LANES:,}", iterations=len(levels), reference_spp=s.reference_spp,
-        max_spp=s.max_spp, headline_table=headline_table(scenes), summary=summary(scenes, s.megapixels),
+        max_spp=s.max_spp, extrapolation_limit=f"{EXTRAPOLATION_LIMIT:g}",
+        headline_table=headline_table(scenes), summary=summary(scenes, s.megapixels),
         end_table=end_table(scenes), end_summary=end_summary(scenes),
         relmse_table=relmse_table(scenes), relmse_summary=relmse_summary(scenes),
         curve_tables=curve_tables(scenes), stage_tables=stage_tables(scenes), compile_table=compile_table(scenes), memory_table=memory_table(scenes),

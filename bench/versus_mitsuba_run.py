@@ -25,7 +25,7 @@ import numpy as np
 
 from bench.common import OidnDenoise, Reference, recorded_kernels, sanitize
 from bench.dev_references import DevScene
-from bench.loop_run import LOOP_SEED, STAGES, NoErrorPrediction
+from bench.loop_run import EXTRAPOLATION_LIMIT, LOOP_SEED, STAGES, NoErrorPrediction
 from bench.versus_mitsuba_scene import Film, aov_integrator, competitor_scene, render_with_aovs, warm_up
 from models.losses import smape
 from models.metrics import RELMSE_EPS
@@ -251,14 +251,17 @@ def loop_curve(key: str, label: str, scene: DevScene, film: Film, networks: Netw
 class Reading:
     """A value read off a curve and how: "interpolated" (log-log, between two measured points),
     "extrapolated" (outside the measured range: the curves do not meet there; read off a power law
-    fitted to the whole curve) or "not reached" (the curve does not fall: no value)."""
+    fitted to the whole curve), "at most" (a time bounded by the curve's first point, already as
+    low, where no power law falls back to it) or "not reached" (the curve never gets that low and
+    does not fall, or falls so slowly that its power law would get there only beyond
+    EXTRAPOLATION_LIMIT times its last time: no value)."""
 
     value: float
     how: str
 
     @property
     def measured(self) -> bool:
-        return self.how == "interpolated"
+        return self.how in ("interpolated", "at most")
 
 
 def _log_points(curve: Curve, metric: str = "smape") -> list[tuple[float, float]]:
@@ -287,7 +290,9 @@ def _line(x0: float, y0: float, x1: float, y1: float, y: float) -> float:
 
 def time_at_error(curve: Curve, target: float, metric: str = "smape") -> Reading:
     """Wall time at which `curve` reaches SMAPE `target`: log-log interpolation on the first segment
-    (in spp order) whose errors bracket it; outside the curve's errors, the power law's time."""
+    (in spp order) whose errors bracket it; outside the curve's errors, the power law's time, unless
+    that lies beyond EXTRAPOLATION_LIMIT times the curve's last time: a nearly flat curve (OIDN's
+    bias on glass_shelf's glass) would claim ages, ~10⁹× its measured range, which is no estimate."""
     points = _log_points(curve, metric)
     if not points or not target > 0:
         return Reading(math.inf, "not reached")
@@ -298,7 +303,14 @@ def time_at_error(curve: Curve, target: float, metric: str = "smape") -> Reading
     if len(points) == 1 and points[0][1] == y:
         return Reading(math.exp(points[0][0]), "interpolated")
     fit = _power_law(points)
-    return Reading(math.exp((y - fit[0]) / fit[1]), "extrapolated") if fit else Reading(math.inf, "not reached")
+    if fit is None and y >= max(y for _, y in points):
+        return Reading(math.exp(points[0][0]), "at most")  # already as low at its first point
+    if fit is None:
+        return Reading(math.inf, "not reached")
+    log_seconds = (y - fit[0]) / fit[1]
+    if log_seconds > math.log(EXTRAPOLATION_LIMIT) + max(x for x, _ in points):
+        return Reading(math.inf, "not reached")
+    return Reading(math.exp(log_seconds), "extrapolated")
 
 
 def error_at_time(curve: Curve, seconds: float, metric: str = "smape") -> Reading:

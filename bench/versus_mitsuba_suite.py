@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from bench.common import command_line
+from bench.loop_run import EXTRAPOLATION_LIMIT
 from bench.versus_mitsuba import DEFAULT_MAX_SPP, DEFAULT_REFERENCE_SPP, suite_scenes
 from bench.versus_mitsuba_report import END_HEADER, LOOP_LABEL, end_cells
 from bench.versus_mitsuba_run import Curve, CurvePoint, least_at_competitor_ends
@@ -51,7 +52,7 @@ class Reading:
     speedup: float            # equal-error speed-up in SMAPE (> 1: the loop ahead)
     extrapolated: bool        # read off a fitted power law, not between measured points
     equal_time: str           # the equal-time SMAPE ratio as printed
-    relmse_speedup: str       # the equal-error speed-up in relMSE as printed ("n/a" where unreadable)
+    relmse_speedup: float     # the equal-error speed-up in relMSE (nan where unreadable, inf: see FLAT_MARK)
     reference_error: float    # the reference's own mean relative standard error: SMAPE's floor
     peak_rss_mb: float
     report: str               # the report's file name
@@ -65,6 +66,7 @@ class Reading:
     # recomputed from the printed curves of a report from before that table ("2.47× ‡"); empty
     # where neither can be read
     end_speedup: str = ""
+    relmse_extrapolated: bool = False  # the relMSE speed-up read off a power law (`~`)
 
 
 @dataclass
@@ -81,7 +83,7 @@ class VariantStanding:
 
     @property
     def ahead_in_relmse(self) -> list[Reading]:
-        return [r for r in self.newest.values() if _relmse_speedup(r) > 1.0]
+        return [r for r in self.newest.values() if r.relmse_speedup > 1.0]
 
     @property
     def equal_time_measured(self) -> list[float]:
@@ -126,9 +128,9 @@ def _cells(line: str) -> list[str]:
 
 
 def _number(text: str) -> tuple[float, bool]:
-    """A printed figure such as `**~5.27×**` → (5.27, extrapolated)."""
+    """A printed figure such as `**~5.27×**` → (5.27, extrapolated); a bound's `≤`/`≥` is dropped."""
     plain = text.replace("*", "").replace("×", "").strip()
-    return float(plain.lstrip("~")), plain.startswith("~")
+    return float(plain.lstrip("~≤≥")), plain.startswith("~")
 
 
 def _table_rows(lines: list[str], header: str) -> list[list[str]]:
@@ -156,6 +158,11 @@ def _run_settings(text: str) -> str:
 
 # A cell of a report's per-scene curve table: "0.0160 / 5.22e-05 @ 101.95 s" (SMAPE / relMSE @ seconds).
 CURVE_CELL = re.compile(r"([0-9.e+-]+) / \S+ @ ([0-9.]+) s")
+# Marks a speed-up that cannot be read because the competitor never gets as low as the loop: its
+# curve does not fall, or so slowly that its power law would need more than EXTRAPOLATION_LIMIT
+# times its last measured time (a report may print that guess, ~10⁹×: no estimate). Counted as the
+# loop ahead; the speed-up at the competitor's last point, measured, carries the figure.
+FLAT_MARK = " §"
 # Marks a speed-up at the competitor's last point recomputed from a report's printed curve table
 # (a report from before that reading; its SMAPE printed to 4 decimals, so the figure is approximate).
 FROM_PRINTED_CURVES = " ‡"
@@ -190,6 +197,26 @@ def _end_from_printed_curves(lines: list[str], label: str) -> str:
     return speedup + FROM_PRINTED_CURVES
 
 
+def _competitor_last_seconds(lines: list[str], scene: str, label: str) -> float | None:
+    """The last measured time of the competitor `label` in the scene's printed curve table."""
+    curve = next((c for c in _printed_curves(lines, scene) if c.key == label), None)
+    return max(p.seconds for p in curve.points) if curve else None
+
+
+def _headline_speedup(lines: list[str], row: list[str], loop_error: float) -> tuple[float, bool]:
+    """(speed-up, extrapolated) of a row of a headline table, SMAPE or relMSE (the competitor's label,
+    its seconds to the loop's error and the speed-up in cells 3–5): inf where the competitor never
+    gets that low (FLAT_MARK), nan where the loop's error is ≤ 0 (below the reference's noise)."""
+    if row[4] == "never":
+        return (math.inf, True) if loop_error > 0 else (math.nan, False)
+    speedup, extrapolated = _number(row[5])
+    if extrapolated:
+        last = _competitor_last_seconds(lines, row[0], row[3])
+        if last is not None and _number(row[4])[0] > EXTRAPOLATION_LIMIT * last:
+            return math.inf, True
+    return speedup, extrapolated
+
+
 def parse_report(path: Path) -> tuple[str, list[Reading]]:
     """(Mitsuba variant, the headline readings) of one `--versus-mitsuba` report."""
     text = Path(path).read_text()
@@ -201,18 +228,20 @@ def parse_report(path: Path) -> tuple[str, list[Reading]]:
     settings = _run_settings(text)
     flat = " ".join(text.split())
     fair_to_stratifying = INDEPENDENT_REFERENCE_MARK in flat and FEW_CALLS_MARK in flat
-    relmse = {row[0]: (row[5].replace("*", ""), float(row[1])) for row in _table_rows(lines, RELMSE_HEADER)}
+    relmse = {row[0]: (_headline_speedup(lines, row, float(row[2])), float(row[1]))
+              for row in _table_rows(lines, RELMSE_HEADER)}
     at_end = {row[0]: row[5].replace("*", "") for row in _table_rows(lines, END_HEADER)}
     readings = []
     for row in _table_rows(lines, SMAPE_HEADER):
         label = re.fullmatch(r"(\w+) \((.+)\)", row[0])
         if label is None:
             raise ValueError(f"{path}: unreadable scene cell {row[0]!r}")
-        speedup, extrapolated = _number(row[5])
+        speedup, extrapolated = _headline_speedup(lines, row, float(row[1]))
+        (relmse_speedup, relmse_extrapolated), reference_error = relmse.get(row[0], ((math.nan, False), math.nan))
         readings.append(Reading(scene=label.group(1), film=label.group(2), loop_smape=float(row[1]), speedup=speedup,
                                 extrapolated=extrapolated, equal_time=row[6],
-                                relmse_speedup=relmse.get(row[0], ("n/a", math.nan))[0],
-                                reference_error=relmse.get(row[0], ("n/a", math.nan))[1], peak_rss_mb=float(row[8]),
+                                relmse_speedup=relmse_speedup, relmse_extrapolated=relmse_extrapolated,
+                                reference_error=reference_error, peak_rss_mb=float(row[8]),
                                 report=Path(path).name, commit=stamp.group(2), date=stamp.group(1),
                                 settings=settings, fair_to_stratifying=fair_to_stratifying,
                                 end_speedup=at_end.get(row[0]) or _end_from_printed_curves(lines, row[0])))
@@ -252,16 +281,16 @@ def suite_standing(reports: list[Path], suite: list[str], stratifying: set[str] 
     return standings
 
 
-def _relmse_speedup(r: Reading) -> float:
-    """The relMSE speed-up as a number; nan where the report could not read it ("n/a")."""
-    try:
-        return _number(r.relmse_speedup)[0]
-    except ValueError:
-        return math.nan
+def _speedup_cell(speedup: float, extrapolated: bool) -> str:
+    if math.isnan(speedup):
+        return "n/a"
+    if math.isinf(speedup):
+        return "n/a" + FLAT_MARK
+    return f"{'~' if extrapolated else ''}{speedup:.2f}×"
 
 
 def _speedup_text(r: Reading) -> str:
-    return f"{'~' if r.extrapolated else ''}{r.speedup:.2f}×{'' if r.fair_to_stratifying else ' †'}"
+    return _speedup_cell(r.speedup, r.extrapolated) + ("" if r.fair_to_stratifying else " †")
 
 
 def _equal_time_sentence(standing: VariantStanding) -> str:
@@ -339,7 +368,8 @@ def summary_text(standings: list[VariantStanding], reports: list[Path], command:
                 continue
             earlier = ", ".join(f"{_speedup_text(o)} ({o.report}, {o.commit})" for o in standing.older.get(name, []))
             out.append(f"| {r.scene} ({r.film}) | **{_speedup_text(r)}** | {r.equal_time} | {r.loop_smape:.4f} | "
-                       f"{r.reference_error:.4f} | {r.relmse_speedup} | {r.end_speedup or '—'} | "
+                       f"{r.reference_error:.4f} | {_speedup_cell(r.relmse_speedup, r.relmse_extrapolated)} | "
+                       f"{r.end_speedup or '—'} | "
                        f"{r.peak_rss_mb:.0f} | [{r.report}]({r.report}) ({r.commit}, {r.date[:10]}; {r.settings}) | "
                        f"{earlier} |")
         if standing.unfair_to_stratifying:
@@ -348,6 +378,12 @@ def summary_text(standings: list[VariantStanding], reports: list[Path], command:
                     "Over 16 samples Mitsuba's `stratified` sampler is measurably biased: the first biases the "
                     "reference towards the competitor as written, the second handicaps the competitor "
                     "(`python -m bench.experiments.competitor_calls`); see docs/decisions.md."]
+        if any(math.isinf(v) for r in standing.newest.values() for v in (r.speedup, r.relmse_speedup)):
+            out += ["", f"§ The competitor never gets as low as the loop within its measured curve, and falls so "
+                    f"slowly that its power law would reach the loop's error only beyond {EXTRAPOLATION_LIMIT:g}× its "
+                    "last measured time, which is no estimate (a report from before this rule prints that guess: "
+                    "~10⁴× and more). Counted as the "
+                    "loop ahead; the speed-up at the competitor's last point, measured, carries the figure."]
         if standing.unmeasured:
             out += ["", f"Not yet measured ({len(standing.unmeasured)}): {', '.join(standing.unmeasured)}."]
         out.append("")

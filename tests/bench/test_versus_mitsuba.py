@@ -7,6 +7,7 @@ import argparse
 import math
 import resource
 from pathlib import Path
+from types import SimpleNamespace
 
 import drjit as dr
 import numpy as np
@@ -17,7 +18,8 @@ from bench import versus_mitsuba
 from bench.versus_mitsuba import (add_arguments, measure_versus_mitsuba, report_name, run_versus_mitsuba_command,
                                   suite_scenes, write_report)
 from bench.versus_mitsuba_costs import FixedCosts
-from bench.versus_mitsuba_report import LOOP, UNIFORM, headline_table
+from bench.loop_run import EXTRAPOLATION_LIMIT
+from bench.versus_mitsuba_report import LOOP, UNIFORM, headline_table, ratio_cell, reading_cell, relmse_summary
 from bench.common import Reference, load_bench_networks
 from bench.versus_mitsuba_run import (Curve, CurvePoint, at_competitor_end, better_of, compare,
                                       least_at_competitor_ends, compile_loop_kernels, debiased_relmse,
@@ -199,6 +201,37 @@ def test_extrapolation_is_flagged_when_the_curves_do_not_meet() -> None:
     # the competitor that reaches the loop's SMAPE sooner is the one compared
     assert best.other == "mitsuba-box"
     assert best.speedup == pytest.approx(time_at_error(already_lower, 0.02).value / 2.0)
+
+
+def test_a_nearly_flat_competitor_never_reaches_the_loops_error_instead_of_a_guess_of_ages() -> None:
+    # glass_shelf at 2 MP: OIDN's bias holds mi.render + OIDN at ~0.031 from 16 to 128 spp, so its
+    # power law would need ~10⁹× the loop's time to reach the loop's 0.0270
+    loop = curve(LOOP, [(16, 14.7, 0.0283), (128, 111.0, 0.0270)])
+    flat = curve("mitsuba", [(16, 23.0, 0.0318), (32, 43.7, 0.0317), (64, 85.7, 0.0316), (128, 167.7, 0.0314)])
+    c = compare(loop, flat)
+    assert c.other_seconds.how == "not reached" and math.isinf(c.other_seconds.value)
+    assert reading_cell(c.other_seconds, ".2f") == "never" and ratio_cell(c.speedup, c.other_seconds) == "n/a"
+    # within EXTRAPOLATION_LIMIT times its last time, the same power law is still read, marked
+    steeper = curve("mitsuba", [(16, 23.0, 0.0318), (128, 167.7, 0.0290)])
+    reading = time_at_error(steeper, 0.0270)
+    assert reading.how == "extrapolated" and 167.7 < reading.value <= EXTRAPOLATION_LIMIT * 167.7
+
+
+def test_a_competitor_already_lower_on_a_curve_that_does_not_fall_is_bounded_by_its_first_point() -> None:
+    rising = curve("mitsuba", [(16, 3.0, 0.010), (32, 6.0, 0.012)])
+    reading = time_at_error(rising, 0.02)
+    assert reading.how == "at most" and reading.value == pytest.approx(3.0) and reading.measured
+    c = compare(curve(LOOP, [(16, 2.0, 0.03), (32, 4.0, 0.02)]), rising)
+    assert reading_cell(c.other_seconds, ".2f") == "≤3.00" and ratio_cell(c.speedup, c.other_seconds) == "≤0.75×"
+
+
+def test_the_relmse_summary_counts_a_competitor_that_never_gets_as_low_as_ahead_and_an_unreadable_loop_not() -> None:
+    loop = curve(LOOP, [(16, 1.0, 0.03), (32, 2.0, 0.02)])
+    flat = curve("mitsuba", [(16, 1.0, 0.05), (32, 2.0, 0.05)])
+    below_noise = compare(curve(LOOP, [(16, 1.0, 0.03), (32, 2.0, -1e-6)]), flat)
+    runs = [SimpleNamespace(versus_mitsuba_relmse=compare(loop, flat)), SimpleNamespace(versus_mitsuba_relmse=below_noise)]
+    assert math.isinf(runs[1].versus_mitsuba_relmse.speedup)  # `never` either way: the loop's error is what differs
+    assert "on **1 of 1** scenes" in relmse_summary(runs)
 
 
 def test_the_reading_at_a_competitors_last_point_interpolates_the_loops_curve_and_needs_no_power_law() -> None:

@@ -64,7 +64,40 @@ def test_an_extrapolated_reading_keeps_its_mark(tmp_path):
     assert [(r.scene, r.speedup, r.extrapolated) for r in readings] == [("metals", 5.59, True),
                                                                          ("sun_room", 0.70, False)]
     assert readings[0].settings == "16–128 spp, 1024-spp references"
-    assert (readings[0].relmse_speedup, readings[0].reference_error, readings[0].loop_smape) == ("3.00×", 0.02, 0.01)
+    assert (readings[0].relmse_speedup, readings[0].reference_error, readings[0].loop_smape) == (3.0, 0.02, 0.01)
+
+
+FLAT_CURVES = """
+**metals (1633×1225, box)**, reference's own relative error 0.05
+
+| spp | `mi.render` + OIDN, box film | the loop (error allocator) |
+|---:|---:|---:|
+| 16 | 0.0318 / 0.00226 @ 23.00 s | 0.0283 / 0.00122 @ 14.00 s |
+| 128 | 0.0314 / 0.00209 @ 60.00 s | 0.0100 / 0.000748 @ 50.00 s |
+"""
+
+
+def test_a_printed_guess_beyond_the_extrapolation_limit_reads_as_never_reached_and_counts_ahead(tmp_path):
+    # a report from before the limit printed the power law's guess of ages for a flat competitor
+    text = report("2026-11-29T07:14+00:00", "aaa1111", {"metals": "~1988361893.30×", "sun_room": "~5.00×"})
+    text = text.replace("| 60.0 | **~1988361893.30×**", "| ~99418094665.00 | **~1988361893.30×**", 1)
+    text = text.replace("| metals (1633×1225, box) | 0.02 | 1e-05 | `mi.render` + OIDN, box film | 9.0 | **3.00×**",
+                        "| metals (1633×1225, box) | 0.02 | 1e-05 | `mi.render` + OIDN, box film | ~6000.01 | **~100.00×**")
+    text = text.replace("| sun_room (1633×1225, box) | 0.02 | 1e-05 | `mi.render` + OIDN, box film | 9.0 | **3.00×**",
+                        "| sun_room (1633×1225, box) | 0.02 | -1e-06 | `mi.render` + OIDN, box film | never | **n/a**")
+    path = write(tmp_path, "benchmarks-versus-mitsuba.md", text + FLAT_CURVES)
+    (standing,) = suite_standing([path], ["metals", "sun_room"])
+    metals, sun_room = standing.newest["metals"], standing.newest["sun_room"]
+    assert math.isinf(metals.speedup) and metals.extrapolated and math.isinf(metals.relmse_speedup)
+    assert sun_room.speedup == 5.0 and math.isnan(sun_room.relmse_speedup)  # the loop's relMSE below the noise
+    assert [r.scene for r in standing.ahead] == ["metals", "sun_room"] and [r.scene for r in standing.ahead_in_relmse] == ["metals"]
+    text = summary_text([standing], [path], "x")
+    assert "| metals (1633×1225, box) | **n/a §** |" in text and "| n/a § |" in text and "§ The competitor never" in text
+    # a guess within the limit (100 × the competitor's last 60 s) keeps its figure
+    within = report("2026-11-29T07:14+00:00", "aaa1111", {"metals": "~119.00×"}).replace(
+        "| 60.0 | **~119.00×**", "| ~5950.00 | **~119.00×**", 1)
+    (kept,) = suite_standing([write(tmp_path, "benchmarks-versus-mitsuba.md", within + FLAT_CURVES)], ["metals"])
+    assert (kept.newest["metals"].speedup, kept.newest["metals"].extrapolated) == (119.0, True)
 
 
 def test_a_stratifying_scene_is_marked_unless_its_report_rendered_reference_and_competitor_fairly(tmp_path):
