@@ -94,6 +94,11 @@ def measure_energy(color: Tensor, variance: Tensor, block: int = 0) -> SampleEne
 
 
 def restore_energy(image: Tensor, samples: SampleEnergy, tolerance: float) -> Tensor:
-    """The image-wide factor first, then (with blocks) the block gains on what it left."""
+    """The image-wide factor first, then (with blocks) the block gains on what it left.
+    τ = 0 is "off" (DenoiserConfig.energy_tolerance) on a cache prepared with the factor on, too:
+    the trust 1 / (1 + (rse/τ)²) is then 0/0 wherever the samples agree exactly (rse 0: a block
+    of constant sky), which would write NaN over that block."""
+    if tolerance <= 0:
+        return image
     image = conserve_energy(image, samples.mean, samples.rse, tolerance)
     return image if samples.blocks is None else conserve_block_energy(image, samples.blocks, tolerance)

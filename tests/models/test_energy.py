@@ -102,6 +102,14 @@ def test_block_gains_are_bounded_black_blocks_stay_black_and_a_cut_block_counts_
     assert torch.isfinite(out).all() and out.shape == image.shape
 
 
+def test_a_zero_tolerance_leaves_the_image_untouched_even_where_the_samples_agree_exactly():
+    color = torch.ones(1, 3, 16, 16)
+    variance = torch.zeros_like(color)                         # rse 0 everywhere: constant sky
+    image = 0.9 * color
+    out = restore_energy(image, measure_energy(color, variance, block=8), tolerance=0.0)
+    assert torch.equal(out, image)
+
+
 def test_restore_energy_runs_the_image_wide_factor_then_the_blocks():
     color, variance, image = half_darkened()
     without = restore_energy(image, measure_energy(color, variance), tolerance=0.01)
