@@ -178,12 +178,17 @@ def warm_up(scene, integrator, levels: list[int], seed: int) -> None:
         render_with_aovs(scene, integrator, per_call, seed)
 
 
+def reference_path(scene: DevScene, film: Film, spp: int, cache_dir: Path) -> Path:
+    """Where `reference` keeps that reference: keyed by the scene's content, size, spp and variant."""
+    name = (f"{scene.name}_{scene.content_hash}_{film.width}x{film.height}_{spp}spp_{active_variant()}"
+            f"_seed{REFERENCE_SEED}_independent.npz")
+    return Path(cache_dir) / "versus-mitsuba" / name
+
+
 def reference(scene: DevScene, film: Film, spp: int, cache_dir: Path) -> Reference:
     """`mi.render` of the scene as written at `film`'s size and `spp` with the `independent`
     sampler (reference_scene), in passes, with the passes' spread as its variance; rendered once
-    into `cache_dir` (the bench cache), keyed by the scene's content, size, spp and variant."""
-    name = (f"{scene.name}_{scene.content_hash}_{film.width}x{film.height}_{spp}spp_{active_variant()}"
-            f"_seed{REFERENCE_SEED}_independent.npz")
+    into `cache_dir` (the bench cache, `reference_path`)."""
 
     def render(seed: int) -> tuple[np.ndarray, np.ndarray]:
         mi = mitsuba()
@@ -199,4 +204,4 @@ def reference(scene: DevScene, film: Film, spp: int, cache_dir: Path) -> Referen
         variance = spread / calls if calls > 1 else np.zeros_like(mean)
         return mean.astype(np.float32), variance.astype(np.float32)
 
-    return cached_reference(Path(cache_dir) / "versus-mitsuba" / name, render)
+    return cached_reference(reference_path(scene, film, spp, cache_dir), render)

@@ -10,20 +10,34 @@ RMS error per sample count — the τ the formula asks for. One render and one p
 scene and level, shared by every τ (the factor is a post-step).
 
     python -m bench.experiments.energy_tolerance [--suite val|dev] [--spp 16 64 256] [--tau 0.01 0.03] [--weights DIR]
+    python -m bench.experiments.energy_tolerance --megapixels 2 --scenes fog_spot misty_lantern --spp 16 32
+
+With --megapixels, the named suite scenes as written at that film size (bench.versus_mitsuba_scene),
+rendered by the loop with uniform allocation (16 spp, then doubling), against the references
+`renderloop bench --versus-mitsuba` left in the bench cache (--cache); a scene without one is
+skipped, since rendering it takes hours here. Beside each image's energy: its median pixel ÷ the
+reference's, which says whether a factor that restores the total also fits the typical pixel.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import math
+from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from bench.common import denoiser_settings, image_metrics, load_bench_networks, pinned_torch_threads
-from bench.dev_references import SUITES, dev_scenes, load_reference
+from bench.dev_references import SUITES, DevScene, dev_scenes, load_reference
+from bench.loop_report import DEFAULT_CACHE_DIR
 from bench.suite_quality import uniform_render
+from bench.versus_mitsuba import suite_scenes
+from bench.versus_mitsuba_run import FIRST_SPP, make_loop
+from bench.versus_mitsuba_scene import reference, reference_path, scaled_film
 from models.denoiser import Denoiser, DenoiserCache
+from models.frames import FrameTensors
 from service.loop.denoise_frame import prepare_frame
 from service.loop.tensors import frame_tensors, to_image
 
@@ -39,12 +53,47 @@ def outputs_per_tolerance(denoiser: Denoiser, cache: DenoiserCache, taus: list[f
     return images
 
 
+def suite_frames(suite: str, spp_levels: list[int], networks) -> Iterator[tuple[DevScene, int, FrameTensors, np.ndarray]]:
+    """(scene, spp, uniform render, reference) for each scene of a suite at its own size."""
+    for scene in dev_scenes(None, SUITES[suite].root):
+        ref, _ = load_reference(SUITES[suite].references, scene, None if scene.frames == 1 else 0)
+        for spp in spp_levels:
+            yield scene, spp, frame_tensors(uniform_render(scene, spp, networks).buffers[0]), ref
+
+
+def scaled_frames(names: list[str] | None, megapixels: float, spp_levels: list[int], networks, cache_dir: Path,
+                  reference_spp: int) -> Iterator[tuple[DevScene, int, FrameTensors, np.ndarray]]:
+    """The same for suite scenes as written at `megapixels`, against the bench cache's
+    `--versus-mitsuba` references of `reference_spp`; the loop's uniform iterations give 16, 32, 64 … spp."""
+    iterations = max(1, math.ceil(math.log2(max(spp_levels) / FIRST_SPP)) + 1)
+    for scene in suite_scenes(names):
+        film = scaled_film(scene, megapixels)
+        if not reference_path(scene, film, reference_spp, cache_dir).is_file():
+            print(f"{scene.name}: no cached {reference_spp}-spp reference at {film.width}×{film.height}, skipped", flush=True)
+            continue
+        ref = reference(scene, film, reference_spp, cache_dir).mean
+        loop = make_loop(scene, film, networks, "uniform", iterations)
+        for record in loop.run():
+            if round(record.spp_mean) in spp_levels:
+                yield scene, round(record.spp_mean), frame_tensors(loop.state.buffers[0]), ref
+
+
+def median_pixel_ratio(image: np.ndarray, ref: np.ndarray) -> float:
+    """The median over pixels of the image's channel mean ÷ the reference's: the typical pixel's energy."""
+    return float(np.median(image.mean(-1) / np.maximum(ref.mean(-1), 1e-6)))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--suite", choices=sorted(SUITES), default="val")
     parser.add_argument("--spp", type=int, nargs="+", default=[16, 64, 256])
     parser.add_argument("--tau", type=float, nargs="+", default=[0.01, 0.03])
     parser.add_argument("--weights", default=None, help="folder of denoiser.pt and error_predictor.pt (default: shipped)")
+    parser.add_argument("--megapixels", type=float, default=None,
+                        help="suite scenes as written at this film size, against cached --versus-mitsuba references")
+    parser.add_argument("--scenes", nargs="+", default=None, help="with --megapixels: which suite scenes (default: all)")
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE_DIR, help="the bench cache holding the references")
+    parser.add_argument("--reference-spp", type=int, default=1024, help="with --megapixels: the cached references' spp")
     args = parser.parse_args()
     if any(t <= 0 for t in args.tau):
         parser.error("--tau values must be > 0")
@@ -53,26 +102,26 @@ def main() -> None:
     # The cache keeps the samples' mean only when the config asks for the factor.
     denoiser.config = dataclasses.replace(denoiser.config, energy_tolerance=denoiser.config.energy_tolerance or 1.0)
     taus = [UNTOUCHED, *args.tau]
-    head = " | ".join(f"τ = {t:g}: energy, SMAPE, relMSE" for t in args.tau)
-    print(f"| scene | spp | samples' rse | noisy energy | OIDN energy | untouched: energy, SMAPE, relMSE | {head} |\n"
-          "|---|---:|---:|---:|---:|---|" + "---|" * len(args.tau))
+    frames = (scaled_frames(args.scenes, args.megapixels, args.spp, nets.networks, args.cache, args.reference_spp) if args.megapixels
+              else suite_frames(args.suite, args.spp, nets.networks))
+    head = " | ".join(f"τ = {t:g}: energy, median pixel, SMAPE, relMSE" for t in args.tau)
+    print(f"| scene | spp | samples' rse | noisy energy | OIDN energy, median pixel, SMAPE, relMSE "
+          f"| untouched: energy, median pixel, SMAPE, relMSE | {head} |\n"
+          "|---|---:|---:|---:|---|---|" + "---|" * len(args.tau))
     errors: dict[int, list[float]] = {}
     with pinned_torch_threads(2), torch.no_grad():
-        for scene in dev_scenes(None, SUITES[args.suite].root):
-            reference, _ = load_reference(SUITES[args.suite].references, scene, None if scene.frames == 1 else 0)
-            mean = float(reference.mean())
-            for spp in args.spp:
-                frame = frame_tensors(uniform_render(scene, spp, nets.networks).buffers[0])
-                prepared = prepare_frame(denoiser, [frame], 0)
-                cache, candidate = prepared.cache, prepared.candidate
-                images = outputs_per_tolerance(denoiser, cache, taus)
-                errors.setdefault(spp, []).append(float(images[0].mean()) / mean - 1.0)
-                cells = []
-                for image in images:
-                    m = image_metrics(image, reference)
-                    cells.append(f"{image.mean() / mean:.4f}, {m['smape']:.4f}, {m['relmse']:.3g}")
-                print(f"| {scene.name} | {spp} | {float(cache.energy.rse[0]):.4f} | {to_image(frame.color).mean() / mean:.4f} "
-                      f"| {to_image(candidate).mean() / mean:.4f} | " + " | ".join(cells) + " |", flush=True)
+        for scene, spp, frame, ref in frames:
+            mean = float(ref.mean())
+            prepared = prepare_frame(denoiser, [frame], 0)
+            cache, candidate = prepared.cache, prepared.candidate
+            images = [to_image(candidate), *outputs_per_tolerance(denoiser, cache, taus)]
+            errors.setdefault(spp, []).append(float(images[1].mean()) / mean - 1.0)
+            cells = []
+            for image in images:
+                m = image_metrics(image, ref)
+                cells.append(f"{image.mean() / mean:.4f}, {median_pixel_ratio(image, ref):.4f}, {m['smape']:.4f}, {m['relmse']:.3g}")
+            print(f"| {scene.name} | {spp} | {float(cache.energy.rse[0]):.4f} | {to_image(frame.color).mean() / mean:.4f} "
+                  "| " + " | ".join(cells) + " |", flush=True)
     print("\n| spp | RMS energy error of the untouched output (the τ models.energy asks for) |\n|---:|---:|")
     for spp, values in errors.items():
         print(f"| {spp} | {math.sqrt(float(np.mean(np.square(values)))):.4f} |")
