@@ -11,7 +11,7 @@ import torch
 
 import bench.experiments
 from bench.common import denoiser_settings, image_metrics
-from bench.experiments.energy_tolerance import UNTOUCHED, outputs_per_tolerance
+from bench.experiments.energy_tolerance import UNTOUCHED, median_pixel_ratio, outputs_per_tolerance
 from bench.experiments.gate_offset import offset_ratios
 from bench.experiments.seed_spread import paired_ratio
 from bench.experiments.setting_sweep import parse_values, setting_images, summary_rows
@@ -65,6 +65,15 @@ def test_energy_tolerance_sweep_pulls_towards_the_samples_only_as_tau_grows_and_
     samples_mean = float(color.mean())
     assert untouched.mean() == pytest.approx(0.8 * samples_mean, rel=0.02)  # left as the network made it
     assert pulled.mean() == pytest.approx(samples_mean, rel=1e-3)         # rse ≪ τ: the samples' total
+
+
+def test_the_median_pixel_ratio_reads_the_typical_pixel_where_the_total_reads_the_brightest():
+    reference = np.full((10, 10, 3), 0.1, np.float32)
+    reference[0, 0] = 100.0                       # one bright pixel holds most of the energy
+    image = reference * 1.03
+    image[0, 0] = 50.0                            # a denoiser that lost half of it, a gain that lifted the rest 3 %
+    assert image.sum() / reference.sum() < 0.6
+    assert median_pixel_ratio(image, reference) == pytest.approx(1.03, rel=1e-5)
 
 
 def test_setting_sweep_over_energy_block_restores_each_half_where_it_was_lost_and_restores_the_config():
