@@ -97,6 +97,9 @@ def main() -> None:
     args = parser.parse_args()
     if any(t <= 0 for t in args.tau):
         parser.error("--tau values must be > 0")
+    if args.megapixels and any(spp < FIRST_SPP or (spp // FIRST_SPP) & (spp // FIRST_SPP - 1) or spp % FIRST_SPP
+                               for spp in args.spp):
+        parser.error(f"with --megapixels, --spp values are the loop's totals: {FIRST_SPP}, {2 * FIRST_SPP}, {4 * FIRST_SPP} …")
     nets = load_bench_networks(args.weights)
     denoiser = nets.networks.denoiser
     # The cache keeps the samples' mean only when the config asks for the factor.
