@@ -34,7 +34,7 @@ from bench.dev_references import SUITES, DevScene, dev_scenes, load_reference
 from bench.loop_report import DEFAULT_CACHE_DIR
 from bench.suite_quality import uniform_render
 from bench.versus_mitsuba import suite_scenes
-from bench.versus_mitsuba_run import FIRST_SPP, make_loop
+from bench.versus_mitsuba_run import FIRST_SPP, make_loop, spp_levels
 from bench.versus_mitsuba_scene import reference, reference_path, scaled_film
 from models.denoiser import Denoiser, DenoiserCache
 from models.frames import FrameTensors
@@ -53,19 +53,19 @@ def outputs_per_tolerance(denoiser: Denoiser, cache: DenoiserCache, taus: list[f
     return images
 
 
-def suite_frames(suite: str, spp_levels: list[int], networks) -> Iterator[tuple[DevScene, int, FrameTensors, np.ndarray]]:
+def suite_frames(suite: str, spp_totals: list[int], networks) -> Iterator[tuple[DevScene, int, FrameTensors, np.ndarray]]:
     """(scene, spp, uniform render, reference) for each scene of a suite at its own size."""
     for scene in dev_scenes(None, SUITES[suite].root):
         ref, _ = load_reference(SUITES[suite].references, scene, None if scene.frames == 1 else 0)
-        for spp in spp_levels:
+        for spp in spp_totals:
             yield scene, spp, frame_tensors(uniform_render(scene, spp, networks).buffers[0]), ref
 
 
-def scaled_frames(names: list[str] | None, megapixels: float, spp_levels: list[int], networks, cache_dir: Path,
+def scaled_frames(names: list[str] | None, megapixels: float, spp_totals: list[int], networks, cache_dir: Path,
                   reference_spp: int) -> Iterator[tuple[DevScene, int, FrameTensors, np.ndarray]]:
     """The same for suite scenes as written at `megapixels`, against the bench cache's
     `--versus-mitsuba` references of `reference_spp`; the loop's uniform iterations give 16, 32, 64 … spp."""
-    iterations = max(1, math.ceil(math.log2(max(spp_levels) / FIRST_SPP)) + 1)
+    iterations = len(spp_levels(max(spp_totals)))
     for scene in suite_scenes(names):
         film = scaled_film(scene, megapixels)
         if not reference_path(scene, film, reference_spp, cache_dir).is_file():
@@ -74,7 +74,7 @@ def scaled_frames(names: list[str] | None, megapixels: float, spp_levels: list[i
         ref = reference(scene, film, reference_spp, cache_dir).mean
         loop = make_loop(scene, film, networks, "uniform", iterations)
         for record in loop.run():
-            if round(record.spp_mean) in spp_levels:
+            if round(record.spp_mean) in spp_totals:
                 yield scene, round(record.spp_mean), frame_tensors(loop.state.buffers[0]), ref
 
 
@@ -97,9 +97,8 @@ def main() -> None:
     args = parser.parse_args()
     if any(t <= 0 for t in args.tau):
         parser.error("--tau values must be > 0")
-    if args.megapixels and any(spp < FIRST_SPP or (spp // FIRST_SPP) & (spp // FIRST_SPP - 1) or spp % FIRST_SPP
-                               for spp in args.spp):
-        parser.error(f"with --megapixels, --spp values are the loop's totals: {FIRST_SPP}, {2 * FIRST_SPP}, {4 * FIRST_SPP} …")
+    if args.megapixels and not set(args.spp) <= set(spp_levels(max(*args.spp, FIRST_SPP))):
+        parser.error(f"with --megapixels, --spp values are the loop's totals: {', '.join(map(str, spp_levels(64)))} …")
     nets = load_bench_networks(args.weights)
     denoiser = nets.networks.denoiser
     # The cache keeps the samples' mean only when the config asks for the factor.
@@ -117,10 +116,10 @@ def main() -> None:
             mean = float(ref.mean())
             prepared = prepare_frame(denoiser, [frame], 0)
             cache, candidate = prepared.cache, prepared.candidate
-            images = [to_image(candidate), *outputs_per_tolerance(denoiser, cache, taus)]
-            errors.setdefault(spp, []).append(float(images[1].mean()) / mean - 1.0)
+            images = outputs_per_tolerance(denoiser, cache, taus)
+            errors.setdefault(spp, []).append(float(images[0].mean()) / mean - 1.0)
             cells = []
-            for image in images:
+            for image in [to_image(candidate), *images]:
                 m = image_metrics(image, ref)
                 cells.append(f"{image.mean() / mean:.4f}, {median_pixel_ratio(image, ref):.4f}, {m['smape']:.4f}, {m['relmse']:.3g}")
             print(f"| {scene.name} | {spp} | {float(cache.energy.rse[0]):.4f} | {to_image(frame.color).mean() / mean:.4f} "
