@@ -93,9 +93,12 @@ def debiased_relmse(image: np.ndarray, reference: Reference) -> float:
     reference mean m independent of the image x, E[(x − m)²] = (x − t)² + Var(m): each pixel's
     squared difference less the reference's variance of the mean (its passes' spread,
     bench.common.Reference) estimates the squared error against the truth t without bias. The
-    denominator keeps m² + ε (its noise is second order, (σ_m / m)² ≲ 1e-3 at 1024 spp). Unlike
-    SMAPE, whose floor a noisy reference sets, this reads errors below the reference's own; it can
-    be ≤ 0 where the image is closer to the truth than the reference's noise can tell."""
+    denominator keeps m² + ε: its noise is second order where (σ_m / m)² ≲ 1e-3, most scenes at
+    1024 spp, but not where light arrives by rare paths (fog_spot's reference: relative error 0.10,
+    its typical pixel below the truth), and there both metrics lean towards images that drop those
+    paths' energy (docs/decisions.md, "fog_spot at 2 MP"). Unlike SMAPE, whose floor a noisy
+    reference sets, this reads errors below the reference's own; it can be ≤ 0 where the image is
+    closer to the truth than the reference's noise can tell."""
     x = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     np.maximum(x, 0.0, out=x)
     m = np.asarray(reference.mean, dtype=np.float64)
