@@ -47,6 +47,23 @@ class Film:
         return f"{self.width}×{self.height}"
 
 
+@dataclass(frozen=True)
+class Crop:
+    """A window of a film in its pixels (Mitsuba's crop_offset_x/y, crop_width/height): rendered
+    alone, its pixels are the whole film's pixels there."""
+    x: int
+    y: int
+    width: int
+    height: int
+
+    def __str__(self) -> str:
+        return f"crop{self.x}_{self.y}_{self.width}x{self.height}"
+
+    def of(self, image: np.ndarray) -> np.ndarray:
+        """The window's pixels of a whole-film (H, W, C) image."""
+        return image[self.y:self.y + self.height, self.x:self.x + self.width]
+
+
 def scaled_film(scene: DevScene, megapixels: float) -> Film:
     """The scene's film scaled to about `megapixels` MP, its aspect ratio kept."""
     width, height = film_size(str(scene.path))
@@ -54,8 +71,9 @@ def scaled_film(scene: DevScene, megapixels: float) -> Film:
     return Film(max(8, round(width * factor)), max(8, round(height * factor)))
 
 
-def _set_film(document: str, film: Film, box: bool) -> str:
-    """The flattened scene with its film resized (crop dropped) and, if `box`, a box filter."""
+def _set_film(document: str, film: Film, box: bool, crop: Crop | None = None) -> str:
+    """The flattened scene with its film resized (its own crop dropped; `crop`'s set instead) and,
+    if `box`, a box filter."""
     root = ElementTree.fromstring(document)
     element = root.find(".//film")
     if element is None:  # Mitsuba's default film: state the size (and filter) explicitly
@@ -68,6 +86,10 @@ def _set_film(document: str, film: Film, box: bool) -> str:
             element.remove(child)
     ET.SubElement(element, "integer", {"name": "width", "value": str(film.width)})
     ET.SubElement(element, "integer", {"name": "height", "value": str(film.height)})
+    if crop is not None:
+        for name, value in (("crop_offset_x", crop.x), ("crop_offset_y", crop.y), ("crop_width", crop.width),
+                            ("crop_height", crop.height)):
+            ET.SubElement(element, "integer", {"name": name, "value": str(value)})
     if box:
         ET.SubElement(element, "rfilter", {"type": "box"})
     return ET.tostring(root, encoding="unicode")
@@ -103,7 +125,7 @@ def competitor_scene(scene: DevScene, film: Film, box: bool = False):
     return mitsuba().load_string(_set_film(_flat_document(scene), film, box))
 
 
-def reference_scene(scene: DevScene, film: Film):
+def reference_scene(scene: DevScene, film: Film, crop: Crop | None = None):
     """The scene as written at `film`'s size with its sampler replaced by `independent` (its
     sample count kept). A reference is rendered in calls of at most REFERENCE_CALL_LANES samples,
     16 spp each at 2 MP, and Mitsuba's stratifying samplers are not unbiased over so short a sequence:
@@ -111,8 +133,8 @@ def reference_scene(scene: DevScene, film: Film):
     service/render/stratified_lanes.py), and on living_room at ~2 MP its 16-spp image mean sits
     0.25 % below the `independent` sampler's (docs/decisions.md). The reference estimates the
     image itself, so only the unbiased sampler will do; `mi.render` as a competitor keeps the
-    scene's own (competitor_scene)."""
-    return mitsuba().load_string(_independent_sampler(_set_film(_flat_document(scene), film, False)))
+    scene's own (competitor_scene). With `crop`, only that window of the film is rendered."""
+    return mitsuba().load_string(_independent_sampler(_set_film(_flat_document(scene), film, False, crop)))
 
 
 def _independent_sampler(document: str) -> str:
@@ -178,23 +200,25 @@ def warm_up(scene, integrator, levels: list[int], seed: int) -> None:
         render_with_aovs(scene, integrator, per_call, seed)
 
 
-def reference_path(scene: DevScene, film: Film, spp: int, cache_dir: Path) -> Path:
-    """Where `reference` keeps that reference: keyed by the scene's content, size, spp and variant."""
-    name = (f"{scene.name}_{scene.content_hash}_{film.width}x{film.height}_{spp}spp_{active_variant()}"
+def reference_path(scene: DevScene, film: Film, spp: int, cache_dir: Path, crop: Crop | None = None) -> Path:
+    """Where `reference` keeps that reference: keyed by the scene's content, size, crop, spp and variant."""
+    window = "" if crop is None else f"_{crop}"
+    name = (f"{scene.name}_{scene.content_hash}_{film.width}x{film.height}{window}_{spp}spp_{active_variant()}"
             f"_seed{REFERENCE_SEED}_independent.npz")
     return Path(cache_dir) / "versus-mitsuba" / name
 
 
-def reference(scene: DevScene, film: Film, spp: int, cache_dir: Path) -> Reference:
+def reference(scene: DevScene, film: Film, spp: int, cache_dir: Path, crop: Crop | None = None) -> Reference:
     """`mi.render` of the scene as written at `film`'s size and `spp` with the `independent`
     sampler (reference_scene), in passes, with the passes' spread as its variance; rendered once
-    into `cache_dir` (the bench cache, `reference_path`)."""
+    into `cache_dir` (the bench cache, `reference_path`). With `crop`, that window alone."""
 
     def render(seed: int) -> tuple[np.ndarray, np.ndarray]:
         mi = mitsuba()
-        loaded = reference_scene(scene, film)
+        loaded = reference_scene(scene, film, crop)
+        pixels = film.width * film.height if crop is None else crop.width * crop.height
         # at least REFERENCE_CALLS calls: their spread is the reference's variance
-        per_call, calls = pass_plan(spp, film.width * film.height, REFERENCE_CALL_LANES, REFERENCE_CALLS)
+        per_call, calls = pass_plan(spp, pixels, REFERENCE_CALL_LANES, REFERENCE_CALLS)
         total = squares = 0.0  # running sums: at 2 MP a pass list would hold gigabytes
         for i in range(calls):
             image = np.asarray(mi.render(loaded, spp=per_call, seed=seed + i), dtype=np.float64)[..., :3]
@@ -204,4 +228,4 @@ def reference(scene: DevScene, film: Film, spp: int, cache_dir: Path) -> Referen
         variance = spread / calls if calls > 1 else np.zeros_like(mean)
         return mean.astype(np.float32), variance.astype(np.float32)
 
-    return cached_reference(reference_path(scene, film, spp, cache_dir), render)
+    return cached_reference(reference_path(scene, film, spp, cache_dir, crop), render)

@@ -12,7 +12,7 @@ scene and level, shared by every τ (the factor is a post-step).
     python -m bench.experiments.energy_tolerance [--suite val|dev] [--spp 16 64 256] [--tau 0.01 0.03] [--weights DIR]
     python -m bench.experiments.energy_tolerance --megapixels 2 --scenes fog_spot misty_lantern --spp 16 32 [--pool 1 4 16]
     python -m bench.experiments.energy_tolerance --megapixels 0.016428 --scenes fog_spot --spp 16 32 64 \
-        --reference-spp 16384 --render-references --cache /tmp/refs
+        --reference-spp 16384 --render-references --cache /tmp/refs      # 0.016428 MP: fog_spot's own 148×111
 
 With --megapixels, the named suite scenes as written at that film size (bench.versus_mitsuba_scene),
 rendered by the loop with uniform allocation (16 spp, then doubling), against the references
@@ -122,6 +122,8 @@ def main() -> None:
         parser.error("--tau values must be > 0")
     if any(k < 1 for k in args.pool):
         parser.error("--pool values must be ≥ 1")
+    if args.render_references and not args.megapixels:
+        parser.error("--render-references needs --megapixels (the suites' own references are committed)")
     if args.megapixels and not set(args.spp) <= set(spp_levels(max(*args.spp, FIRST_SPP))):
         parser.error(f"with --megapixels, --spp values are the loop's totals: {', '.join(map(str, spp_levels(64)))} …")
     nets = load_bench_networks(args.weights)

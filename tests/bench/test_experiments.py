@@ -11,10 +11,12 @@ import torch
 
 import bench.experiments
 from bench.common import denoiser_settings, image_metrics
+from bench.experiments.crop_reference import quarter_crops, scored, window_scores
 from bench.experiments.energy_tolerance import UNTOUCHED, box_pool, median_pixel_ratio, outputs_per_tolerance
 from bench.experiments.gate_offset import offset_ratios
 from bench.experiments.seed_spread import paired_ratio
 from bench.experiments.setting_sweep import parse_values, setting_images, summary_rows
+from bench.versus_mitsuba_scene import Film
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
 from service.loop.tensors import to_image
@@ -98,6 +100,23 @@ def test_pooling_shows_the_bias_a_heavy_tailed_references_typical_pixel_hides():
     assert pooled[0] < pooled[1] / 3
 
 
+def test_quarter_crops_lie_inside_the_film_apart_and_score_without_their_margin():
+    film = Film(1633, 1225)
+    crops = quarter_crops(film)
+    assert len(crops) == 4
+    for a in crops:
+        assert 0 <= a.x and a.x + a.width <= film.width and 0 <= a.y and a.y + a.height <= film.height
+        for b in crops:
+            assert a == b or a.x + a.width <= b.x or b.x + b.width <= a.x or a.y + a.height <= b.y or b.y + b.height <= a.y
+    image = np.arange(1225 * 1633 * 3, dtype=np.float32).reshape(1225, 1633, 3)
+    window = crops[0].of(image)
+    assert window.shape == (96, 128, 3) and window[0, 0, 0] == image[crops[0].y, crops[0].x, 0]
+    assert scored(window).shape == (88, 120, 3)
+    reference = [np.full((96, 128, 3), 0.5)] * 2
+    smape, relmse, median = window_scores([np.full((96, 128, 3), 0.55)] * 2, reference)
+    assert median == pytest.approx(1.1) and smape == pytest.approx(0.05 / 1.06, rel=1e-3) and relmse > 0
+
+
 def test_setting_sweep_over_energy_block_restores_each_half_where_it_was_lost_and_restores_the_config():
     # gate offset 10: the output is the candidate's image; the candidate lost a fifth on its left half only
     config = DenoiserConfig(width=8, spatial_blocks=1, temporal=False, oidn_candidate=True, energy_tolerance=0.03,
@@ -173,7 +192,7 @@ def test_setting_sweep_images_follow_the_setting_and_restore_the_config():
     assert np.abs(plain - floored).max() > 1e-3
 
 
-KEPT_EXPERIMENTS = ("accumulation_rules", "competitor_calls", "energy_tolerance", "exposure_range", "gate_offset", "mitsuba_exr_denoise",
+KEPT_EXPERIMENTS = ("accumulation_rules", "competitor_calls", "crop_reference", "energy_tolerance", "exposure_range", "gate_offset", "mitsuba_exr_denoise",
                     "seed_spread", "setting_sweep", "static_flicker")
 
 

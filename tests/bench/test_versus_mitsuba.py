@@ -24,8 +24,9 @@ from bench.common import Reference, load_bench_networks
 from bench.versus_mitsuba_run import (Curve, CurvePoint, at_competitor_end, better_of, compare,
                                       least_at_competitor_ends, compile_loop_kernels, debiased_relmse,
                                       error_at_time, kernel_compile_seconds, make_loop, time_at_error)
-from bench.versus_mitsuba_scene import (REFERENCE_CALL_LANES, REFERENCE_CALLS, Film, competitor_scene, pass_plan,
+from bench.versus_mitsuba_scene import (REFERENCE_CALL_LANES, REFERENCE_CALLS, Crop, Film, competitor_scene, pass_plan,
                                         reference_scene, scaled_film)
+from service.render.runtime import mitsuba
 
 TINY_SCENE = "sun_room"  # a Gaussian film: both mi.render films run
 
@@ -312,6 +313,23 @@ def test_references_render_with_the_independent_sampler_and_competitors_with_the
     assert reference_sensor.sampler().sample_count() == competitor_sampler.sample_count()
     width, height = (int(v) for v in reference_sensor.film().crop_size())
     assert (width, height) == (64, 40)
+
+
+def test_a_cropped_reference_renders_the_whole_films_pixels_in_its_window() -> None:
+    # bench.experiments.crop_reference scores a 2 MP image's windows against windows rendered alone:
+    # a window shifted by a pixel, or resampled, would read as error. Away from its margin a window
+    # matches the whole film's render there as closely as two renders of the same pixels can.
+    (scene,) = suite_scenes(["hard_shadows"])
+    film = Film(64, 48)
+    crop = Crop(20, 12, 24, 16)
+    mi = mitsuba()
+    whole = np.asarray(mi.render(reference_scene(scene, film), spp=256, seed=1), dtype=np.float64)[..., :3]
+    window = np.asarray(mi.render(reference_scene(scene, film, crop), spp=256, seed=2), dtype=np.float64)[..., :3]
+    assert window.shape == (16, 24, 3)
+    inner = lambda x: x[4:-4, 4:-4].mean(-1)   # noqa: E731
+    aligned = np.abs(inner(window) - inner(crop.of(whole))).mean()
+    shifted = np.abs(inner(window) - inner(Crop(21, 12, 24, 16).of(whole))).mean()
+    assert aligned < 0.5 * shifted
 
 
 def versus_mitsuba_parser() -> argparse.ArgumentParser:
