@@ -318,7 +318,8 @@ def test_references_render_with_the_independent_sampler_and_competitors_with_the
 def test_a_cropped_reference_renders_the_whole_films_pixels_in_its_window() -> None:
     # bench.experiments.crop_reference scores a 2 MP image's windows against windows rendered alone:
     # a window shifted by a pixel, or resampled, would read as error. Away from its margin a window
-    # matches the whole film's render there as closely as two renders of the same pixels can.
+    # rendered alone differs from the whole film's render there by noise only (0.009 mean |diff| at
+    # 256 spp), a fifth of what one pixel over differs (0.046).
     (scene,) = suite_scenes(["hard_shadows"])
     film = Film(64, 48)
     crop = Crop(20, 12, 24, 16)
