@@ -60,9 +60,10 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def block_means(x: np.ndarray, block: int) -> np.ndarray:
-    """(H, W) → the means of its block×block tiles (the ragged right and bottom edges dropped)."""
+    """(H, W, …) → the means of its block×block tiles, per channel if it has any (the ragged right
+    and bottom edges dropped)."""
     h, w = (x.shape[0] // block) * block, (x.shape[1] // block) * block
-    return x[:h, :w].reshape(h // block, block, w // block, block).mean(axis=(1, 3))
+    return x[:h, :w].reshape(h // block, block, w // block, block, *x.shape[2:]).mean(axis=(1, 3))
 
 
 def lambda_measures(d: Tensor, r: Tensor) -> dict[str, float]:

@@ -43,6 +43,7 @@ import torch
 from bench.common import denoiser_settings, image_metrics, load_bench_networks, pinned_torch_threads
 from bench.dev_references import SUITES, DevScene, dev_scenes, load_reference
 from bench.loop_report import DEFAULT_CACHE_DIR
+from bench.quality_measures import block_means
 from bench.suite_quality import uniform_render
 from bench.versus_mitsuba import suite_scenes
 from bench.versus_mitsuba_run import FIRST_SPP, make_loop, spp_levels
@@ -89,12 +90,6 @@ def scaled_frames(names: list[str] | None, megapixels: float, spp_totals: list[i
         for record in loop.run():
             if round(record.spp_mean) in spp_totals:
                 yield scene, round(record.spp_mean), frame_tensors(loop.state.buffers[0]), ref
-
-
-def box_pool(image: np.ndarray, k: int) -> np.ndarray:
-    """(H, W, C) → (H // k, W // k, C): the means of k×k blocks (a cut edge dropped)."""
-    h, w = image.shape[0] // k * k, image.shape[1] // k * k
-    return image[:h, :w].reshape(h // k, k, w // k, k, -1).mean((1, 3))
 
 
 def median_pixel_ratio(image: np.ndarray, ref: np.ndarray) -> float:
@@ -147,10 +142,10 @@ def main() -> None:
             images = outputs_per_tolerance(denoiser, cache, taus)
             errors.setdefault(spp, []).append(float(images[0].mean()) / mean - 1.0)
             for k in args.pool:
-                pooled_ref = box_pool(ref, k)
+                pooled_ref = block_means(ref, k)
                 cells = []
                 for image in [to_image(candidate), *images]:
-                    pooled = box_pool(image, k)
+                    pooled = block_means(image, k)
                     m = image_metrics(pooled, pooled_ref)
                     cells.append(f"{image.mean() / mean:.4f}, {median_pixel_ratio(pooled, pooled_ref):.4f}, "
                                  f"{m['smape']:.4f}, {m['relmse']:.3g}")

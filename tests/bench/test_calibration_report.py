@@ -112,6 +112,10 @@ def test_block_means_average_each_tile_and_drop_the_ragged_edge():
     means = block_means(x, 3)
     assert means.shape == (2, 3)
     assert means[1, 2] == x[3:6, 6:9].mean()
+    image = np.arange(5 * 7 * 3, dtype=float).reshape(5, 7, 3)   # channels kept apart
+    pooled = block_means(image, 2)
+    assert pooled.shape == (2, 3, 3)
+    np.testing.assert_allclose(pooled[1, 2], image[2:4, 4:6].mean((0, 1)))
 
 
 def _noisy_maps(expected: np.ndarray, noise: float, renders: int, seed: int = 0) -> np.ndarray:

@@ -11,8 +11,9 @@ import torch
 
 import bench.experiments
 from bench.common import denoiser_settings, image_metrics
+from bench.quality_measures import block_means
 from bench.experiments.crop_reference import quarter_crops, scored, window_scores
-from bench.experiments.energy_tolerance import UNTOUCHED, box_pool, median_pixel_ratio, outputs_per_tolerance
+from bench.experiments.energy_tolerance import UNTOUCHED, median_pixel_ratio, outputs_per_tolerance
 from bench.experiments.gate_offset import offset_ratios
 from bench.experiments.seed_spread import paired_ratio
 from bench.experiments.setting_sweep import parse_values, setting_images, summary_rows
@@ -78,14 +79,6 @@ def test_the_median_pixel_ratio_reads_the_typical_pixel_where_the_total_reads_th
     assert median_pixel_ratio(image, reference) == pytest.approx(1.03, rel=1e-5)
 
 
-def test_box_pool_averages_k_by_k_blocks_and_drops_a_cut_edge():
-    image = np.arange(5 * 7 * 3, dtype=np.float64).reshape(5, 7, 3)
-    pooled = box_pool(image, 2)
-    assert pooled.shape == (2, 3, 3)
-    np.testing.assert_allclose(pooled[1, 2], image[2:4, 4:6].mean((0, 1)))
-    np.testing.assert_array_equal(box_pool(image, 1), image)
-
-
 def test_pooling_shows_the_bias_a_heavy_tailed_references_typical_pixel_hides():
     # a reference of rare-path light: log-normal per pixel, mean 1 but median 0.88. Per pixel, SMAPE
     # against it prefers an image that lost 8 % of the energy; over 32×32 block means the
@@ -95,7 +88,7 @@ def test_pooling_shows_the_bias_a_heavy_tailed_references_typical_pixel_hides():
     reference = np.exp(rng.normal(-sigma ** 2 / 2, sigma, (256, 256, 3)))
     unbiased, dark = np.ones_like(reference), np.full_like(reference, 0.92)
     per_pixel = [image_metrics(x, reference)["smape"] for x in (unbiased, dark)]
-    pooled = [image_metrics(box_pool(x, 32), box_pool(reference, 32))["smape"] for x in (unbiased, dark)]
+    pooled = [image_metrics(block_means(x, 32), block_means(reference, 32))["smape"] for x in (unbiased, dark)]
     assert per_pixel[1] < per_pixel[0]
     assert pooled[0] < pooled[1] / 3
 
