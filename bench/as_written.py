@@ -21,7 +21,7 @@ from pathlib import Path
 from bench.common import OidnDenoise, command_line, fill, fmt, image_metrics, load_bench_networks, oidn_denoiser, provenance
 from bench.dev_references import DevScene, dev_scenes
 from bench.versus_mitsuba_run import MITSUBA_SEED, make_loop, spp_levels
-from bench.versus_mitsuba_scene import aov_integrator, competitor_scene, reference, render_with_aovs, scaled_film, scene_filter
+from bench.versus_mitsuba_scene import competitor_scene, reference, render_with_aovs, scaled_film, scene_filter
 from models.pretrained import Networks
 from service.render.runtime import active_variant
 
@@ -93,9 +93,8 @@ def score_scene(scene: DevScene, source: str, *, size: int, spp: int, reference_
                          {m: {k: [] for k in METRICS} for m in METHODS + PARTS})
     truth = reference(scene, film, reference_spp, cache_dir).mean
     competitor = competitor_scene(scene, film)
-    integrator = aov_integrator(competitor)
     for seed in seeds:
-        rendered = render_with_aovs(competitor, integrator, spp, MITSUBA_SEED + SEED_STRIDE * seed)
+        rendered = render_with_aovs(competitor, spp, MITSUBA_SEED + SEED_STRIDE * seed)
         images = {"mitsuba_raw": rendered.color,
                   "mitsuba_oidn": oidn(rendered.color, rendered.albedo, rendered.normal),
                   **loop_images(scene, film, networks, spp, seed)}

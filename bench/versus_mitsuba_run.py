@@ -26,7 +26,7 @@ import numpy as np
 from bench.common import OidnDenoise, Reference, recorded_kernels, sanitize
 from bench.dev_references import DevScene
 from bench.loop_run import EXTRAPOLATION_LIMIT, LOOP_SEED, STAGES, NoErrorPrediction
-from bench.versus_mitsuba_scene import Film, aov_integrator, competitor_scene, render_with_aovs, warm_up
+from bench.versus_mitsuba_scene import Film, competitor_scene, render_with_aovs, warm_up
 from models.losses import smape
 from models.metrics import RELMSE_EPS
 from models.pretrained import Networks
@@ -145,18 +145,18 @@ def peak_rss(curve: Curve) -> Iterator[None]:
 
 def mitsuba_curve(scene: DevScene, film: Film, box: bool, levels: list[int], reference: Reference,
                   oidn: OidnDenoise) -> Curve:
-    """`mi.render` with the `aov` integrator at each uniform spp, then OIDN: one point per spp."""
+    """`mi.render` at each uniform spp, with its albedo and normals from a second render
+    (versus_mitsuba_scene.render_with_aovs), then OIDN: one point per spp."""
     loaded = competitor_scene(scene, film, box)
-    integrator = aov_integrator(loaded)
     curve = Curve("mitsuba-box" if box else "mitsuba",
                   "`mi.render` + OIDN, box film" if box else "`mi.render` + OIDN, the scene's filter")
     with kernel_compile_seconds() as compiled:  # compiles the kernels, untimed
-        warm_up(loaded, integrator, levels, MITSUBA_SEED - 1)
+        warm_up(loaded, levels, MITSUBA_SEED - 1)
     curve.compile_s = compiled[0]
     with peak_rss(curve):
         for spp in levels:
             started = time.perf_counter()
-            image = render_with_aovs(loaded, integrator, spp, MITSUBA_SEED)
+            image = render_with_aovs(loaded, spp, MITSUBA_SEED)
             rendered = time.perf_counter()
             denoised = oidn(image.color, image.albedo, image.normal)
             done = time.perf_counter()

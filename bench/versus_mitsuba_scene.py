@@ -1,7 +1,8 @@
 """The scenes of `renderloop bench --versus-mitsuba` as a user renders them: each film scaled to a
 target pixel count (aspect kept), loaded once for `mi.render` exactly as written (its integrator,
-sampler and reconstruction filter) or with the film switched to `box`, the `aov` integrator that
-gives OIDN its albedo and normals, uniform renders in bounded passes, and the cached references.
+sampler and reconstruction filter) or with the film switched to `box`, OIDN's albedo and normals
+from an `aov` integrator in a render of their own, uniform renders in bounded passes, and the
+cached references.
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from service.render.scenes import FRAME_PARAMETER, film_size
 
 # OIDN's auxiliary features as a user asks Mitsuba for them (Mitsuba's `aov` plugin names).
 AOVS = "albedo:albedo,nn:sh_normal"
-AOV_CHANNELS = 6  # albedo RGB + normal XYZ, the last channels of the developed film
+AOV_CHANNELS = 6  # albedo RGB + normal XYZ, the channels of the features' film
 # At most this many samples in flight per competitor `mi.render` call: a user renders a level in one
 # call. Memory does not bind (Mitsuba draws each lane's samples inside the kernel: at ~2 MP one
 # 64-spp call of living_room peaked at 0.60 GB RSS, one 16-spp call at 0.58 GB); the cap keeps a
@@ -150,9 +151,14 @@ def _independent_sampler(document: str) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
-def aov_integrator(scene):
-    """The `aov` integrator wrapping the scene's own: colour as written, plus albedo and normals."""
-    return mitsuba().load_dict({"type": "aov", "aovs": AOVS, "img": scene.integrator()})
+def feature_integrator():
+    """An `aov` integrator with no inner integrator: albedo and normals only, one primary
+    intersection a sample. The competitor renders it in a call of its own beside the colour (same
+    seed, so the same film and lens samples): the images are bit for bit those of Mitsuba's recipe,
+    an `aov` integrator wrapping the scene's own, but wrapping traced the scene's integrator in a
+    second kernel and cost 2.1–2.4× a plain render on LLVM, features alone 0.1–0.3×
+    (`python -m bench.experiments.competitor_features`)."""
+    return mitsuba().load_dict({"type": "aov", "aovs": AOVS})
 
 
 def pass_plan(spp: int, pixels: int, max_lanes: int = COMPETITOR_CALL_LANES, min_calls: int = 1) -> tuple[int, int]:
@@ -175,29 +181,35 @@ class AovImage:
     normal: np.ndarray
 
 
-def render_with_aovs(scene, integrator, spp: int, seed: int, max_lanes: int = COMPETITOR_CALL_LANES) -> AovImage:
-    """`mi.render` of `spp` samples per pixel (in pass_plan's calls within `max_lanes`, averaged),
-    split into colour, albedo and normal."""
+def render_with_aovs(scene, spp: int, seed: int, max_lanes: int = COMPETITOR_CALL_LANES) -> AovImage:
+    """`mi.render` of `spp` samples per pixel with the scene's own integrator, and its albedo and
+    normals from `feature_integrator` at the same seeds (in pass_plan's calls within `max_lanes`,
+    averaged)."""
     mi = mitsuba()
     film = scene.sensors()[0].film()
     width, height = (int(v) for v in film.crop_size())
     per_call, calls = pass_plan(spp, width * height, max_lanes)
-    total = None
+    features = feature_integrator()
+    color = aovs = None
     for index in range(calls):
-        image = mi.render(scene, integrator=integrator, spp=per_call, seed=seed + index)
-        total = image if total is None else total + image
-        dr.eval(total)
-    array = np.asarray(total / calls, dtype=np.float32)
-    return AovImage(array[..., :3], array[..., -AOV_CHANNELS:-3], array[..., -3:])
+        image = mi.render(scene, spp=per_call, seed=seed + index)
+        color = image if color is None else color + image
+        dr.eval(color)
+        image = mi.render(scene, integrator=features, spp=per_call, seed=seed + index)
+        aovs = image if aovs is None else aovs + image
+        dr.eval(aovs)
+    color = np.asarray(color / calls, dtype=np.float32)
+    aovs = np.asarray(aovs / calls, dtype=np.float32)
+    return AovImage(color[..., :3], aovs[..., -AOV_CHANNELS:-3], aovs[..., -3:])
 
 
-def warm_up(scene, integrator, levels: list[int], seed: int) -> None:
+def warm_up(scene, levels: list[int], seed: int) -> None:
     """One call of each distinct per-call spp the levels use, untimed: the sample count is part of
     the kernels Dr.Jit compiles, so each one compiles on first use."""
     film = scene.sensors()[0].film()
     width, height = (int(v) for v in film.crop_size())
     for per_call in sorted({pass_plan(spp, width * height)[0] for spp in levels}):
-        render_with_aovs(scene, integrator, per_call, seed)
+        render_with_aovs(scene, per_call, seed)
 
 
 def reference_path(scene: DevScene, film: Film, spp: int, cache_dir: Path, crop: Crop | None = None) -> Path:

@@ -5,7 +5,7 @@ each level in as few calls as the sampler allows")
 Over 16 samples Mitsuba's `stratified` sampler is biased, so a level rendered as many 16-spp calls
 averaged is not what a user's own call gives. For each stratifying scene of scenes/dev and
 scenes/val, at its committed reference's size (about 256²), the scene as written rendered at SPP
-with the `aov` integrator twice — in calls of 16 spp and in calls of 64 (the competitor's plan
+with its albedo and normals twice — in calls of 16 spp and in calls of 64 (the competitor's plan
 since 02f4612: the largest power of 4 that divides the level) — then OIDN; printed per scene the
 SMAPE of each (the mean over the seeds), their ratio and each image mean's offset from the
 reference, then the median and geometric mean of the ratios.
@@ -22,7 +22,7 @@ import numpy as np
 from bench.common import oidn_denoiser
 from bench.dev_references import still_scenes
 from bench.versus_mitsuba_run import MITSUBA_SEED, image_smape
-from bench.versus_mitsuba_scene import Film, aov_integrator, competitor_scene, render_with_aovs, scene_sampler
+from bench.versus_mitsuba_scene import Film, competitor_scene, render_with_aovs, scene_sampler
 from service.render.scenes import STRATIFYING_SAMPLER_PLUGINS
 
 CALL_SPP = (16, 64)  # the old 2 MP competitor's calls, and the fewest a stratifying sampler takes at 128
@@ -34,12 +34,11 @@ def split_smapes(scene, reference: np.ndarray, spp: int, seeds: list[int], oidn)
     relative offset from the reference)."""
     height, width = reference.shape[:2]
     loaded = competitor_scene(scene, Film(width, height))
-    integrator = aov_integrator(loaded)
     out = {}
     for per_call in CALL_SPP:
         smapes, offset = [], 0.0
         for seed in seeds:
-            image = render_with_aovs(loaded, integrator, spp, MITSUBA_SEED + SEED_STRIDE * seed,
+            image = render_with_aovs(loaded, spp, MITSUBA_SEED + SEED_STRIDE * seed,
                                      max_lanes=per_call * width * height)
             smapes.append(image_smape(oidn(image.color, image.albedo, image.normal), reference))
             offset = float(image.color.mean() / reference[..., :3].mean() - 1.0)

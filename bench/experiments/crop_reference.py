@@ -27,7 +27,7 @@ from bench.experiments.energy_tolerance import UNTOUCHED, median_pixel_ratio
 from bench.loop_report import DEFAULT_CACHE_DIR
 from bench.versus_mitsuba import suite_scenes
 from bench.versus_mitsuba_run import FIRST_SPP, MITSUBA_SEED, make_loop, spp_levels
-from bench.versus_mitsuba_scene import (Crop, Film, aov_integrator, competitor_scene, reference, reference_path,
+from bench.versus_mitsuba_scene import (Crop, Film, competitor_scene, reference, reference_path,
                                         render_with_aovs, scaled_film)
 
 WINDOW = (128, 96)   # pixels of each crop: four of them at 8192 spp took 16 min for fog_spot here
@@ -66,13 +66,12 @@ def loop_windows(scene, film: Film, crops: list[Crop], networks, levels: list[in
 
 
 def mitsuba_windows(scene, film: Film, crops: list[Crop], levels: list[int]) -> dict[int, list[np.ndarray]]:
-    """`mi.render` with a box film and the `aov` integrator, then OIDN, at each level, cut to the windows."""
+    """`mi.render` with a box film, its albedo and normals, then OIDN, at each level, cut to the windows."""
     oidn, _ = oidn_denoiser()
     loaded = competitor_scene(scene, film, box=True)
-    integrator = aov_integrator(loaded)
     images = {}
     for spp in levels:
-        image = render_with_aovs(loaded, integrator, spp, MITSUBA_SEED)
+        image = render_with_aovs(loaded, spp, MITSUBA_SEED)
         images[spp] = [crop.of(oidn(image.color, image.albedo, image.normal)) for crop in crops]
     return images
 

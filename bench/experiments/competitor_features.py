@@ -1,0 +1,187 @@
+"""What the `mi.render` + OIDN competitor paid for its albedo and normals, and how the published
+~2 MP speed-ups read once it pays only what they cost.
+
+The 2 MP reports (docs/benchmarks-versus-mitsuba*.md) rendered the competitor with Mitsuba's recipe
+for OIDN's features: an `aov` integrator wrapping the scene's own. Its images are bit for bit those
+of two renders at the same seed, the colour with the scene's integrator and the features with an
+`aov` integrator alone (tests/bench/test_versus_mitsuba.py), which is what the benchmark
+renders now (bench/versus_mitsuba_scene.render_with_aovs). So the reports' errors stand and only the
+competitor's times change. For each scene of the suite's newest CPU reading, at that report's film
+size and for each competitor film it ran (the scene's filter, box): the seconds of one wrapped
+render, one plain render and one features render at SPP (each compiled by an untimed call first),
+and of one OIDN call; then the report's printed curves re-read with each competitor point's render
+time scaled by (plain + features) ÷ wrapped and its OIDN time kept, through the same readings as
+the suite page (bench.versus_mitsuba_run.better_of, least_at_competitor_ends).
+
+    python -m bench.experiments.competitor_features [--spp 4] [--scenes A,B] [--reports docs] [-o FILE]
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import re
+import statistics
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import oidn_denoiser, provenance
+from bench.dev_references import DevScene
+from bench.versus_mitsuba import suite_scenes
+from bench.versus_mitsuba_report import LOOP_LABEL
+from bench.versus_mitsuba_run import MITSUBA_SEED, Curve, CurvePoint, better_of, least_at_competitor_ends
+from bench.versus_mitsuba_scene import AOV_CHANNELS, AOVS, Film, competitor_scene, feature_integrator
+from bench.versus_mitsuba_suite import (REPORT_GLOB, SUMMARY_NAME, Reading, _printed_curves, stratifying_scenes,
+                                        suite_names, suite_standing)
+from service.render.runtime import mitsuba
+
+BOX_LABEL = "box film"   # what a competitor curve's key says when its film was switched to `box`
+
+
+@dataclass(frozen=True)
+class FeatureCost:
+    """Seconds of one render of each kind, and of one OIDN call, for one competitor film."""
+
+    wrapped: float    # `aov` wrapping the scene's integrator: colour and features in one render
+    plain: float      # the scene's integrator alone
+    features: float   # `aov` alone
+    oidn: float
+
+    @property
+    def ratio(self) -> float:
+        """The competitor's render time now ÷ before: (plain + features) ÷ wrapped."""
+        return (self.plain + self.features) / self.wrapped
+
+
+def _seconds(call) -> float:
+    started = time.perf_counter()
+    call()
+    return time.perf_counter() - started
+
+
+def feature_cost(scene: DevScene, film: Film, box: bool, spp: int) -> FeatureCost:
+    """One timed render of each kind at `spp` (after an untimed one that compiles its kernels),
+    interleaved, and one timed OIDN call on the colour and features."""
+    mi = mitsuba()
+    loaded = competitor_scene(scene, film, box)
+    wrapped = mi.load_dict({"type": "aov", "aovs": AOVS, "img": loaded.integrator()})
+    features = feature_integrator()
+    calls = {"wrapped": lambda: mi.render(loaded, integrator=wrapped, spp=spp, seed=MITSUBA_SEED),
+             "plain": lambda: mi.render(loaded, spp=spp, seed=MITSUBA_SEED),
+             "features": lambda: mi.render(loaded, integrator=features, spp=spp, seed=MITSUBA_SEED)}
+    images = {name: np.asarray(call()) for name, call in calls.items()}   # compiles, untimed
+    seconds = {name: _seconds(lambda call=call: np.asarray(call())) for name, call in calls.items()}
+    oidn, _ = oidn_denoiser()
+    color, aovs = images["plain"][..., :3], images["features"]
+    arguments = (color, aovs[..., -AOV_CHANNELS:-3], aovs[..., -3:])
+    oidn(*arguments)
+    return FeatureCost(seconds["wrapped"], seconds["plain"], seconds["features"], _seconds(lambda: oidn(*arguments)))
+
+
+def retimed(curve: Curve, cost: FeatureCost) -> Curve:
+    """`curve` with each point's render time scaled by cost.ratio, its OIDN call's kept."""
+    points = [CurvePoint(p.spp, max(p.seconds - cost.oidn, 0.0) * cost.ratio + cost.oidn, p.smape, p.stages, p.relmse)
+              for p in curve.points]
+    return Curve(curve.key, curve.label, points)
+
+
+@dataclass
+class SceneReread:
+    reading: Reading
+    costs: dict[str, FeatureCost]          # competitor curve key → its cost
+    before: tuple[float, str]              # (equal-error speed-up, how it was read) from the printed curves
+    after: tuple[float, str]
+    end_before: float                      # at the competitors' last points (least favourable)
+    end_after: float
+    end_measured: bool
+
+
+def reread(reading: Reading, report: Path, spp: int) -> SceneReread:
+    """One scene's printed curves read as printed and with the competitors re-timed."""
+    lines = report.read_text().splitlines()
+    curves = {c.key: c for c in _printed_curves(lines, f"{reading.scene} ({reading.film})")}
+    competitors = [c for key, c in curves.items() if key.startswith("`mi.render`")]
+    if LOOP_LABEL not in curves or not competitors:
+        raise ValueError(f"{report.name}: no printed curves for {reading.scene}")
+    width, height = (int(v) for v in re.match(r"(\d+)×(\d+)", reading.film).groups())
+    scene = next(s for s in suite_scenes([reading.scene]))
+    costs = {c.key: feature_cost(scene, Film(width, height), BOX_LABEL in c.key, spp) for c in competitors}
+    loop = curves[LOOP_LABEL]
+    after = [retimed(c, costs[c.key]) for c in competitors]
+    old, new = better_of(loop, competitors), better_of(loop, after)
+    end_old, end_new = least_at_competitor_ends(loop, competitors), least_at_competitor_ends(loop, after)
+    return SceneReread(reading, costs, (old.speedup, old.other_seconds.how), (new.speedup, new.other_seconds.how),
+                       end_old.speedup, end_new.speedup, end_new.measured)
+
+
+def _speedup(value: float, how: str) -> str:
+    if not math.isfinite(value):
+        return "never"
+    return f"{'~' if how == 'extrapolated' else ''}{value:.2f}×"
+
+
+def report_text(rows: list[SceneReread], spp: int, command: str) -> str:
+    lines = ["# The `mi.render` + OIDN competitor's features: what they cost, and the 2 MP suite re-read", "",
+             provenance(command), "", __doc__.split("\n\n")[1].replace("\n", " ").strip(), "",
+             f"Timings: one render of each kind at {spp} spp per competitor film, after an untimed one.", "",
+             "| scene (film) | report | wrapped s | plain s | features s | OIDN s | ratio | speed-up as printed "
+             "| re-timed | at the competitor's last point, as printed | re-timed |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in rows:
+        for key, cost in row.costs.items():
+            first = key == next(iter(row.costs))
+            label = f"{row.reading.scene} ({row.reading.film})" if first else ""
+            film = "box" if BOX_LABEL in key else "own"
+            cells = [f"{label} [{film}]", row.reading.report if first else "", f"{cost.wrapped:.2f}",
+                     f"{cost.plain:.2f}", f"{cost.features:.2f}", f"{cost.oidn:.2f}", f"{cost.ratio:.3f}"]
+            cells += ([_speedup(*row.before), _speedup(*row.after), f"{row.end_before:.2f}×",
+                       f"{'' if row.end_measured else '~'}{row.end_after:.2f}×"] if first else [""] * 4)
+            lines.append("| " + " | ".join(cells) + " |")
+    ratios = [cost.ratio for row in rows for cost in row.costs.values()]
+    before = [row.before[0] for row in rows]
+    after = [row.after[0] for row in rows]
+    lines += ["", f"Competitor render time ratio (plain + features ÷ wrapped): median {statistics.median(ratios):.3f} "
+              f"({min(ratios):.3f}–{max(ratios):.3f}) over {len(ratios)} films.", "",
+              f"Equal-error speed-up of the loop over the better competitor (SMAPE, the loop's final error), "
+              f"{len(rows)} scenes: as printed, ahead on {sum(v > 1 for v in before)}, median "
+              f"{statistics.median(before):.2f}×; re-timed, ahead on {sum(v > 1 for v in after)}, median "
+              f"{statistics.median(after):.2f}×.",
+              f"At the competitors' last points: as printed median {statistics.median(r.end_before for r in rows):.2f}×, "
+              f"re-timed {statistics.median(r.end_after for r in rows):.2f}× "
+              f"(ahead on {sum(r.end_after > 1 for r in rows)})."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--spp", type=int, default=4, help="samples per pixel of each timed render")
+    parser.add_argument("--scenes", type=lambda text: text.split(","), default=None)
+    parser.add_argument("--reports", type=Path, default=Path("docs"))
+    parser.add_argument("-o", "--out", type=Path, default=None, help="write the report here too")
+    args = parser.parse_args(argv)
+    reports = sorted(p for p in args.reports.glob(REPORT_GLOB) if p.name != SUMMARY_NAME)
+    standing = next(s for s in suite_standing(reports, suite_names(), stratifying_scenes()) if s.variant == "llvm_ad_rgb")
+    rows = []
+    for name in args.scenes or suite_names():
+        reading = standing.newest.get(name)
+        if reading is None:
+            print(f"{name}: no CPU reading", flush=True)
+            continue
+        row = reread(reading, args.reports / reading.report, args.spp)
+        rows.append(row)
+        ratios = ", ".join(f"{cost.ratio:.3f}" for cost in row.costs.values())
+        print(f"{name}: ratio {ratios}; speed-up {_speedup(*row.before)} -> {_speedup(*row.after)}; "
+              f"at the competitor's last point {row.end_before:.2f}x -> {row.end_after:.2f}x", flush=True)
+    command = "python -m bench.experiments.competitor_features " + " ".join(argv if argv is not None else sys.argv[1:])
+    text = report_text(rows, args.spp, command.strip())
+    print(text)
+    if args.out is not None:
+        args.out.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
