@@ -154,10 +154,11 @@ def _independent_sampler(document: str) -> str:
 def feature_integrator():
     """An `aov` integrator with no inner integrator: albedo and normals only, one primary
     intersection a sample. The competitor renders it in a call of its own beside the colour (same
-    seed, so the same film and lens samples): the images are bit for bit those of Mitsuba's recipe,
-    an `aov` integrator wrapping the scene's own, but wrapping traced the scene's integrator in a
-    second kernel and cost 2.1–2.4× a plain render on LLVM, features alone 0.1–0.3×
-    (`python -m bench.experiments.competitor_features`)."""
+    seed, so the same film and lens samples): the images are those of Mitsuba's recipe, an `aov`
+    integrator wrapping the scene's own (bit for bit under a box film, to float32 rounding under
+    others). Wrapped, a render launches the plain render's kernel and a second, larger one (Dr.Jit's
+    kernel history, LLVM): about twice a plain render's time, where the features alone add 0.1–0.3×
+    (docs/competitor-features.md)."""
     return mitsuba().load_dict({"type": "aov", "aovs": AOVS})
 
 

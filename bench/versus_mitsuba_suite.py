@@ -41,6 +41,10 @@ VARIANT_LABELS = {"llvm_ad_rgb": "CPU (`llvm_ad_rgb`)", "cuda_ad_rgb": "GPU (`cu
 # handicaps it (bench.experiments.competitor_calls, docs/decisions.md).
 INDEPENDENT_REFERENCE_MARK = "the scene's sampler replaced by `independent`"
 FEW_CALLS_MARK = "in as few calls as the sampler allows"
+# What a report says when `mi.render` + OIDN rendered its albedo and normals apart from the colour.
+# Reports without it timed an `aov` integrator wrapping the scene's, the same images for about twice
+# the render time (bench.experiments.competitor_features, docs/competitor-features.md).
+FEATURES_APART_MARK = "a second render of the same samples with an `aov` integrator alone"
 
 
 @dataclass(frozen=True)
@@ -67,6 +71,8 @@ class Reading:
     # where neither can be read
     end_speedup: str = ""
     relmse_extrapolated: bool = False  # the relMSE speed-up read off a power law (`~`)
+    # `mi.render` + OIDN rendered its features apart (FEATURES_APART_MARK), not in a wrapping `aov`
+    features_apart: bool = True
 
 
 @dataclass
@@ -115,6 +121,10 @@ class VariantStanding:
         return [r for r in self.newest.values() if not r.fair_to_stratifying]
 
     @property
+    def wrapped_features(self) -> list[Reading]:
+        return [r for r in self.newest.values() if not r.features_apart]
+
+    @property
     def unmeasured(self) -> list[str]:
         return [name for name in self.suite if name not in self.newest]
 
@@ -157,7 +167,7 @@ def _run_settings(text: str) -> str:
 
 
 # A cell of a report's per-scene curve table: "0.0160 / 5.22e-05 @ 101.95 s" (SMAPE / relMSE @ seconds).
-CURVE_CELL = re.compile(r"([0-9.e+-]+) / \S+ @ ([0-9.]+) s")
+CURVE_CELL = re.compile(r"([0-9.e+-]+) / (\S+) @ ([0-9.]+) s")
 # Marks a speed-up that cannot be read because the competitor never gets as low as the loop: its
 # curve does not fall, or so slowly that its power law would need more than EXTRAPOLATION_LIMIT
 # times its last measured time (a report may print that guess, ~10⁹×: no estimate). Counted as the
@@ -169,7 +179,7 @@ FROM_PRINTED_CURVES = " ‡"
 
 
 def _printed_curves(lines: list[str], label: str) -> list[Curve]:
-    """The curves of the per-scene table headed by `**{label}**` (SMAPE and seconds only)."""
+    """The curves of the per-scene table headed by `**{label}**` (SMAPE, relMSE where printed, seconds)."""
     start = next((i for i, line in enumerate(lines) if line.startswith(f"**{label}**")), None)
     if start is None or start + 2 >= len(lines) or not lines[start + 2].startswith("| spp |"):
         return []
@@ -182,7 +192,12 @@ def _printed_curves(lines: list[str], label: str) -> list[Curve]:
         for name, cell in zip(names, cells[1:]):
             match = CURVE_CELL.match(cell)
             if match:
-                points[name].append(CurvePoint(float(cells[0]), float(match.group(2)), float(match.group(1)), {}))
+                try:
+                    relmse = float(match.group(2))
+                except ValueError:   # an older report's relMSE column or an unreadable one
+                    relmse = math.nan
+                points[name].append(CurvePoint(float(cells[0]), float(match.group(3)), float(match.group(1)), {},
+                                               relmse))
     return [Curve(name, name, pts) for name, pts in points.items() if pts]
 
 
@@ -228,6 +243,7 @@ def parse_report(path: Path) -> tuple[str, list[Reading]]:
     settings = _run_settings(text)
     flat = " ".join(text.split())
     fair_to_stratifying = INDEPENDENT_REFERENCE_MARK in flat and FEW_CALLS_MARK in flat
+    features_apart = FEATURES_APART_MARK in flat
     relmse = {row[0]: (_headline_speedup(lines, row, float(row[2])), float(row[1]))
               for row in _table_rows(lines, RELMSE_HEADER)}
     at_end = {row[0]: row[5].replace("*", "") for row in _table_rows(lines, END_HEADER)}
@@ -244,6 +260,7 @@ def parse_report(path: Path) -> tuple[str, list[Reading]]:
                                 reference_error=reference_error, peak_rss_mb=float(row[8]),
                                 report=Path(path).name, commit=stamp.group(2), date=stamp.group(1),
                                 settings=settings, fair_to_stratifying=fair_to_stratifying,
+                                features_apart=features_apart,
                                 end_speedup=at_end.get(row[0]) or _end_from_printed_curves(lines, row[0])))
     return variant.group(1), readings
 
@@ -289,8 +306,12 @@ def _speedup_cell(speedup: float, extrapolated: bool) -> str:
     return f"{'~' if extrapolated else ''}{speedup:.2f}×"
 
 
+WRAPPED_MARK = " ¶"
+
+
 def _speedup_text(r: Reading) -> str:
-    return _speedup_cell(r.speedup, r.extrapolated) + ("" if r.fair_to_stratifying else " †")
+    return (_speedup_cell(r.speedup, r.extrapolated) + ("" if r.fair_to_stratifying else " †")
+            + ("" if r.features_apart else WRAPPED_MARK))
 
 
 def _equal_time_sentence(standing: VariantStanding) -> str:
@@ -334,7 +355,11 @@ def _verdict(standing: VariantStanding) -> str:
             f"ahead on **{len(standing.ahead_in_relmse)} of {measured}** measured." + _equal_time_sentence(standing)
             + _end_sentence(standing)
             + (f" {len(standing.unfair_to_stratifying)} of the {measured} readings (†) rest on a stratifying "
-               "sampler's 16-spp bias: re-measure them." if standing.unfair_to_stratifying else ""))
+               "sampler's 16-spp bias: re-measure them." if standing.unfair_to_stratifying else "")
+            + (f" **{len(standing.wrapped_features)} of the {measured} readings (¶) timed `mi.render` + OIDN with an "
+               "`aov` integrator wrapped around the scene's, about twice the render time its images need**: "
+               "`python -m bench.experiments.competitor_features` re-reads them with the competitor re-timed "
+               "(docs/competitor-features.md)." if standing.wrapped_features else ""))
 
 
 def summary_text(standings: list[VariantStanding], reports: list[Path], command: str) -> str:

@@ -2,8 +2,7 @@
 ~2 MP speed-ups read once it pays only what they cost.
 
 The 2 MP reports (docs/benchmarks-versus-mitsuba*.md) rendered the competitor with Mitsuba's recipe
-for OIDN's features: an `aov` integrator wrapping the scene's own. Its images are bit for bit those
-of two renders at the same seed, the colour with the scene's integrator and the features with an
+for OIDN's features: an `aov` integrator wrapping the scene's own. Its images are those of two renders at the same seed, the colour with the scene's integrator and the features with an
 `aov` integrator alone (tests/bench/test_versus_mitsuba.py), which is what the benchmark
 renders now (bench/versus_mitsuba_scene.render_with_aovs). So the reports' errors stand and only the
 competitor's times change. For each scene of the suite's newest CPU reading, at that report's film
@@ -92,66 +91,106 @@ def retimed(curve: Curve, cost: FeatureCost) -> Curve:
 class SceneReread:
     reading: Reading
     costs: dict[str, FeatureCost]          # competitor curve key → its cost
-    before: tuple[float, str]              # (equal-error speed-up, how it was read) from the printed curves
+    before: tuple[float, str]              # (equal-error speed-up in SMAPE, how read) from the printed curves
     after: tuple[float, str]
-    end_before: float                      # at the competitors' last points (least favourable)
+    relmse_before: tuple[float, str]       # the same in relMSE (the references' noise taken out)
+    relmse_after: tuple[float, str]
+    end_before: float                      # SMAPE, at the competitors' last points (least favourable)
     end_after: float
     end_measured: bool
 
 
-def reread(reading: Reading, report: Path, spp: int) -> SceneReread:
-    """One scene's printed curves read as printed and with the competitors re-timed."""
-    lines = report.read_text().splitlines()
-    curves = {c.key: c for c in _printed_curves(lines, f"{reading.scene} ({reading.film})")}
+def competitor_keys(reading: Reading, report: Path) -> tuple[Curve, list[Curve]]:
+    """The loop's printed curve and the competitors' for one scene of `report`."""
+    curves = {c.key: c for c in _printed_curves(report.read_text().splitlines(), f"{reading.scene} ({reading.film})")}
     competitors = [c for key, c in curves.items() if key.startswith("`mi.render`")]
     if LOOP_LABEL not in curves or not competitors:
         raise ValueError(f"{report.name}: no printed curves for {reading.scene}")
+    return curves[LOOP_LABEL], competitors
+
+
+def measured_costs(reading: Reading, competitors: list[Curve], spp: int) -> dict[str, FeatureCost]:
     width, height = (int(v) for v in re.match(r"(\d+)×(\d+)", reading.film).groups())
-    scene = next(s for s in suite_scenes([reading.scene]))
-    costs = {c.key: feature_cost(scene, Film(width, height), BOX_LABEL in c.key, spp) for c in competitors}
-    loop = curves[LOOP_LABEL]
+    (scene,) = suite_scenes([reading.scene])
+    return {c.key: feature_cost(scene, Film(width, height), BOX_LABEL in c.key, spp) for c in competitors}
+
+
+def reread(reading: Reading, loop: Curve, competitors: list[Curve], costs: dict[str, FeatureCost]) -> SceneReread:
+    """One scene's printed curves read as printed and with the competitors re-timed."""
     after = [retimed(c, costs[c.key]) for c in competitors]
-    old, new = better_of(loop, competitors), better_of(loop, after)
+    readings = {}
+    for metric in ("smape", "relmse"):
+        old, new = better_of(loop, competitors, metric), better_of(loop, after, metric)
+        readings[metric] = ((old.speedup, old.other_seconds.how), (new.speedup, new.other_seconds.how))
     end_old, end_new = least_at_competitor_ends(loop, competitors), least_at_competitor_ends(loop, after)
-    return SceneReread(reading, costs, (old.speedup, old.other_seconds.how), (new.speedup, new.other_seconds.how),
-                       end_old.speedup, end_new.speedup, end_new.measured)
+    return SceneReread(reading, costs, *readings["smape"], *readings["relmse"], end_old.speedup, end_new.speedup,
+                       end_new.measured)
+
+
+COSTS_HEADER = "| scene (film) | report | wrapped s |"
+
+
+def costs_from_report(path: Path) -> dict[str, dict[str, FeatureCost]]:
+    """scene → {"own" or "box" → cost} from the table of an earlier run of this command (its -o file)."""
+    costs: dict[str, dict[str, FeatureCost]] = {}
+    scene = None
+    lines = path.read_text().splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(COSTS_HEADER))
+    for line in lines[start + 2:]:
+        if not line.startswith("|"):
+            break
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        label = re.fullmatch(r"(?:(\w+) \(.*\) )?\[(own|box)\]", cells[0])
+        scene = label.group(1) or scene
+        costs.setdefault(scene, {})[label.group(2)] = FeatureCost(*(float(v) for v in cells[2:6]))
+    return costs
+
+
+def _film_kind(key: str) -> str:
+    return "box" if BOX_LABEL in key else "own"
 
 
 def _speedup(value: float, how: str) -> str:
+    if math.isnan(value):
+        return "n/a"
     if not math.isfinite(value):
         return "never"
     return f"{'~' if how == 'extrapolated' else ''}{value:.2f}×"
 
 
+def _count_and_median(values: list[float]) -> str:
+    readable = [v for v in values if not math.isnan(v)]
+    return f"ahead on {sum(v > 1 for v in readable)} of {len(readable)}, median {statistics.median(readable):.2f}×"
+
+
 def report_text(rows: list[SceneReread], spp: int, command: str) -> str:
     lines = ["# The `mi.render` + OIDN competitor's features: what they cost, and the 2 MP suite re-read", "",
-             provenance(command), "", __doc__.split("\n\n")[1].replace("\n", " ").strip(), "",
-             f"Timings: one render of each kind at {spp} spp per competitor film, after an untimed one.", "",
-             "| scene (film) | report | wrapped s | plain s | features s | OIDN s | ratio | speed-up as printed "
-             "| re-timed | at the competitor's last point, as printed | re-timed |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             provenance(command), "", " ".join(__doc__.split("\n\n")[1].split()), "",
+             f"Timings: one render of each kind at {spp} spp per competitor film, after an untimed one. Speed-ups: "
+             "the loop's equal-error speed-up over the better competitor at the loop's final error (SMAPE, and "
+             "relMSE with the references' noise taken out; `~`: read off the competitor's fitted power law), and "
+             "in SMAPE at the competitors' own last points (no extrapolation of the competitor; `~`: of the loop).",
+             "", COSTS_HEADER + " plain s | features s | OIDN s | ratio | SMAPE speed-up as printed | re-timed "
+             "| relMSE speed-up as printed | re-timed | at the competitor's last point, as printed | re-timed |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
-        for key, cost in row.costs.items():
-            first = key == next(iter(row.costs))
-            label = f"{row.reading.scene} ({row.reading.film})" if first else ""
-            film = "box" if BOX_LABEL in key else "own"
-            cells = [f"{label} [{film}]", row.reading.report if first else "", f"{cost.wrapped:.2f}",
+        for index, (key, cost) in enumerate(row.costs.items()):
+            label = f"{row.reading.scene} ({row.reading.film}) " if index == 0 else ""
+            cells = [f"{label}[{_film_kind(key)}]", row.reading.report if index == 0 else "", f"{cost.wrapped:.2f}",
                      f"{cost.plain:.2f}", f"{cost.features:.2f}", f"{cost.oidn:.2f}", f"{cost.ratio:.3f}"]
-            cells += ([_speedup(*row.before), _speedup(*row.after), f"{row.end_before:.2f}×",
-                       f"{'' if row.end_measured else '~'}{row.end_after:.2f}×"] if first else [""] * 4)
+            cells += ([_speedup(*row.before), _speedup(*row.after), _speedup(*row.relmse_before),
+                       _speedup(*row.relmse_after), f"{row.end_before:.2f}×",
+                       f"{'' if row.end_measured else '~'}{row.end_after:.2f}×"] if index == 0 else [""] * 6)
             lines.append("| " + " | ".join(cells) + " |")
     ratios = [cost.ratio for row in rows for cost in row.costs.values()]
-    before = [row.before[0] for row in rows]
-    after = [row.after[0] for row in rows]
     lines += ["", f"Competitor render time ratio (plain + features ÷ wrapped): median {statistics.median(ratios):.3f} "
               f"({min(ratios):.3f}–{max(ratios):.3f}) over {len(ratios)} films.", "",
-              f"Equal-error speed-up of the loop over the better competitor (SMAPE, the loop's final error), "
-              f"{len(rows)} scenes: as printed, ahead on {sum(v > 1 for v in before)}, median "
-              f"{statistics.median(before):.2f}×; re-timed, ahead on {sum(v > 1 for v in after)}, median "
-              f"{statistics.median(after):.2f}×.",
-              f"At the competitors' last points: as printed median {statistics.median(r.end_before for r in rows):.2f}×, "
-              f"re-timed {statistics.median(r.end_after for r in rows):.2f}× "
-              f"(ahead on {sum(r.end_after > 1 for r in rows)})."]
+              f"Over {len(rows)} scenes, SMAPE: as printed {_count_and_median([r.before[0] for r in rows])}; re-timed "
+              f"**{_count_and_median([r.after[0] for r in rows])}**. relMSE: as printed "
+              f"{_count_and_median([r.relmse_before[0] for r in rows])}; re-timed "
+              f"**{_count_and_median([r.relmse_after[0] for r in rows])}**. At the competitors' last points (SMAPE): "
+              f"as printed {_count_and_median([r.end_before for r in rows])}; re-timed "
+              f"**{_count_and_median([r.end_after for r in rows])}**."]
     return "\n".join(lines) + "\n"
 
 
@@ -160,21 +199,28 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spp", type=int, default=4, help="samples per pixel of each timed render")
     parser.add_argument("--scenes", type=lambda text: text.split(","), default=None)
     parser.add_argument("--reports", type=Path, default=Path("docs"))
+    parser.add_argument("--costs-from", type=Path, default=None,
+                        help="take the costs from an earlier run's report (its -o file) instead of rendering")
     parser.add_argument("-o", "--out", type=Path, default=None, help="write the report here too")
     args = parser.parse_args(argv)
     reports = sorted(p for p in args.reports.glob(REPORT_GLOB) if p.name != SUMMARY_NAME)
     standing = next(s for s in suite_standing(reports, suite_names(), stratifying_scenes()) if s.variant == "llvm_ad_rgb")
+    earlier = costs_from_report(args.costs_from) if args.costs_from else None
     rows = []
     for name in args.scenes or suite_names():
         reading = standing.newest.get(name)
         if reading is None:
             print(f"{name}: no CPU reading", flush=True)
             continue
-        row = reread(reading, args.reports / reading.report, args.spp)
+        loop, competitors = competitor_keys(reading, args.reports / reading.report)
+        costs = ({c.key: earlier[name][_film_kind(c.key)] for c in competitors} if earlier is not None
+                 else measured_costs(reading, competitors, args.spp))
+        row = reread(reading, loop, competitors, costs)
         rows.append(row)
         ratios = ", ".join(f"{cost.ratio:.3f}" for cost in row.costs.values())
-        print(f"{name}: ratio {ratios}; speed-up {_speedup(*row.before)} -> {_speedup(*row.after)}; "
-              f"at the competitor's last point {row.end_before:.2f}x -> {row.end_after:.2f}x", flush=True)
+        print(f"{name}: ratio {ratios}; SMAPE speed-up {_speedup(*row.before)} -> {_speedup(*row.after)}; relMSE "
+              f"{_speedup(*row.relmse_before)} -> {_speedup(*row.relmse_after)}; at the competitor's last point "
+              f"{row.end_before:.2f}x -> {row.end_after:.2f}x", flush=True)
     command = "python -m bench.experiments.competitor_features " + " ".join(argv if argv is not None else sys.argv[1:])
     text = report_text(rows, args.spp, command.strip())
     print(text)

@@ -12,12 +12,17 @@ import torch
 import bench.experiments
 from bench.common import denoiser_settings, image_metrics
 from bench.quality_measures import block_means
+from bench.experiments.competitor_features import (FeatureCost, costs_from_report, feature_cost, reread, report_text,
+                                                   retimed)
 from bench.experiments.crop_reference import quarter_crops, scored, window_scores
 from bench.experiments.energy_tolerance import UNTOUCHED, median_pixel_ratio, outputs_per_tolerance
 from bench.experiments.gate_offset import offset_ratios
 from bench.experiments.seed_spread import paired_ratio
 from bench.experiments.setting_sweep import parse_values, setting_images, summary_rows
+from bench.versus_mitsuba import suite_scenes
+from bench.versus_mitsuba_run import Curve, CurvePoint
 from bench.versus_mitsuba_scene import Film
+from bench.versus_mitsuba_suite import Reading
 from models.denoiser import Denoiser, DenoiserConfig
 from models.frames import FrameTensors
 from service.loop.tensors import to_image
@@ -198,3 +203,32 @@ def test_the_kept_experiments_import_against_the_current_product_and_no_others_c
     for name in found:
         module = importlib.import_module(f"bench.experiments.{name}")
         assert callable(module.main), name
+
+
+def _curve(key: str, points: list[tuple[int, float, float]]) -> Curve:
+    return Curve(key, key, [CurvePoint(spp, seconds, smape, {}, smape / 100) for spp, seconds, smape in points])
+
+
+def test_a_retimed_competitor_scales_its_render_time_keeps_its_oidn_call_and_can_lose_the_loop_its_lead(tmp_path):
+    cost = FeatureCost(wrapped=20.0, plain=9.0, features=1.0, oidn=2.0)
+    competitor = _curve("`mi.render` + OIDN, box film", [(16, 22.0, 0.030), (32, 42.0, 0.027), (64, 82.0, 0.025)])
+    loop = _curve("the loop (error allocator)", [(16, 15.0, 0.029), (32, 30.0, 0.027), (64, 60.0, 0.025)])
+    assert cost.ratio == 0.5
+    assert [p.seconds for p in retimed(competitor, cost).points] == [12.0, 22.0, 42.0]
+    reading = Reading("sun_room", "1633×1225, gaussian", 0.025, 1.37, False, "0.9×", 1.37, 0.02, 5000.0,
+                      "benchmarks-versus-mitsuba.md", "abc1234", "2026-11-28", "16–64 spp")
+    row = reread(reading, loop, [competitor], {competitor.key: cost})
+    assert row.before[0] == pytest.approx(82.0 / 60.0) and row.after[0] == pytest.approx(42.0 / 60.0)
+    assert row.end_before == pytest.approx(82.0 / 60.0) and row.end_after == pytest.approx(42.0 / 60.0)
+    # the report's cost table reads back as the costs that made it (--costs-from)
+    path = tmp_path / "costs.md"
+    path.write_text(report_text([row], 4, "x"))
+    assert costs_from_report(path) == {"sun_room": {"box": cost}}
+    assert "re-timed **ahead on 0 of 1, median 0.70×**" in path.read_text()
+
+
+def test_the_feature_cost_times_each_render_kind_on_the_competitors_scene():
+    (scene,) = suite_scenes(["hard_shadows"])
+    cost = feature_cost(scene, Film(48, 36), box=False, spp=4)
+    assert min(cost.wrapped, cost.plain, cost.features, cost.oidn) > 0
+    assert 0 < cost.ratio < 10

@@ -24,8 +24,8 @@ from bench.common import Reference, load_bench_networks
 from bench.versus_mitsuba_run import (Curve, CurvePoint, at_competitor_end, better_of, compare,
                                       least_at_competitor_ends, compile_loop_kernels, debiased_relmse,
                                       error_at_time, kernel_compile_seconds, make_loop, time_at_error)
-from bench.versus_mitsuba_scene import (REFERENCE_CALL_LANES, REFERENCE_CALLS, Crop, Film, competitor_scene, pass_plan,
-                                        reference_scene, scaled_film)
+from bench.versus_mitsuba_scene import (AOVS, COMPETITOR_CALL_LANES, REFERENCE_CALL_LANES, REFERENCE_CALLS, Crop, Film,
+                                        competitor_scene, pass_plan, reference_scene, render_with_aovs, scaled_film)
 from service.render.runtime import mitsuba
 
 TINY_SCENE = "sun_room"  # a Gaussian film: both mi.render films run
@@ -313,6 +313,29 @@ def test_references_render_with_the_independent_sampler_and_competitors_with_the
     assert reference_sensor.sampler().sample_count() == competitor_sampler.sample_count()
     width, height = (int(v) for v in reference_sensor.film().crop_size())
     assert (width, height) == (64, 40)
+
+
+@pytest.mark.parametrize("name, rtol", [("living_room", 0.0), ("sun_room", 1e-6)])   # stratified + box; Gaussian
+def test_the_competitors_features_rendered_apart_are_the_images_of_an_aov_integrator_wrapping_the_scenes(
+        name: str, rtol: float) -> None:
+    # The competitor renders colour and features in two calls because wrapping cost ~2x a plain
+    # render (bench.experiments.competitor_features); what OIDN gets must not change, in one call
+    # or in two averaged: bit for bit under a box film, to float32 rounding under a Gaussian one
+    # (hdrfilm's splat of 3 channels or 9 adds in another order).
+    (scene,) = suite_scenes([name])
+    loaded = competitor_scene(scene, Film(40, 30))
+    mi = mitsuba()
+    wrapped = mi.load_dict({"type": "aov", "aovs": AOVS, "img": loaded.integrator()})
+    for spp, max_lanes in ((16, COMPETITOR_CALL_LANES), (32, 16 * 40 * 30)):
+        per_call, calls = pass_plan(spp, 40 * 30, max_lanes)
+        old = sum(mi.render(loaded, integrator=wrapped, spp=per_call, seed=7 + i) for i in range(calls)) / calls
+        old = np.asarray(old, dtype=np.float32)
+        new = render_with_aovs(loaded, spp, 7, max_lanes)
+        assert calls == spp // 16
+        np.testing.assert_allclose(new.color, old[..., :3], rtol=rtol, atol=0)
+        np.testing.assert_allclose(new.albedo, old[..., 3:6], rtol=rtol, atol=0)
+        np.testing.assert_allclose(new.normal, old[..., 6:9], rtol=rtol, atol=1e-7 if rtol else 0)
+        assert new.albedo.max() > 0.1 and np.abs(new.normal).max() > 0.5   # the features were rendered
 
 
 def test_a_cropped_reference_renders_the_whole_films_pixels_in_its_window() -> None:

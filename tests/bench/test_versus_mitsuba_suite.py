@@ -10,7 +10,7 @@ import pytest
 
 from bench.cli import main as bench_main
 from bench.versus_mitsuba_report import END_HEADER
-from bench.versus_mitsuba_suite import (FEW_CALLS_MARK, INDEPENDENT_REFERENCE_MARK, SUMMARY_NAME, parse_report, stratifying_scenes,
+from bench.versus_mitsuba_suite import (FEATURES_APART_MARK, FEW_CALLS_MARK, INDEPENDENT_REFERENCE_MARK, SUMMARY_NAME, parse_report, stratifying_scenes,
                                         suite_names, suite_standing, summary_text)
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
@@ -18,11 +18,12 @@ COMMITTED = sorted(p for p in DOCS.glob("benchmarks-versus-mitsuba*.md") if p.na
 
 
 def report(date: str, commit: str, rows: dict[str, str], variant: str = "llvm_ad_rgb",
-           equal_time: dict[str, str] | None = None) -> str:
+           equal_time: dict[str, str] | None = None, features_apart: bool = True) -> str:
     """A report's header lines and its two headline tables, with each scene's SMAPE speed-up (and
-    equal-time SMAPE ratio, 0.9× where not given)."""
+    equal-time SMAPE ratio, 0.9× where not given); `features_apart`: its competitor rendered OIDN's
+    features in a render of their own (else in an `aov` integrator wrapping the scene's)."""
     equal_time = equal_time or {}
-    head = ["# Where users render", "",
+    head = ["# Where users render", "", f"`mi.render` and {FEATURES_APART_MARK}." if features_apart else "", "",
             "Command: `renderloop bench --versus-mitsuba --max-spp 128 --reference-spp 1024 -o x`  ",
             f"Mitsuba variant: `{variant}`  ", f"Date: {date}; commit {commit}; load average 1.0/1.0/1.0", "",
             "| scene (film, filter) | loop SMAPE | loop s | better `mi.render` + OIDN | its s to that SMAPE | "
@@ -119,9 +120,22 @@ def test_a_stratifying_scene_is_marked_unless_its_report_rendered_reference_and_
     assert {"living_room", "dof_desk", "metals"} <= stratifying_scenes() and "lamp_room" not in stratifying_scenes()
 
 
-def test_the_report_template_carries_both_marks_of_a_fair_stratifying_run():
+def test_the_report_template_carries_both_marks_of_a_fair_stratifying_run_and_the_features_apart():
     template = " ".join((Path(__file__).resolve().parents[2] / "bench/templates/versus_mitsuba.md").read_text().split())
-    assert INDEPENDENT_REFERENCE_MARK in template and FEW_CALLS_MARK in template
+    assert INDEPENDENT_REFERENCE_MARK in template and FEW_CALLS_MARK in template and FEATURES_APART_MARK in template
+
+
+def test_a_reading_whose_competitor_wrapped_its_features_in_the_scenes_integrator_is_marked(tmp_path):
+    old = write(tmp_path, "benchmarks-versus-mitsuba.md", report("2026-11-28T07:14+00:00", "aaa1111",
+                                                                 {"metals": "~2.00×", "sun_room": "1.20×"},
+                                                                 features_apart=False))
+    new = write(tmp_path, "benchmarks-versus-mitsuba-more.md", report("2026-11-30T07:14+00:00", "bbb2222",
+                                                                      {"sun_room": "0.80×"}))
+    (standing,) = suite_standing([old, new], ["metals", "sun_room"])
+    assert [r.scene for r in standing.wrapped_features] == ["metals"]
+    text = summary_text([standing], [old, new], "x")
+    assert "**~2.00× ¶**" in text and "**0.80×**" in text and "1.20× ¶ (benchmarks-versus-mitsuba.md" in text
+    assert "1 of the 2 readings (¶) timed `mi.render` + OIDN with an `aov` integrator wrapped" in text
 
 
 def test_equal_time_ratios_read_inside_the_competitors_curve_are_counted_apart_from_extrapolated_ones(tmp_path):
