@@ -163,10 +163,13 @@ def _count_and_median(values: list[float]) -> str:
     return f"ahead on {sum(v > 1 for v in readable)} of {len(readable)}, median {statistics.median(readable):.2f}×"
 
 
-def report_text(rows: list[SceneReread], spp: int, command: str) -> str:
+def report_text(rows: list[SceneReread], spp: int, command: str, costs_from: Path | None = None) -> str:
     lines = ["# The `mi.render` + OIDN competitor's features: what they cost, and the 2 MP suite re-read", "",
              provenance(command), "", " ".join(__doc__.split("\n\n")[1].split()), "",
-             f"Timings: one render of each kind at {spp} spp per competitor film, after an untimed one. Speed-ups: "
+             (f"Timings: taken from the table of an earlier run, {costs_from} (its own Command line says how they "
+              "were measured). " if costs_from else
+              f"Timings: one render of each kind at {spp} spp per competitor film, after an untimed one. ")
+             + "Speed-ups: "
              "the loop's equal-error speed-up over the better competitor at the loop's final error (SMAPE, and "
              "relMSE with the references' noise taken out; `~`: read off the competitor's fitted power law), and "
              "in SMAPE at the competitors' own last points (no extrapolation of the competitor; `~`: of the loop).",
@@ -176,8 +179,8 @@ def report_text(rows: list[SceneReread], spp: int, command: str) -> str:
     for row in rows:
         for index, (key, cost) in enumerate(row.costs.items()):
             label = f"{row.reading.scene} ({row.reading.film}) " if index == 0 else ""
-            cells = [f"{label}[{_film_kind(key)}]", row.reading.report if index == 0 else "", f"{cost.wrapped:.2f}",
-                     f"{cost.plain:.2f}", f"{cost.features:.2f}", f"{cost.oidn:.2f}", f"{cost.ratio:.3f}"]
+            cells = [f"{label}[{_film_kind(key)}]", row.reading.report if index == 0 else "", f"{cost.wrapped:.3f}",
+                     f"{cost.plain:.3f}", f"{cost.features:.3f}", f"{cost.oidn:.3f}", f"{cost.ratio:.3f}"]
             cells += ([_speedup(*row.before), _speedup(*row.after), _speedup(*row.relmse_before),
                        _speedup(*row.relmse_after), f"{row.end_before:.2f}×",
                        f"{'' if row.end_measured else '~'}{row.end_after:.2f}×"] if index == 0 else [""] * 6)
@@ -222,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{_speedup(*row.relmse_before)} -> {_speedup(*row.relmse_after)}; at the competitor's last point "
               f"{row.end_before:.2f}x -> {row.end_after:.2f}x", flush=True)
     command = "python -m bench.experiments.competitor_features " + " ".join(argv if argv is not None else sys.argv[1:])
-    text = report_text(rows, args.spp, command.strip())
+    text = report_text(rows, args.spp, command.strip(), args.costs_from)
     print(text)
     if args.out is not None:
         args.out.write_text(text)
