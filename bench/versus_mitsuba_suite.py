@@ -345,6 +345,8 @@ def _verdict(standing: VariantStanding) -> str:
     peak = max(r.peak_rss_mb for r in standing.newest.values()) / 1000.0
     share_word = "met" if share >= SHARE_BAR else ("not met" if ahead + len(standing.unmeasured) < SHARE_BAR * total
                                                     else "not yet (scenes unmeasured)")
+    if standing.wrapped_features and share >= SHARE_BAR:
+        share_word += " as timed, not once the competitor is re-timed (¶, below)"
     extrapolated = sum(r.extrapolated for r in standing.newest.values())
     return (f"Measured **{measured} of the suite's {total}** scenes. The loop reaches the better `mi.render` + "
             f"OIDN's error sooner on **{ahead} of {measured}** measured, {ahead} of {total} of the suite "

@@ -7,12 +7,13 @@ for OIDN's features: an `aov` integrator wrapping the scene's own. Its images ar
 renders now (bench/versus_mitsuba_scene.render_with_aovs). So the reports' errors stand and only the
 competitor's times change. For each scene of the suite's newest CPU reading, at that report's film
 size and for each competitor film it ran (the scene's filter, box): the seconds of one wrapped
-render, one plain render and one features render at SPP (each compiled by an untimed call first),
-and of one OIDN call; then the report's printed curves re-read with each competitor point's render
+render, a plain render and a features render at SPP (the median of interleaved repeats, each kind
+compiled by an untimed call first), and of an OIDN call; then the report's printed curves re-read with each competitor point's render
 time scaled by (plain + features) ÷ wrapped and its OIDN time kept, through the same readings as
 the suite page (bench.versus_mitsuba_run.better_of, least_at_competitor_ends).
 
-    python -m bench.experiments.competitor_features [--spp 4] [--scenes A,B] [--reports docs] [-o FILE]
+    python -m bench.experiments.competitor_features [--spp 2] [--repeats 3] [--scenes A,B] [--reports docs]
+                                                    [--costs-from FILE] [-o FILE]
 """
 from __future__ import annotations
 
@@ -61,9 +62,10 @@ def _seconds(call) -> float:
     return time.perf_counter() - started
 
 
-def feature_cost(scene: DevScene, film: Film, box: bool, spp: int) -> FeatureCost:
-    """One timed render of each kind at `spp` (after an untimed one that compiles its kernels),
-    interleaved, and one timed OIDN call on the colour and features."""
+def feature_cost(scene: DevScene, film: Film, box: bool, spp: int, repeats: int = 3) -> FeatureCost:
+    """The median of `repeats` timed renders of each kind at `spp` (after an untimed one that
+    compiles its kernels), the kinds interleaved so that a busy moment of a shared host lands on
+    one repeat, not on one kind; and the median of as many timed OIDN calls."""
     mi = mitsuba()
     loaded = competitor_scene(scene, film, box)
     wrapped = mi.load_dict({"type": "aov", "aovs": AOVS, "img": loaded.integrator()})
@@ -72,12 +74,16 @@ def feature_cost(scene: DevScene, film: Film, box: bool, spp: int) -> FeatureCos
              "plain": lambda: mi.render(loaded, spp=spp, seed=MITSUBA_SEED),
              "features": lambda: mi.render(loaded, integrator=features, spp=spp, seed=MITSUBA_SEED)}
     images = {name: np.asarray(call()) for name, call in calls.items()}   # compiles, untimed
-    seconds = {name: _seconds(lambda call=call: np.asarray(call())) for name, call in calls.items()}
+    seconds: dict[str, list[float]] = {name: [] for name in calls}
+    for _ in range(repeats):
+        for name, call in calls.items():
+            seconds[name].append(_seconds(lambda call=call: np.asarray(call())))
     oidn, _ = oidn_denoiser()
     color, aovs = images["plain"][..., :3], images["features"]
     arguments = (color, aovs[..., -AOV_CHANNELS:-3], aovs[..., -3:])
     oidn(*arguments)
-    return FeatureCost(seconds["wrapped"], seconds["plain"], seconds["features"], _seconds(lambda: oidn(*arguments)))
+    oidn_seconds = statistics.median(_seconds(lambda: oidn(*arguments)) for _ in range(repeats))
+    return FeatureCost(*(statistics.median(seconds[name]) for name in calls), oidn_seconds)
 
 
 def retimed(curve: Curve, cost: FeatureCost) -> Curve:
@@ -109,10 +115,10 @@ def competitor_keys(reading: Reading, report: Path) -> tuple[Curve, list[Curve]]
     return curves[LOOP_LABEL], competitors
 
 
-def measured_costs(reading: Reading, competitors: list[Curve], spp: int) -> dict[str, FeatureCost]:
+def measured_costs(reading: Reading, competitors: list[Curve], spp: int, repeats: int) -> dict[str, FeatureCost]:
     width, height = (int(v) for v in re.match(r"(\d+)×(\d+)", reading.film).groups())
     (scene,) = suite_scenes([reading.scene])
-    return {c.key: feature_cost(scene, Film(width, height), BOX_LABEL in c.key, spp) for c in competitors}
+    return {c.key: feature_cost(scene, Film(width, height), BOX_LABEL in c.key, spp, repeats) for c in competitors}
 
 
 def reread(reading: Reading, loop: Curve, competitors: list[Curve], costs: dict[str, FeatureCost]) -> SceneReread:
@@ -163,12 +169,14 @@ def _count_and_median(values: list[float]) -> str:
     return f"ahead on {sum(v > 1 for v in readable)} of {len(readable)}, median {statistics.median(readable):.2f}×"
 
 
-def report_text(rows: list[SceneReread], spp: int, command: str, costs_from: Path | None = None) -> str:
+def report_text(rows: list[SceneReread], spp: int, command: str, costs_from: Path | None = None,
+                repeats: int = 3) -> str:
     lines = ["# The `mi.render` + OIDN competitor's features: what they cost, and the 2 MP suite re-read", "",
              provenance(command), "", " ".join(__doc__.split("\n\n")[1].split()), "",
              (f"Timings: taken from the table of an earlier run, {costs_from} (its own Command line says how they "
               "were measured). " if costs_from else
-              f"Timings: one render of each kind at {spp} spp per competitor film, after an untimed one. ")
+              f"Timings: the median of {repeats} renders of each kind at {spp} spp per competitor film, "
+              "interleaved, after an untimed one; and of as many OIDN calls. ")
              + "Speed-ups: "
              "the loop's equal-error speed-up over the better competitor at the loop's final error (SMAPE, and "
              "relMSE with the references' noise taken out; `~`: read off the competitor's fitted power law), and "
@@ -199,7 +207,8 @@ def report_text(rows: list[SceneReread], spp: int, command: str, costs_from: Pat
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--spp", type=int, default=4, help="samples per pixel of each timed render")
+    parser.add_argument("--spp", type=int, default=2, help="samples per pixel of each timed render")
+    parser.add_argument("--repeats", type=int, default=3, help="timed renders of each kind (their median)")
     parser.add_argument("--scenes", type=lambda text: text.split(","), default=None)
     parser.add_argument("--reports", type=Path, default=Path("docs"))
     parser.add_argument("--costs-from", type=Path, default=None,
@@ -217,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         loop, competitors = competitor_keys(reading, args.reports / reading.report)
         costs = ({c.key: earlier[name][_film_kind(c.key)] for c in competitors} if earlier is not None
-                 else measured_costs(reading, competitors, args.spp))
+                 else measured_costs(reading, competitors, args.spp, args.repeats))
         row = reread(reading, loop, competitors, costs)
         rows.append(row)
         ratios = ", ".join(f"{cost.ratio:.3f}" for cost in row.costs.values())
@@ -225,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{_speedup(*row.relmse_before)} -> {_speedup(*row.relmse_after)}; at the competitor's last point "
               f"{row.end_before:.2f}x -> {row.end_after:.2f}x", flush=True)
     command = "python -m bench.experiments.competitor_features " + " ".join(argv if argv is not None else sys.argv[1:])
-    text = report_text(rows, args.spp, command.strip(), args.costs_from)
+    text = report_text(rows, args.spp, command.strip(), args.costs_from, args.repeats)
     print(text)
     if args.out is not None:
         args.out.write_text(text)

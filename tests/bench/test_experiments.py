@@ -229,6 +229,6 @@ def test_a_retimed_competitor_scales_its_render_time_keeps_its_oidn_call_and_can
 
 def test_the_feature_cost_times_each_render_kind_on_the_competitors_scene():
     (scene,) = suite_scenes(["hard_shadows"])
-    cost = feature_cost(scene, Film(48, 36), box=False, spp=4)
+    cost = feature_cost(scene, Film(48, 36), box=False, spp=4, repeats=2)
     assert min(cost.wrapped, cost.plain, cost.features, cost.oidn) > 0
     assert 0 < cost.ratio < 10

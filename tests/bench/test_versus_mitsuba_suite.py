@@ -130,12 +130,13 @@ def test_a_reading_whose_competitor_wrapped_its_features_in_the_scenes_integrato
                                                                  {"metals": "~2.00×", "sun_room": "1.20×"},
                                                                  features_apart=False))
     new = write(tmp_path, "benchmarks-versus-mitsuba-more.md", report("2026-11-30T07:14+00:00", "bbb2222",
-                                                                      {"sun_room": "0.80×"}))
+                                                                      {"sun_room": "1.10×"}))
     (standing,) = suite_standing([old, new], ["metals", "sun_room"])
     assert [r.scene for r in standing.wrapped_features] == ["metals"]
     text = summary_text([standing], [old, new], "x")
-    assert "**~2.00× ¶**" in text and "**0.80×**" in text and "1.20× ¶ (benchmarks-versus-mitsuba.md" in text
+    assert "**~2.00× ¶**" in text and "**1.10×**" in text and "1.20× ¶ (benchmarks-versus-mitsuba.md" in text
     assert "1 of the 2 readings (¶) timed `mi.render` + OIDN with an `aov` integrator wrapped" in text
+    assert "met as timed, not once the competitor is re-timed" in text
 
 
 def test_equal_time_ratios_read_inside_the_competitors_curve_are_counted_apart_from_extrapolated_ones(tmp_path):
