@@ -1,7 +1,7 @@
 """What the `mi.render` + OIDN competitor paid for its albedo and normals, and how the published
 ~2 MP speed-ups read once it pays only what they cost.
 
-The 2 MP reports (docs/benchmarks-versus-mitsuba*.md) rendered the competitor with Mitsuba's recipe
+The 2 MP reports (the `--versus-mitsuba` reports in docs/) rendered the competitor with Mitsuba's recipe
 for OIDN's features: an `aov` integrator wrapping the scene's own. Its images are those of two renders at the same seed, the colour with the scene's integrator and the features with an
 `aov` integrator alone (tests/bench/test_versus_mitsuba.py), which is what the benchmark
 renders now (bench/versus_mitsuba_scene.render_with_aovs). So the reports' errors stand and only the
