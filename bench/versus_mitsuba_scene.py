@@ -157,7 +157,7 @@ def feature_integrator():
     seed, so the same film and lens samples): the images are those of Mitsuba's recipe, an `aov`
     integrator wrapping the scene's own (bit for bit under a box film, to float32 rounding under
     others). Wrapped, a render launches the plain render's kernel and a second, larger one (Dr.Jit's
-    kernel history, LLVM): about twice a plain render's time, where the features alone add 0.1–0.3×
+    kernel history, LLVM), and took about twice the time of the two renders apart
     (docs/competitor-features.md)."""
     return mitsuba().load_dict({"type": "aov", "aovs": AOVS})
 

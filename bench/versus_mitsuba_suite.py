@@ -178,7 +178,7 @@ FLAT_MARK = " §"
 FROM_PRINTED_CURVES = " ‡"
 
 
-def _printed_curves(lines: list[str], label: str) -> list[Curve]:
+def printed_curves(lines: list[str], label: str) -> list[Curve]:
     """The curves of the per-scene table headed by `**{label}**` (SMAPE, relMSE where printed, seconds)."""
     start = next((i for i, line in enumerate(lines) if line.startswith(f"**{label}**")), None)
     if start is None or start + 2 >= len(lines) or not lines[start + 2].startswith("| spp |"):
@@ -204,7 +204,7 @@ def _printed_curves(lines: list[str], label: str) -> list[Curve]:
 def _end_from_printed_curves(lines: list[str], label: str) -> str:
     """The speed-up at the competitors' last points (`least_at_competitor_ends`) recomputed from a
     report's curve table, marked FROM_PRINTED_CURVES; empty where the table cannot be read."""
-    curves = {c.key: c for c in _printed_curves(lines, label)}
+    curves = {c.key: c for c in printed_curves(lines, label)}
     competitors = [c for key, c in curves.items() if key.startswith("`mi.render`")]
     if LOOP_LABEL not in curves or not competitors:
         return ""
@@ -214,7 +214,7 @@ def _end_from_printed_curves(lines: list[str], label: str) -> str:
 
 def _competitor_last_seconds(lines: list[str], scene: str, label: str) -> float | None:
     """The last measured time of the competitor `label` in the scene's printed curve table."""
-    curve = next((c for c in _printed_curves(lines, scene) if c.key == label), None)
+    curve = next((c for c in printed_curves(lines, scene) if c.key == label), None)
     return max(p.seconds for p in curve.points) if curve else None
 
 

@@ -34,7 +34,7 @@ from bench.versus_mitsuba import suite_scenes
 from bench.versus_mitsuba_report import LOOP_LABEL
 from bench.versus_mitsuba_run import MITSUBA_SEED, Curve, CurvePoint, better_of, least_at_competitor_ends
 from bench.versus_mitsuba_scene import AOV_CHANNELS, AOVS, Film, competitor_scene, feature_integrator
-from bench.versus_mitsuba_suite import (REPORT_GLOB, SUMMARY_NAME, Reading, _printed_curves, stratifying_scenes,
+from bench.versus_mitsuba_suite import (REPORT_GLOB, SUMMARY_NAME, Reading, printed_curves, stratifying_scenes,
                                         suite_names, suite_standing)
 from service.render.runtime import mitsuba
 
@@ -108,7 +108,7 @@ class SceneReread:
 
 def competitor_keys(reading: Reading, report: Path) -> tuple[Curve, list[Curve]]:
     """The loop's printed curve and the competitors' for one scene of `report`."""
-    curves = {c.key: c for c in _printed_curves(report.read_text().splitlines(), f"{reading.scene} ({reading.film})")}
+    curves = {c.key: c for c in printed_curves(report.read_text().splitlines(), f"{reading.scene} ({reading.film})")}
     competitors = [c for key, c in curves.items() if key.startswith("`mi.render`")]
     if LOOP_LABEL not in curves or not competitors:
         raise ValueError(f"{report.name}: no printed curves for {reading.scene}")
@@ -122,8 +122,9 @@ def measured_costs(reading: Reading, competitors: list[Curve], spp: int, repeats
 
 
 def reread(reading: Reading, loop: Curve, competitors: list[Curve], costs: dict[str, FeatureCost]) -> SceneReread:
-    """One scene's printed curves read as printed and with the competitors re-timed."""
-    after = [retimed(c, costs[c.key]) for c in competitors]
+    """One scene's printed curves read as printed and with the competitors re-timed; a reading whose
+    competitor already rendered its features apart (no `costs`) reads the same both ways."""
+    after = [retimed(c, costs[c.key]) for c in competitors] if costs else competitors
     readings = {}
     for metric in ("smape", "relmse"):
         old, new = better_of(loop, competitors, metric), better_of(loop, after, metric)
@@ -134,6 +135,24 @@ def reread(reading: Reading, loop: Curve, competitors: list[Curve], costs: dict[
 
 
 COSTS_HEADER = "| scene (film) | report | wrapped s |"
+TIMED_APART = "timed apart"   # the ratio cell of a reading whose competitor rendered its features apart
+
+
+def measured_timings(spp: int, repeats: int) -> str:
+    return (f"the median of {repeats} renders of each kind at {spp} spp per competitor film, interleaved, after "
+            "an untimed one; and of as many OIDN calls.")
+
+
+def source_timings(path: Path) -> str:
+    """How the costs in an earlier run's report were measured: its command, date and commit, or the
+    run it took them from in turn."""
+    text = path.read_text()
+    timings = re.search(r"^Timings: (.*?) (?:A reading whose competitor|Speed-ups:)", text, re.M | re.S).group(1)
+    if timings.startswith("from `"):
+        return timings
+    command = re.search(r"^Command: `([^`]+)`", text, re.M).group(1)
+    stamp = re.search(r"^Date: (\S+); commit (\w+)", text, re.M)
+    return f"from `{command}` ({stamp.group(1)}, commit {stamp.group(2)}): {timings}"
 
 
 def costs_from_report(path: Path) -> dict[str, dict[str, FeatureCost]]:
@@ -146,6 +165,8 @@ def costs_from_report(path: Path) -> dict[str, dict[str, FeatureCost]]:
         if not line.startswith("|"):
             break
         cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if cells[6] == TIMED_APART:
+            continue
         label = re.fullmatch(r"(?:(\w+) \(.*\) )?\[(own|box)\]", cells[0])
         scene = label.group(1) or scene
         costs.setdefault(scene, {})[label.group(2)] = FeatureCost(*(float(v) for v in cells[2:6]))
@@ -169,15 +190,11 @@ def _count_and_median(values: list[float]) -> str:
     return f"ahead on {sum(v > 1 for v in readable)} of {len(readable)}, median {statistics.median(readable):.2f}×"
 
 
-def report_text(rows: list[SceneReread], spp: int, command: str, costs_from: Path | None = None,
-                repeats: int = 3) -> str:
+def report_text(rows: list[SceneReread], command: str, timings: str) -> str:
     lines = ["# The `mi.render` + OIDN competitor's features: what they cost, and the 2 MP suite re-read", "",
              provenance(command), "", " ".join(__doc__.split("\n\n")[1].split()), "",
-             (f"Timings: taken from the table of an earlier run, {costs_from} (its own Command line says how they "
-              "were measured). " if costs_from else
-              f"Timings: the median of {repeats} renders of each kind at {spp} spp per competitor film, "
-              "interleaved, after an untimed one; and of as many OIDN calls. ")
-             + "Speed-ups: "
+             f"Timings: {timings} A reading whose competitor already rendered its features apart reads "
+             f"\"{TIMED_APART}\" and is not re-timed. Speed-ups: "
              "the loop's equal-error speed-up over the better competitor at the loop's final error (SMAPE, and "
              "relMSE with the references' noise taken out; `~`: read off the competitor's fitted power law), and "
              "in SMAPE at the competitors' own last points (no extrapolation of the competitor; `~`: of the loop).",
@@ -185,6 +202,11 @@ def report_text(rows: list[SceneReread], spp: int, command: str, costs_from: Pat
              "| relMSE speed-up as printed | re-timed | at the competitor's last point, as printed | re-timed |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
+        if not row.costs:
+            lines.append(f"| {row.reading.scene} ({row.reading.film}) | {row.reading.report} | | | | | {TIMED_APART} | "
+                         + " | ".join([_speedup(*row.before), _speedup(*row.after), _speedup(*row.relmse_before),
+                                       _speedup(*row.relmse_after), f"{row.end_before:.2f}×", f"{row.end_after:.2f}×"])
+                         + " |")
         for index, (key, cost) in enumerate(row.costs.items()):
             label = f"{row.reading.scene} ({row.reading.film}) " if index == 0 else ""
             cells = [f"{label}[{_film_kind(key)}]", row.reading.report if index == 0 else "", f"{cost.wrapped:.3f}",
@@ -225,16 +247,21 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name}: no CPU reading", flush=True)
             continue
         loop, competitors = competitor_keys(reading, args.reports / reading.report)
-        costs = ({c.key: earlier[name][_film_kind(c.key)] for c in competitors} if earlier is not None
-                 else measured_costs(reading, competitors, args.spp, args.repeats))
+        if reading.features_apart:
+            costs = {}
+        elif earlier is not None:
+            costs = {c.key: earlier[name][_film_kind(c.key)] for c in competitors}
+        else:
+            costs = measured_costs(reading, competitors, args.spp, args.repeats)
         row = reread(reading, loop, competitors, costs)
         rows.append(row)
-        ratios = ", ".join(f"{cost.ratio:.3f}" for cost in row.costs.values())
+        ratios = ", ".join(f"{cost.ratio:.3f}" for cost in row.costs.values()) or TIMED_APART
         print(f"{name}: ratio {ratios}; SMAPE speed-up {_speedup(*row.before)} -> {_speedup(*row.after)}; relMSE "
               f"{_speedup(*row.relmse_before)} -> {_speedup(*row.relmse_after)}; at the competitor's last point "
               f"{row.end_before:.2f}x -> {row.end_after:.2f}x", flush=True)
     command = "python -m bench.experiments.competitor_features " + " ".join(argv if argv is not None else sys.argv[1:])
-    text = report_text(rows, args.spp, command.strip(), args.costs_from, args.repeats)
+    timings = source_timings(args.costs_from) if args.costs_from else measured_timings(args.spp, args.repeats)
+    text = report_text(rows, command.strip(), timings)
     print(text)
     if args.out is not None:
         args.out.write_text(text)

@@ -3,6 +3,7 @@ where it is measured, or it would leak into the next measurement (and into the p
 from __future__ import annotations
 
 import importlib
+from dataclasses import replace
 import pkgutil
 
 import numpy as np
@@ -13,7 +14,7 @@ import bench.experiments
 from bench.common import denoiser_settings, image_metrics
 from bench.quality_measures import block_means
 from bench.experiments.competitor_features import (FeatureCost, costs_from_report, feature_cost, reread, report_text,
-                                                   retimed)
+                                                   retimed, source_timings)
 from bench.experiments.crop_reference import quarter_crops, scored, window_scores
 from bench.experiments.energy_tolerance import UNTOUCHED, median_pixel_ratio, outputs_per_tolerance
 from bench.experiments.gate_offset import offset_ratios
@@ -221,10 +222,19 @@ def test_a_retimed_competitor_scales_its_render_time_keeps_its_oidn_call_and_can
     assert row.before[0] == pytest.approx(82.0 / 60.0) and row.after[0] == pytest.approx(42.0 / 60.0)
     assert row.end_before == pytest.approx(82.0 / 60.0) and row.end_after == pytest.approx(42.0 / 60.0)
     # the report's cost table reads back as the costs that made it (--costs-from)
+    # a reading whose competitor already rendered its features apart is not re-timed
+    apart = reread(replace(reading, scene="metals", features_apart=True), loop, [competitor], {})
+    assert apart.after == apart.before and apart.end_after == apart.end_before
     path = tmp_path / "costs.md"
-    path.write_text(report_text([row], 4, "x"))
+    path.write_text(report_text([row, apart], "python -m x --spp 2", "the median of 3 renders."))
     assert costs_from_report(path) == {"sun_room": {"box": cost}}
-    assert "re-timed **ahead on 0 of 1, median 0.70×**" in path.read_text()
+    assert "re-timed **ahead on 1 of 2, median 1.03×**" in path.read_text()
+    # a re-read from that table names where its costs were measured, however many re-reads ago
+    first = source_timings(path)
+    assert first.startswith("from `python -m x --spp 2` (") and first.endswith("the median of 3 renders.")
+    again = tmp_path / "again.md"
+    again.write_text(report_text([row], "python -m x --costs-from costs.md", f"{first}"))
+    assert source_timings(again) == first
 
 
 def test_the_feature_cost_times_each_render_kind_on_the_competitors_scene():
