@@ -197,7 +197,10 @@ def report_text(rows: list[SceneReread], command: str, timings: str) -> str:
              f"\"{TIMED_APART}\" and is not re-timed. Speed-ups: "
              "the loop's equal-error speed-up over the better competitor at the loop's final error (SMAPE, and "
              "relMSE with the references' noise taken out; `~`: read off the competitor's fitted power law), and "
-             "in SMAPE at the competitors' own last points (no extrapolation of the competitor; `~`: of the loop).",
+             "in SMAPE at the competitors' own last points (no extrapolation of the competitor; `~`: of the loop). "
+             "All are read off the reports' printed curves; a report that printed SMAPE to 4 decimals gives a scene "
+             "below 0.01 few significant digits (point_object's 0.0005–0.0008: one), so its reading is rough, and a "
+             "run that times the competitor apart replaces it.",
              "", COSTS_HEADER + " plain s | features s | OIDN s | ratio | SMAPE speed-up as printed | re-timed "
              "| relMSE speed-up as printed | re-timed | at the competitor's last point, as printed | re-timed |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -218,7 +221,9 @@ def report_text(rows: list[SceneReread], command: str, timings: str) -> str:
     ratios = [cost.ratio for row in rows for cost in row.costs.values()]
     lines += ["", f"Competitor render time ratio (plain + features ÷ wrapped): median {statistics.median(ratios):.3f} "
               f"({min(ratios):.3f}–{max(ratios):.3f}) over {len(ratios)} films.", "",
-              f"Over {len(rows)} scenes, SMAPE: as printed {_count_and_median([r.before[0] for r in rows])}; re-timed "
+              f"Over {len(rows)} scenes (as printed: each report's own timing, the wrapped competitor's where it "
+              f"rendered so; re-timed: every competitor's features apart), SMAPE: as printed "
+              f"{_count_and_median([r.before[0] for r in rows])}; re-timed "
               f"**{_count_and_median([r.after[0] for r in rows])}**. relMSE: as printed "
               f"{_count_and_median([r.relmse_before[0] for r in rows])}; re-timed "
               f"**{_count_and_median([r.relmse_after[0] for r in rows])}**. At the competitors' last points (SMAPE): "
