@@ -1,19 +1,24 @@
 """What the `mi.render` + OIDN competitor paid for its albedo and normals, and how the published
 ~2 MP speed-ups read once it pays only what they cost.
 
-The 2 MP reports (the `--versus-mitsuba` reports in docs/) rendered the competitor with Mitsuba's recipe
-for OIDN's features: an `aov` integrator wrapping the scene's own. Its images are those of two renders at the same seed, the colour with the scene's integrator and the features with an
-`aov` integrator alone (tests/bench/test_versus_mitsuba.py), which is what the benchmark
-renders now (bench/versus_mitsuba_scene.render_with_aovs). So the reports' errors stand and only the
+The 2 MP reports (the `--versus-mitsuba` reports in docs/) rendered the competitor with Mitsuba's
+recipe for OIDN's features: an `aov` integrator wrapping the scene's own. Its images are those of
+two renders at the same seed, the colour with the scene's integrator and the features with an `aov`
+integrator alone (tests/bench/test_versus_mitsuba.py), which is what the benchmark renders now
+(bench/versus_mitsuba_scene.render_with_aovs). So the reports' errors stand and only the
 competitor's times change. For each scene of the suite's newest CPU reading, at that report's film
-size and for each competitor film it ran (the scene's filter, box): the seconds of one wrapped
-render, a plain render and a features render at SPP (the median of interleaved repeats, each kind
-compiled by an untimed call first), and of an OIDN call; then the report's printed curves re-read with each competitor point's render
-time scaled by (plain + features) ÷ wrapped and its OIDN time kept, through the same readings as
-the suite page (bench.versus_mitsuba_run.better_of, least_at_competitor_ends).
+size and for each competitor film it ran (the scene's filter, box): the seconds of one wrapped render,
+a plain render and a features render at SPP (the median of interleaved repeats, each kind compiled
+by an untimed call first), and of an OIDN call; then the report's printed curves re-read with each
+competitor point's render time scaled by (plain + features) ÷ wrapped and its OIDN time kept,
+through the same readings as the suite page (bench.versus_mitsuba_run.better_of,
+least_at_competitor_ends).
 
     python -m bench.experiments.competitor_features [--spp 2] [--repeats 3] [--scenes A,B] [--reports docs]
                                                     [--costs-from FILE] [-o FILE]
+
+`--costs-from` takes the costs from an earlier run's report instead of rendering (after a new
+`--versus-mitsuba` run: its scenes, timed apart already, are shown as they are).
 """
 from __future__ import annotations
 
