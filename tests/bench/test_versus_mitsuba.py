@@ -315,13 +315,14 @@ def test_references_render_with_the_independent_sampler_and_competitors_with_the
     assert (width, height) == (64, 40)
 
 
-@pytest.mark.parametrize("name, rtol", [("living_room", 0.0), ("sun_room", 1e-6)])   # stratified + box; Gaussian
+# stratified + box: bit for bit; Gaussian: float32 sums added in another order (seen up to 1.3e-6
+# relative; another seed, the one difference that would matter, moves pixels by tens of per cent)
+@pytest.mark.parametrize("name, rtol", [("living_room", 0.0), ("sun_room", 1e-4)])
 def test_the_competitors_features_rendered_apart_are_the_images_of_an_aov_integrator_wrapping_the_scenes(
         name: str, rtol: float) -> None:
     # The competitor renders colour and features in two calls because wrapping cost ~2x a plain
     # render (bench.experiments.competitor_features); what OIDN gets must not change, in one call
-    # or in two averaged: bit for bit under a box film, to float32 rounding under a Gaussian one
-    # (hdrfilm's splat of 3 channels or 9 adds in another order).
+    # or in two averaged.
     (scene,) = suite_scenes([name])
     loaded = competitor_scene(scene, Film(40, 30))
     mi = mitsuba()
@@ -334,7 +335,7 @@ def test_the_competitors_features_rendered_apart_are_the_images_of_an_aov_integr
         assert calls == spp // 16
         np.testing.assert_allclose(new.color, old[..., :3], rtol=rtol, atol=0)
         np.testing.assert_allclose(new.albedo, old[..., 3:6], rtol=rtol, atol=0)
-        np.testing.assert_allclose(new.normal, old[..., 6:9], rtol=rtol, atol=1e-7 if rtol else 0)
+        np.testing.assert_allclose(new.normal, old[..., 6:9], rtol=rtol, atol=1e-6 if rtol else 0)
         assert new.albedo.max() > 0.1 and np.abs(new.normal).max() > 0.5   # the features were rendered
 
 
