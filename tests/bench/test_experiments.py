@@ -237,8 +237,8 @@ def test_a_retimed_competitor_scales_its_render_time_keeps_its_oidn_call_and_can
     assert source_timings(again) == first
 
 
-def test_the_feature_cost_times_each_render_kind_on_the_competitors_scene():
+def test_the_feature_cost_renders_and_times_every_kind_and_the_oidn_call_on_the_competitors_scene():
+    # a smoke test of the rendering path (the timings themselves are the experiment's to read)
     (scene,) = suite_scenes(["hard_shadows"])
     cost = feature_cost(scene, Film(48, 36), box=False, spp=4, repeats=2)
     assert min(cost.wrapped, cost.plain, cost.features, cost.oidn) > 0
-    assert 0 < cost.ratio < 10
