@@ -28,6 +28,7 @@ from service.jobs.quotas import (DEFAULT_MAX_QUEUED, DEFAULT_MAX_QUEUED_PER_CLIE
 from service.jobs.retention import Retention
 from service.render.scene_probe import MEMORY_ENV, SECONDS_ENV, ProbeLimits
 from service.job_options import JobOptionError, add_job_options, gives_stopping_rule, spec_from_args
+from service.memory_reuse import keep_freed_memory
 from service.loop.budget import describe_budget, scene_budget
 from service.loop.spec import SERVICE_LIMITS, LoopSpec, LoopSpecError
 from service.loop.stop_message import stop_message
@@ -357,6 +358,7 @@ def user_errors() -> tuple[type[BaseException], ...]:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    keep_freed_memory()   # before any thread or large array: every command's iterations reuse pages
     try:
         if argv[:1] == ["bench"]:
             return load_bench_main()(argv[1:])   # bench/: heavy (imported only now), and only in a checkout

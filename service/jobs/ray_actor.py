@@ -36,6 +36,7 @@ from service.jobs.record import JobRecord, bundle_scene, job_spec
 from service.jobs.previews import preview_layers
 from service.jobs.runner import total_samples
 from service.loop.loop import RenderLoop
+from service.memory_reuse import keep_freed_memory
 from service.render.runtime import VARIANT_ENV, mitsuba
 
 GPU_VARIANT = "cuda_ad_rgb"
@@ -105,7 +106,9 @@ class MemoryWatch:
 
 
 def use_devices(networks: Networks, cpus: int) -> Networks:
-    """CPU threads as scheduled; with a GPU assigned, Mitsuba's CUDA variant and torch on CUDA."""
+    """CPU threads as scheduled; with a GPU assigned, Mitsuba's CUDA variant and torch on CUDA.
+    Freed memory stays in the actor's process (service.memory_reuse), as in the CLI's."""
+    keep_freed_memory()
     torch.set_num_threads(max(1, cpus))
     gpu = bool(ray.get_gpu_ids())
     if gpu:

@@ -2,6 +2,7 @@
 where it is measured, or it would leak into the next measurement (and into the product)."""
 from __future__ import annotations
 
+import argparse
 import importlib
 from dataclasses import replace
 import pkgutil
@@ -15,6 +16,7 @@ from bench.common import denoiser_settings, image_metrics
 from bench.quality_measures import block_means
 from bench.experiments.competitor_features import (FeatureCost, costs_from_report, feature_cost, reread, report_text,
                                                    retimed, source_timings)
+from bench.experiments import freed_memory
 from bench.experiments.crop_reference import quarter_crops, scored, window_scores
 from bench.experiments.energy_tolerance import UNTOUCHED, median_pixel_ratio, outputs_per_tolerance
 from bench.experiments.gate_offset import offset_ratios
@@ -191,7 +193,7 @@ def test_setting_sweep_images_follow_the_setting_and_restore_the_config():
     assert np.abs(plain - floored).max() > 1e-3
 
 
-KEPT_EXPERIMENTS = ("accumulation_rules", "competitor_calls", "competitor_features", "crop_reference", "energy_tolerance", "exposure_range", "gate_offset", "mitsuba_exr_denoise",
+KEPT_EXPERIMENTS = ("accumulation_rules", "competitor_calls", "competitor_features", "crop_reference", "energy_tolerance", "exposure_range", "freed_memory", "gate_offset", "mitsuba_exr_denoise",
                     "seed_spread", "setting_sweep", "static_flicker")
 
 
@@ -242,3 +244,20 @@ def test_the_feature_cost_renders_and_times_every_kind_and_the_oidn_call_on_the_
     (scene,) = suite_scenes(["hard_shadows"])
     cost = feature_cost(scene, Film(48, 36), box=False, spp=4, repeats=2)
     assert min(cost.wrapped, cost.plain, cost.features, cost.oidn) > 0
+
+
+def test_freed_memory_report_reads_each_allocators_iterations_after_the_first():
+    """The first iteration builds Dr.Jit's kernels, so it must not move the medians; faults and RSS per allocator."""
+    def run(first: float, later: list[float], faults: int) -> dict:
+        timings = [{"render": first, "denoise": first, "error": first, "allocate": 0.0}]
+        timings += [{"render": s, "denoise": s / 2, "error": s / 4, "allocate": 0.1} for s in later]
+        return {"timings": timings, "wall": first + sum(later), "faults": faults, "peak_rss_mb": 5000.0, "film": "8x8"}
+
+    defaults = [run(99.0, [4.0, 8.0, 6.0], 900_000), run(99.0, [4.0, 8.0, 6.0], 1_100_000)]
+    kept = [run(99.0, [2.0, 2.0, 3.0], 1_000), run(99.0, [2.0, 2.0, 3.0], 3_000)]
+    assert freed_memory.stage_medians(defaults) == {"render": 6.0, "denoise": 3.0, "error": 1.5, "allocate": 0.1}
+    args = argparse.Namespace(scenes="s", megapixels=2.0, iterations=4, repeats=2)
+    text = freed_memory.report({"s": {"defaults": defaults, "kept": kept}}, args)
+    assert "| s (8x8) | defaults | 6.00 | 3.00 | 1.50 | 0.10 | 117.00 | 1,000,000 | 5000 |" in text
+    assert "| s (8x8) | kept | 2.00 | 1.00 | 0.50 | 0.10 | 106.00 | 2,000 | 5000 |" in text
+    assert "python -m bench.experiments.freed_memory --scenes s" in text
