@@ -4,11 +4,10 @@ A 2 MP iteration allocates gigabytes of short-lived arrays (the denoiser's featu
 network's, numpy temporaries). glibc serves every allocation above its mmap threshold (at most
 32 MiB) with a fresh `mmap` and returns it with `munmap` on free, so the next iteration touches
 brand-new pages again: 0.4–0.6 M page faults per denoise at 2 MP, a copy into fresh memory then
-running at ~0.75 GB/s. With mmap off and trimming off, freed blocks stay in the heap and are
-reused: at 2 MP on 2 cores the denoise and error passes fell from ~2.7 to ~2.1 s per iteration
-and a 4-iteration hard_shadows loop from 47.9 to 43.6 s, for +110 MB peak RSS
-(docs/decisions.md, "Freed memory kept in the process"). The price: a process keeps its peak
-heap until it exits, which a worker that runs job after job reuses anyway.
+running at ~0.75 GB/s. With mmap, trimming and per-thread arenas off (a loop runs in a worker
+thread, whose own arena kept mapping fresh heaps), freed blocks stay in one heap and are reused: at 2 MP on 2 cores the denoise and error passes fell from ~3.5 to ~2.3 s per iteration
+and 4-iteration loops by 11–15 %, peak RSS no higher (docs/freed-memory.md; docs/decisions.md,
+"Freed memory kept in the process"). The price: a process keeps its peak heap until it exits, which a worker that runs job after job reuses anyway.
 
 `RENDERLOOP_KEEP_FREED_MEMORY=0` leaves the C library's defaults alone. Elsewhere than glibc
 (musl, macOS) it does nothing.

@@ -9,7 +9,7 @@ table gives the median per stage over the iterations after the first (the first 
 Dr.Jit's kernels), the loop's wall time, its minor page faults and the process's peak RSS.
 
     python -m bench.experiments.freed_memory [--scenes fine_texture,hard_shadows] [--megapixels 2]
-        [--iterations 4] [--repeats 2] [-o FILE]
+        [--iterations 4] [--repeats 2] [-o docs/freed-memory.md]
 """
 from __future__ import annotations
 
@@ -74,9 +74,9 @@ def stage_medians(runs: list[dict]) -> dict[str, float]:
 
 def report(results: dict[str, dict[str, list[dict]]], args: argparse.Namespace) -> str:
     command = (f"python -m bench.experiments.freed_memory --scenes {args.scenes} --megapixels {args.megapixels} "
-               f"--iterations {args.iterations} --repeats {args.repeats}")
+               f"--iterations {args.iterations} --repeats {args.repeats}" + (f" -o {args.output}" if args.output else ""))
     lines = ["# Freed memory kept in the process: the loop with and without", "",
-             provenance(command).replace("\n", "  \n"), "",
+             provenance(command), "",
              "Median seconds per iteration after the first; wall: the whole loop, median over the runs.", "",
              "| scene (film) | allocator | " + " | ".join(STAGES) + " | loop wall s | minor faults | peak RSS MB |",
              "|---|---|" + "---:|" * (len(STAGES) + 3)]

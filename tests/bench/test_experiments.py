@@ -256,7 +256,7 @@ def test_freed_memory_report_reads_each_allocators_iterations_after_the_first():
     defaults = [run(99.0, [4.0, 8.0, 6.0], 900_000), run(99.0, [4.0, 8.0, 6.0], 1_100_000)]
     kept = [run(99.0, [2.0, 2.0, 3.0], 1_000), run(99.0, [2.0, 2.0, 3.0], 3_000)]
     assert freed_memory.stage_medians(defaults) == {"render": 6.0, "denoise": 3.0, "error": 1.5, "allocate": 0.1}
-    args = argparse.Namespace(scenes="s", megapixels=2.0, iterations=4, repeats=2)
+    args = argparse.Namespace(scenes="s", megapixels=2.0, iterations=4, repeats=2, output=None)
     text = freed_memory.report({"s": {"defaults": defaults, "kept": kept}}, args)
     assert "| s (8x8) | defaults | 6.00 | 3.00 | 1.50 | 0.10 | 117.00 | 1,000,000 | 5000 |" in text
     assert "| s (8x8) | kept | 2.00 | 1.00 | 0.50 | 0.10 | 106.00 | 2,000 | 5000 |" in text
