@@ -5,9 +5,11 @@ network's, numpy temporaries). glibc serves every allocation above its mmap thre
 32 MiB) with a fresh `mmap` and returns it with `munmap` on free, so the next iteration touches
 brand-new pages again: 0.4–0.6 M page faults per denoise at 2 MP, a copy into fresh memory then
 running at ~0.75 GB/s. With mmap, trimming and per-thread arenas off (a loop runs in a worker
-thread, whose own arena kept mapping fresh heaps), freed blocks stay in one heap and are reused: at 2 MP on 2 cores the denoise and error passes fell from ~3.5 to ~2.3 s per iteration
-and 4-iteration loops by 11–15 %, peak RSS no higher (docs/freed-memory.md; docs/decisions.md,
-"Freed memory kept in the process"). The price: a process keeps its peak heap until it exits, which a worker that runs job after job reuses anyway.
+thread, whose own arena kept mapping fresh heaps), freed blocks stay in one heap and are reused:
+at 2 MP on 2 cores the denoise and error passes fell from ~3.5 to ~2.3 s per iteration and
+4-iteration loops by 11–15 %, a job's peak RSS no higher (docs/freed-memory.md;
+docs/decisions.md, "Freed memory kept in the process"). The price: a process keeps its highest
+heap until it exits; a worker's next job reuses it.
 
 `RENDERLOOP_KEEP_FREED_MEMORY=0` leaves the C library's defaults alone. Elsewhere than glibc
 (musl, macOS) it does nothing.
