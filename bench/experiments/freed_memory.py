@@ -33,7 +33,7 @@ import json, resource, sys, threading, time
 from service.memory_reuse import keep_freed_memory
 keep_freed_memory()   # RENDERLOOP_KEEP_FREED_MEMORY decides whether it does anything
 from bench.dev_references import SUITES, dev_scenes
-from bench.versus_mitsuba_run import make_loop
+from bench.versus_mitsuba_run import make_loop, warm_up_loop
 from bench.versus_mitsuba_scene import scaled_film
 from models.pretrained import load_networks
 
@@ -42,8 +42,7 @@ scene = next(s for suite in SUITES.values() for s in dev_scenes(root=suite.root)
 film, networks, result = scaled_film(scene, megapixels), load_networks(), {}
 
 def job():
-    for _ in make_loop(scene, film, networks, "error", 1).run():
-        pass
+    warm_up_loop(scene, film, networks)
     faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     started = time.perf_counter()
     result["timings"] = [record.timings for record in make_loop(scene, film, networks, "error", iterations).run()]
