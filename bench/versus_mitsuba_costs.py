@@ -42,8 +42,8 @@ STAGES = (
     ("denoiser", "denoiser full pass (prepare + apply at λ, without its OIDN call)", True),
     ("error_network", "error network", True),
     ("to_host", "denoised image → host array (device → host on a GPU)", True),
-    ("final_image", "final image (raw image + its variance, its share by window means, blend; first read "
-                    "after each denoise)", True),
+    ("final_image", "final image (raw image + its variance, its share by window means, blend; once an "
+                    "iteration, in its denoise stage)", True),
     ("lambda_tail", "λ tail from cached features (a λ edit)", True),
     ("snapshot", "state snapshot on the loop's thread (LoopState.snapshot, into the last one's arrays)", True),
     ("checkpoint", "checkpoint write (checkpoint_format.write_state, atomic; background thread)", True),

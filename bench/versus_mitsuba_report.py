@@ -358,8 +358,8 @@ def fixed_costs_note(scenes: list[SceneRun]) -> str:
             "loop and the job worker call, median of 3 calls each; ms / MP divides by the film's megapixels. "
             "Shares: of that iteration's wall time (its four loop stages) plus the state snapshot the worker "
             "takes on the loop's thread; the render row's ms are the last iteration's, its shares each iteration's own. "
-            "The final image is composed outside those stages, when it is first read after an iteration's denoise "
-            "(RenderLoop.denoised: the worker's previews, the result); a λ edit pays only its blend. "
+            "The final image is composed once an iteration, after the error network, and counted in its denoise "
+            "stage (RenderLoop.finish_step); a λ edit pays only its blend. "
             "On the CPU the tensors live in host memory, so the two copy rows are layout copies; on a GPU "
             "they are the host/device transfers.")
 

@@ -5,7 +5,8 @@ of two curves that the report's headline rests on.
 
 Wall time of a `mi.render` point: one render of N spp (the scene loaded once, its kernels compiled
 by an untimed warm-up) plus the OIDN call. Wall time of a loop point: the loop's own per-stage
-timings summed over its iterations so far (render, denoise, error, allocate), after the networks
+timings summed over its iterations so far (render, denoise with the final image's composition,
+error, allocate), after the networks
 were warmed by an untimed one-iteration loop and the timed loop's own kernels built by three
 untimed passes (`compile_loop_kernels`). Each method's kernel compile time is kept
 beside its curve (`kernel_compile_seconds`): a user's first render of a scene pays it.

@@ -143,7 +143,7 @@ def _number(text: str) -> tuple[float, bool]:
     return float(plain.lstrip("~≤≥")), plain.startswith("~")
 
 
-def _table_rows(lines: list[str], header: str) -> list[list[str]]:
+def table_rows(lines: list[str], header: str) -> list[list[str]]:
     """The body rows of the first table whose header line starts with `header`."""
     for i, line in enumerate(lines):
         if line.startswith(header):
@@ -245,10 +245,10 @@ def parse_report(path: Path) -> tuple[str, list[Reading]]:
     fair_to_stratifying = INDEPENDENT_REFERENCE_MARK in flat and FEW_CALLS_MARK in flat
     features_apart = FEATURES_APART_MARK in flat
     relmse = {row[0]: (_headline_speedup(lines, row, float(row[2])), float(row[1]))
-              for row in _table_rows(lines, RELMSE_HEADER)}
-    at_end = {row[0]: row[5].replace("*", "") for row in _table_rows(lines, END_HEADER)}
+              for row in table_rows(lines, RELMSE_HEADER)}
+    at_end = {row[0]: row[5].replace("*", "") for row in table_rows(lines, END_HEADER)}
     readings = []
-    for row in _table_rows(lines, SMAPE_HEADER):
+    for row in table_rows(lines, SMAPE_HEADER):
         label = re.fullmatch(r"(\w+) \((.+)\)", row[0])
         if label is None:
             raise ValueError(f"{path}: unreadable scene cell {row[0]!r}")

@@ -178,11 +178,11 @@ def costs_from_report(path: Path) -> dict[str, dict[str, FeatureCost]]:
     return costs
 
 
-def _film_kind(key: str) -> str:
+def film_kind(key: str) -> str:
     return "box" if BOX_LABEL in key else "own"
 
 
-def _speedup(value: float, how: str) -> str:
+def speedup_text(value: float, how: str) -> str:
     if math.isnan(value):
         return "n/a"
     if not math.isfinite(value):
@@ -190,7 +190,7 @@ def _speedup(value: float, how: str) -> str:
     return f"{'~' if how == 'extrapolated' else ''}{value:.2f}×"
 
 
-def _count_and_median(values: list[float]) -> str:
+def count_and_median(values: list[float]) -> str:
     readable = [v for v in values if not math.isnan(v)]
     return f"ahead on {sum(v > 1 for v in readable)} of {len(readable)}, median {statistics.median(readable):.2f}×"
 
@@ -212,15 +212,15 @@ def report_text(rows: list[SceneReread], command: str, timings: str) -> str:
     for row in rows:
         if not row.costs:
             lines.append(f"| {row.reading.scene} ({row.reading.film}) | {row.reading.report} | | | | | {TIMED_APART} | "
-                         + " | ".join([_speedup(*row.before), _speedup(*row.after), _speedup(*row.relmse_before),
-                                       _speedup(*row.relmse_after), f"{row.end_before:.2f}×", f"{row.end_after:.2f}×"])
+                         + " | ".join([speedup_text(*row.before), speedup_text(*row.after), speedup_text(*row.relmse_before),
+                                       speedup_text(*row.relmse_after), f"{row.end_before:.2f}×", f"{row.end_after:.2f}×"])
                          + " |")
         for index, (key, cost) in enumerate(row.costs.items()):
             label = f"{row.reading.scene} ({row.reading.film}) " if index == 0 else ""
-            cells = [f"{label}[{_film_kind(key)}]", row.reading.report if index == 0 else "", f"{cost.wrapped:.3f}",
+            cells = [f"{label}[{film_kind(key)}]", row.reading.report if index == 0 else "", f"{cost.wrapped:.3f}",
                      f"{cost.plain:.3f}", f"{cost.features:.3f}", f"{cost.oidn:.3f}", f"{cost.ratio:.3f}"]
-            cells += ([_speedup(*row.before), _speedup(*row.after), _speedup(*row.relmse_before),
-                       _speedup(*row.relmse_after), f"{row.end_before:.2f}×",
+            cells += ([speedup_text(*row.before), speedup_text(*row.after), speedup_text(*row.relmse_before),
+                       speedup_text(*row.relmse_after), f"{row.end_before:.2f}×",
                        f"{'' if row.end_measured else '~'}{row.end_after:.2f}×"] if index == 0 else [""] * 6)
             lines.append("| " + " | ".join(cells) + " |")
     ratios = [cost.ratio for row in rows for cost in row.costs.values()]
@@ -228,12 +228,12 @@ def report_text(rows: list[SceneReread], command: str, timings: str) -> str:
               f"({min(ratios):.3f}–{max(ratios):.3f}) over {len(ratios)} films.", "",
               f"Over {len(rows)} scenes (as printed: each report's own timing, the wrapped competitor's where it "
               f"rendered so; re-timed: every competitor's features apart), SMAPE: as printed "
-              f"{_count_and_median([r.before[0] for r in rows])}; re-timed "
-              f"**{_count_and_median([r.after[0] for r in rows])}**. relMSE: as printed "
-              f"{_count_and_median([r.relmse_before[0] for r in rows])}; re-timed "
-              f"**{_count_and_median([r.relmse_after[0] for r in rows])}**. At the competitors' last points (SMAPE): "
-              f"as printed {_count_and_median([r.end_before for r in rows])}; re-timed "
-              f"**{_count_and_median([r.end_after for r in rows])}**."]
+              f"{count_and_median([r.before[0] for r in rows])}; re-timed "
+              f"**{count_and_median([r.after[0] for r in rows])}**. relMSE: as printed "
+              f"{count_and_median([r.relmse_before[0] for r in rows])}; re-timed "
+              f"**{count_and_median([r.relmse_after[0] for r in rows])}**. At the competitors' last points (SMAPE): "
+              f"as printed {count_and_median([r.end_before for r in rows])}; re-timed "
+              f"**{count_and_median([r.end_after for r in rows])}**."]
     return "\n".join(lines) + "\n"
 
 
@@ -260,14 +260,14 @@ def main(argv: list[str] | None = None) -> int:
         if reading.features_apart:
             costs = {}
         elif earlier is not None:
-            costs = {c.key: earlier[name][_film_kind(c.key)] for c in competitors}
+            costs = {c.key: earlier[name][film_kind(c.key)] for c in competitors}
         else:
             costs = measured_costs(reading, competitors, args.spp, args.repeats)
         row = reread(reading, loop, competitors, costs)
         rows.append(row)
         ratios = ", ".join(f"{cost.ratio:.3f}" for cost in row.costs.values()) or TIMED_APART
-        print(f"{name}: ratio {ratios}; SMAPE speed-up {_speedup(*row.before)} -> {_speedup(*row.after)}; relMSE "
-              f"{_speedup(*row.relmse_before)} -> {_speedup(*row.relmse_after)}; at the competitor's last point "
+        print(f"{name}: ratio {ratios}; SMAPE speed-up {speedup_text(*row.before)} -> {speedup_text(*row.after)}; relMSE "
+              f"{speedup_text(*row.relmse_before)} -> {speedup_text(*row.relmse_after)}; at the competitor's last point "
               f"{row.end_before:.2f}x -> {row.end_after:.2f}x", flush=True)
     command = "python -m bench.experiments.competitor_features " + " ".join(argv if argv is not None else sys.argv[1:])
     timings = source_timings(args.costs_from) if args.costs_from else measured_timings(args.spp, args.repeats)

@@ -177,10 +177,19 @@ class RenderLoop:
 
     def finish_step(self, timings: dict, seconds: float, should_stop: Callable[[], bool] = lambda: False
                     ) -> IterationRecord:
-        """Count the iteration and apply the stop rules; the record of what it produced."""
+        """Count the iteration and apply the stop rules; the record of what it produced.
+        Composing the final images (service.loop.final_image: raw image, its share, blend) is the
+        iteration's last piece of work, after the error network: its seconds count in the denoise
+        stage and the loop's clock, as OIDN's call counts in a `mi.render` + OIDN image's time."""
         with self.lock:
             self.state.iteration += 1
-            self.state.elapsed += seconds
+        started = time.perf_counter()
+        self.denoised()
+        composed = time.perf_counter() - started
+        if self.session is not None:
+            timings["denoise"] = timings.get("denoise", 0.0) + composed
+        with self.lock:
+            self.state.elapsed += seconds + composed
         record = self._record(timings)
         record.stop_reason = self._stop_after(record)
         if record.stop_reason is None and should_stop():

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 from dataclasses import replace
 import pkgutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +18,7 @@ from bench.common import denoiser_settings, image_metrics
 from bench.quality_measures import block_means
 from bench.experiments.competitor_features import (FeatureCost, costs_from_report, feature_cost, reread, report_text,
                                                    retimed, source_timings)
-from bench.experiments import freed_memory
+from bench.experiments import freed_memory, network_passes_bound
 from bench.experiments.crop_reference import quarter_crops, scored, window_scores
 from bench.experiments.energy_tolerance import UNTOUCHED, median_pixel_ratio, outputs_per_tolerance
 from bench.experiments.gate_offset import offset_ratios
@@ -194,7 +196,7 @@ def test_setting_sweep_images_follow_the_setting_and_restore_the_config():
 
 
 KEPT_EXPERIMENTS = ("accumulation_rules", "competitor_calls", "competitor_features", "crop_reference", "energy_tolerance", "exposure_range", "freed_memory", "gate_offset", "mitsuba_exr_denoise",
-                    "seed_spread", "setting_sweep", "static_flicker")
+                    "network_passes_bound", "seed_spread", "setting_sweep", "static_flicker")
 
 
 def test_the_kept_experiments_import_against_the_current_product_and_no_others_crept_in():
@@ -261,3 +263,39 @@ def test_freed_memory_report_reads_each_allocators_iterations_after_the_first():
     assert "| s (8x8) | defaults | 6.00 | 3.00 | 1.50 | 0.10 | 117.00 | 1,000,000 | 5000 |" in text
     assert "| s (8x8) | kept | 2.00 | 1.00 | 0.50 | 0.10 | 106.00 | 2,000 | 5000 |" in text
     assert "python -m bench.experiments.freed_memory --scenes s" in text
+
+
+def test_one_pass_a_point_charges_every_render_so_far_and_only_its_own_iterations_networks():
+    loop = _curve("the loop (error allocator)", [(16, 6.0, 0.03), (32, 13.0, 0.02), (64, 24.0, 0.015)])
+    stages = [{"render": 4.0, "denoise": 1.5, "error": 0.5, "allocate": 0.0},
+              {"render": 4.5, "denoise": 2.0, "error": 0.3, "allocate": 0.2},
+              {"render": 8.0, "denoise": 2.5, "error": 0.4, "allocate": 0.1}]
+    bound = network_passes_bound.one_pass_per_point(loop, stages)
+    assert [p.seconds for p in bound.points] == pytest.approx([6.0, 4.0 + 4.7 + 2.3, 4.0 + 4.7 + 8.1 + 2.9])
+    assert [p.smape for p in bound.points] == [p.smape for p in loop.points]   # the images as measured
+    with pytest.raises(ValueError, match="3 curve points but 2 stage rows"):
+        network_passes_bound.one_pass_per_point(loop, stages[:2])
+
+
+def test_the_stage_table_reads_one_scenes_iterations_of_a_report():
+    lines = ["## The loop's stages, per iteration", "", network_passes_bound.STAGE_HEADER,
+             "|---|---:|---:|---:|---:|---:|---:|---:|",
+             "| a | 0 | 16 | 4.079 | 2.011 | 0.298 | 0.000 | 6.39 |",
+             "| b | 0 | 16 | 1.262 | 1.837 | 0.259 | 0.000 | 3.36 |",
+             "| a | 1 | 32 | 4.342 | 2.276 | 0.299 | 0.112 | 7.03 |", ""]
+    assert network_passes_bound.stage_seconds(lines, "a") == [
+        {"render": 4.079, "denoise": 2.011, "error": 0.298, "allocate": 0.0},
+        {"render": 4.342, "denoise": 2.276, "error": 0.299, "allocate": 0.112}]
+
+
+def test_the_bound_reads_the_suite_as_measured_exactly_as_the_competitor_re_read_does(tmp_path):
+    """Its 'as measured' column must be the suite re-read's re-timed one (the same curves, costs and
+    readings), and freeing the intermediate passes can only bring the loop's point times forward."""
+    out = tmp_path / "bound.md"
+    network_passes_bound.main(["-o", str(out)])
+    bound_text = out.read_text()
+    features = (Path("docs") / "competitor-features.md").read_text()
+    measured = re.search(r"SMAPE: as measured (ahead on \d+ of \d+, median [0-9.]+×)", bound_text).group(1)
+    assert f"re-timed **{measured}**" in features
+    rows = [line.split(" | ") for line in bound_text.splitlines() if line.startswith("| ") and "benchmarks-" in line]
+    assert len(rows) == 21 and all(float(r[3]) <= float(r[2]) for r in rows)

@@ -218,3 +218,17 @@ def test_pixels_whose_samples_all_agreed_keep_their_exact_mean_and_get_only_the_
     # Iteration 1 spent its 16 × 256 samples mostly on the sphere: the background got the floor.
     added = buffer.spp - 16
     assert added[background].mean() < 0.5 * added[~background].mean()
+
+
+def test_composing_the_final_image_counts_in_the_iterations_denoise_stage_and_clock(tiny_networks):
+    """The final image (raw fallback, service.loop.final_image) is what the iteration delivers: its
+    composition must not fall between the stages the benchmarks and the time limit add up."""
+    loop = make_loop(tiny_networks)
+    timings: dict = {}
+    loop.render_step(timings)
+    loop.denoise_step(timings)
+    denoised = timings["denoise"]
+    record = loop.finish_step(timings, seconds=1.0)
+    assert record.timings["denoise"] > denoised
+    assert loop.state.elapsed == pytest.approx(1.0 + record.timings["denoise"] - denoised)
+    assert record.denoised[0] is loop.denoised()[0]   # composed once, in the step, and read from there
