@@ -417,10 +417,22 @@ def summary_text(standings: list[VariantStanding], reports: list[Path], command:
     return "\n".join(out)
 
 
+def suite_reports(folder: Path) -> list[Path]:
+    """The `--versus-mitsuba` reports in `folder`, the suite page itself left out."""
+    return sorted(p for p in Path(folder).glob(REPORT_GLOB) if p.name != SUMMARY_NAME)
+
+
+def cpu_standing(folder: Path) -> VariantStanding:
+    """The suite's CPU standing over the reports in `folder`: each scene's newest reading, as the
+    suite page has it."""
+    standings = suite_standing(suite_reports(folder), suite_names(), stratifying_scenes())
+    return next(s for s in standings if s.variant == "llvm_ad_rgb")
+
+
 def write_suite_summary(folder: Path, command: str) -> Path:
     """Read every `--versus-mitsuba` report in `folder` and write the summary next to them."""
     folder = Path(folder)
-    reports = sorted(p for p in folder.glob(REPORT_GLOB) if p.name != SUMMARY_NAME)
+    reports = suite_reports(folder)
     if not reports:
         raise ValueError(f"no {REPORT_GLOB} reports in {folder}/ (run renderloop bench --versus-mitsuba first)")
     out = folder / SUMMARY_NAME

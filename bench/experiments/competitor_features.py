@@ -39,8 +39,7 @@ from bench.versus_mitsuba import suite_scenes
 from bench.versus_mitsuba_report import LOOP_LABEL
 from bench.versus_mitsuba_run import MITSUBA_SEED, Curve, CurvePoint, better_of, least_at_competitor_ends
 from bench.versus_mitsuba_scene import AOV_CHANNELS, AOVS, Film, competitor_scene, feature_integrator
-from bench.versus_mitsuba_suite import (REPORT_GLOB, SUMMARY_NAME, Reading, printed_curves, stratifying_scenes,
-                                        suite_names, suite_standing)
+from bench.versus_mitsuba_suite import Reading, cpu_standing, printed_curves, suite_names
 from service.render.runtime import mitsuba
 
 BOX_LABEL = "box film"   # what a competitor curve's key says when its film was switched to `box`
@@ -212,8 +211,9 @@ def report_text(rows: list[SceneReread], command: str, timings: str) -> str:
     for row in rows:
         if not row.costs:
             lines.append(f"| {row.reading.scene} ({row.reading.film}) | {row.reading.report} | | | | | {TIMED_APART} | "
-                         + " | ".join([speedup_text(*row.before), speedup_text(*row.after), speedup_text(*row.relmse_before),
-                                       speedup_text(*row.relmse_after), f"{row.end_before:.2f}×", f"{row.end_after:.2f}×"])
+                         + " | ".join([speedup_text(*row.before), speedup_text(*row.after),
+                                       speedup_text(*row.relmse_before), speedup_text(*row.relmse_after),
+                                       f"{row.end_before:.2f}×", f"{row.end_after:.2f}×"])
                          + " |")
         for index, (key, cost) in enumerate(row.costs.items()):
             label = f"{row.reading.scene} ({row.reading.film}) " if index == 0 else ""
@@ -247,8 +247,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="take the costs from an earlier run's report (its -o file) instead of rendering")
     parser.add_argument("-o", "--out", type=Path, default=None, help="write the report here too")
     args = parser.parse_args(argv)
-    reports = sorted(p for p in args.reports.glob(REPORT_GLOB) if p.name != SUMMARY_NAME)
-    standing = next(s for s in suite_standing(reports, suite_names(), stratifying_scenes()) if s.variant == "llvm_ad_rgb")
+    standing = cpu_standing(args.reports)
     earlier = costs_from_report(args.costs_from) if args.costs_from else None
     rows = []
     for name in args.scenes or suite_names():
@@ -266,9 +265,9 @@ def main(argv: list[str] | None = None) -> int:
         row = reread(reading, loop, competitors, costs)
         rows.append(row)
         ratios = ", ".join(f"{cost.ratio:.3f}" for cost in row.costs.values()) or TIMED_APART
-        print(f"{name}: ratio {ratios}; SMAPE speed-up {speedup_text(*row.before)} -> {speedup_text(*row.after)}; relMSE "
-              f"{speedup_text(*row.relmse_before)} -> {speedup_text(*row.relmse_after)}; at the competitor's last point "
-              f"{row.end_before:.2f}x -> {row.end_after:.2f}x", flush=True)
+        print(f"{name}: ratio {ratios}; SMAPE speed-up {speedup_text(*row.before)} -> {speedup_text(*row.after)}; "
+              f"relMSE {speedup_text(*row.relmse_before)} -> {speedup_text(*row.relmse_after)}; at the competitor's "
+              f"last point {row.end_before:.2f}x -> {row.end_after:.2f}x", flush=True)
     command = "python -m bench.experiments.competitor_features " + " ".join(argv if argv is not None else sys.argv[1:])
     timings = source_timings(args.costs_from) if args.costs_from else measured_timings(args.spp, args.repeats)
     text = report_text(rows, command.strip(), timings)

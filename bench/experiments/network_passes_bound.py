@@ -27,8 +27,7 @@ from bench.experiments.competitor_features import (competitor_keys, costs_from_r
                                                    retimed, speedup_text)
 from bench.versus_mitsuba_report import LOOP_STAGES
 from bench.versus_mitsuba_run import Curve, CurvePoint, better_of, least_at_competitor_ends
-from bench.versus_mitsuba_suite import (REPORT_GLOB, SUMMARY_NAME, Reading, stratifying_scenes, suite_names,
-                                        suite_standing, table_rows)
+from bench.versus_mitsuba_suite import Reading, cpu_standing, suite_names, table_rows
 
 STAGE_HEADER = "| scene | iteration | spp | " + " | ".join(LOOP_STAGES) + " | total s |"
 NETWORK_STAGES = ("denoise", "error")   # the passes a point needs once, for its own image
@@ -104,8 +103,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="the competitors' feature costs (bench.experiments.competitor_features' report)")
     parser.add_argument("-o", "--out", type=Path, default=None, help="write the report here too")
     args = parser.parse_args(argv)
-    reports = sorted(p for p in args.reports.glob(REPORT_GLOB) if p.name != SUMMARY_NAME)
-    standing = next(s for s in suite_standing(reports, suite_names(), stratifying_scenes()) if s.variant == "llvm_ad_rgb")
+    standing = cpu_standing(args.reports)
     costs = costs_from_report(args.costs_from)
     rows = []
     for name in suite_names():
