@@ -194,6 +194,15 @@ def count_and_median(values: list[float]) -> str:
     return f"ahead on {sum(v > 1 for v in readable)} of {len(readable)}, median {statistics.median(readable):.2f}×"
 
 
+def readings_summary(first: str, second: str, smape: tuple[list[float], list[float]],
+                     relmse: tuple[list[float], list[float]], end: tuple[list[float], list[float]]) -> str:
+    """The suite's three readings, each counted and its median taken under two timings of the loop
+    or the competitor (`first`, and `second` in bold): SMAPE, relMSE, SMAPE at the competitors' last points."""
+    def pair(values: tuple[list[float], list[float]]) -> str:
+        return f"{first} {count_and_median(values[0])}; {second} **{count_and_median(values[1])}**"
+    return f"SMAPE: {pair(smape)}. relMSE: {pair(relmse)}. At the competitors' last points (SMAPE): {pair(end)}."
+
+
 def report_text(rows: list[SceneReread], command: str, timings: str) -> str:
     lines = ["# The `mi.render` + OIDN competitor's features: what they cost, and the 2 MP suite re-read", "",
              provenance(command), "", " ".join(__doc__.split("\n\n")[1].split()), "",
@@ -227,13 +236,10 @@ def report_text(rows: list[SceneReread], command: str, timings: str) -> str:
     lines += ["", f"Competitor render time ratio (plain + features ÷ wrapped): median {statistics.median(ratios):.3f} "
               f"({min(ratios):.3f}–{max(ratios):.3f}) over {len(ratios)} films.", "",
               f"Over {len(rows)} scenes (as printed: each report's own timing, the wrapped competitor's where it "
-              f"rendered so; re-timed: every competitor's features apart), SMAPE: as printed "
-              f"{count_and_median([r.before[0] for r in rows])}; re-timed "
-              f"**{count_and_median([r.after[0] for r in rows])}**. relMSE: as printed "
-              f"{count_and_median([r.relmse_before[0] for r in rows])}; re-timed "
-              f"**{count_and_median([r.relmse_after[0] for r in rows])}**. At the competitors' last points (SMAPE): "
-              f"as printed {count_and_median([r.end_before for r in rows])}; re-timed "
-              f"**{count_and_median([r.end_after for r in rows])}**."]
+              f"rendered so; re-timed: every competitor's features apart), "
+              + readings_summary("as printed", "re-timed", ([r.before[0] for r in rows], [r.after[0] for r in rows]),
+                                 ([r.relmse_before[0] for r in rows], [r.relmse_after[0] for r in rows]),
+                                 ([r.end_before for r in rows], [r.end_after for r in rows]))]
     return "\n".join(lines) + "\n"
 
 

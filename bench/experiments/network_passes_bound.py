@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.common import provenance
-from bench.experiments.competitor_features import (competitor_keys, costs_from_report, count_and_median, film_kind,
+from bench.experiments.competitor_features import (competitor_keys, costs_from_report, film_kind, readings_summary,
                                                    retimed, speedup_text)
 from bench.versus_mitsuba_report import LOOP_STAGES
 from bench.versus_mitsuba_run import Curve, CurvePoint, better_of, least_at_competitor_ends
@@ -87,12 +87,12 @@ def report_text(rows: list[BoundRow], command: str) -> str:
                                                for reading in pair),
                  f"{row.end[0]:.2f}×", f"{row.end[1]:.2f}×"]
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", f"Over {len(rows)} scenes, SMAPE: as measured {count_and_median([r.smape[0][0] for r in rows])}; "
-              f"bound **{count_and_median([r.smape[1][0] for r in rows])}**. relMSE: as measured "
-              f"{count_and_median([r.relmse[0][0] for r in rows])}; bound "
-              f"**{count_and_median([r.relmse[1][0] for r in rows])}**. At the competitors' last points (SMAPE): "
-              f"as measured {count_and_median([r.end[0] for r in rows])}; bound "
-              f"**{count_and_median([r.end[1] for r in rows])}**."]
+    def both(readings: list[tuple]) -> tuple[list[float], list[float]]:
+        return [r[0] for r in readings], [r[1] for r in readings]
+
+    lines += ["", f"Over {len(rows)} scenes, " + readings_summary(
+        "as measured", "bound", both([(r.smape[0][0], r.smape[1][0]) for r in rows]),
+        both([(r.relmse[0][0], r.relmse[1][0]) for r in rows]), both([r.end for r in rows]))]
     return "\n".join(lines) + "\n"
 
 
