@@ -14,11 +14,11 @@ import pytest
 import torch
 
 import bench.experiments
-from bench.common import denoiser_settings, image_metrics
+from bench.common import denoiser_settings, image_metrics, load_bench_networks
 from bench.quality_measures import block_means
 from bench.experiments.competitor_features import (FeatureCost, costs_from_report, feature_cost, reread, report_text,
                                                    retimed, source_timings)
-from bench.experiments import freed_memory, network_passes_bound
+from bench.experiments import freed_memory, network_passes_bound, window_reference
 from bench.experiments.crop_reference import quarter_crops, scored, window_scores
 from bench.experiments.energy_tolerance import UNTOUCHED, median_pixel_ratio, outputs_per_tolerance
 from bench.experiments.gate_offset import offset_ratios
@@ -196,7 +196,7 @@ def test_setting_sweep_images_follow_the_setting_and_restore_the_config():
 
 
 KEPT_EXPERIMENTS = ("accumulation_rules", "competitor_calls", "competitor_features", "crop_reference", "energy_tolerance", "exposure_range", "freed_memory", "gate_offset", "mitsuba_exr_denoise",
-                    "network_passes_bound", "seed_spread", "setting_sweep", "static_flicker")
+                    "network_passes_bound", "seed_spread", "setting_sweep", "static_flicker", "window_reference")
 
 
 def test_the_kept_experiments_import_against_the_current_product_and_no_others_crept_in():
@@ -299,3 +299,54 @@ def test_the_bound_reads_the_suite_as_measured_exactly_as_the_competitor_re_read
     assert f"re-timed **{measured}**" in features
     rows = [line.split(" | ") for line in bound_text.splitlines() if line.startswith("| ") and "benchmarks-" in line]
     assert len(rows) == 21 and all(float(r[3]) <= float(r[2]) for r in rows)
+
+
+def test_the_window_grid_lies_inside_the_film_its_windows_apart_and_centred_on_its_ninths():
+    film = Film(1633, 1225)
+    crops = window_reference.grid_crops(film)
+    assert len(crops) == 9 and all((c.width, c.height) == window_reference.WINDOW for c in crops)
+    for a in crops:
+        assert 0 <= a.x and a.x + a.width <= film.width and 0 <= a.y and a.y + a.height <= film.height
+        for b in crops:
+            assert a == b or a.x + a.width <= b.x or b.x + b.width <= a.x or a.y + a.height <= b.y or b.y + b.height <= a.y
+    assert (crops[4].x + crops[4].width // 2, crops[4].y + crops[4].height // 2) == (816, 612)
+    windows = [np.full((84, 112, 3), float(i)) for i in range(9)]
+    assert window_reference.pooled(windows).shape == (1, 9 * 76 * 104, 3)   # the margins dropped
+
+
+def _scores(curves: list[Curve], windows: dict[str, list[float]]) -> list:
+    return [window_reference.PointScore("s", "r.md", c.key, round(p.spp), p.seconds, p.smape, p.smape,
+                                        windows[c.key][i], round(windows[c.key][i] / 100, 6))
+            for c in curves for i, p in enumerate(c.points)]
+
+
+def test_windows_can_turn_a_reading_the_whole_films_noisy_reference_bunched_and_its_table_reads_back(tmp_path):
+    """At the 1024-spp reference's floor the competitor reaches the loop's SMAPE at once; on the windows,
+    where the loop's image is twice as good, it needs a far longer time: the same curves' times, other errors."""
+    loop = _curve("the loop (error allocator)", [(16, 10.0, 0.0200), (32, 20.0, 0.0199)])
+    competitor = _curve("`mi.render` + OIDN, box film", [(16, 8.0, 0.0201), (32, 16.0, 0.0199)])
+    scores = _scores([loop, competitor], {loop.key: [0.010, 0.007], competitor.key: [0.020, 0.014]})
+    reading = Reading("s", "64×48, box", 0.0199, 0.8, False, "1.0×", 0.8, 0.02, 5000.0, "r.md", "abc1234",
+                      "2026-11-30", "16–32 spp")
+    row = window_reference.scene_windows(reading, [loop, competitor], scores)
+    assert row.whole[0][0] == pytest.approx(16.0 / 20.0)
+    assert row.windows[0][0] == pytest.approx(3.08, abs=0.01) and row.windows[0][1] == "extrapolated"
+    assert row.windows[2] == pytest.approx(16.0 / 10.0)   # the loop's first point already below 0.014
+    assert row.reproduced == 0.0
+    rewindowed = window_reference.window_curves([loop, competitor], scores)
+    assert [p.seconds for p in rewindowed[1].points] == [8.0, 16.0]
+    assert [p.smape for p in rewindowed[0].points] == [0.010, 0.007]
+    path = tmp_path / "windows.md"
+    path.write_text(window_reference.report_text([row], "python -m x", 8192))
+    assert window_reference.scores_from_report(path) == scores
+    assert "windows **ahead on 1 of 1" in path.read_text()
+
+
+def test_the_window_images_are_the_loops_iterations_and_each_competitor_films_levels():
+    (scene,) = suite_scenes(["hard_shadows"])
+    film = Film(48, 36)
+    competitor = _curve("`mi.render` + OIDN, the scene's filter", [(16, 1.0, 0.1), (32, 2.0, 0.1)])
+    images = window_reference.window_images(scene, film, load_bench_networks(None).networks, [competitor], [16, 32])
+    assert sorted(images) == sorted([("the loop (error allocator)", 16), ("the loop (error allocator)", 32),
+                                     (competitor.key, 16), (competitor.key, 32)])
+    assert all(image.shape == (36, 48, 3) and np.isfinite(image).all() for image in images.values())
