@@ -1,9 +1,9 @@
 """The ~2 MP suite re-scored on windows of the film against a reference of many more samples.
 
 `renderloop bench --versus-mitsuba` scores each ~2 MP image against a 1024-spp reference whose own
-relative error (0.008–0.13 a scene) is about twice the loop's final SMAPE. SMAPE cannot go below it,
+relative error (0.0008–0.13 a scene) is about twice the loop's final SMAPE. SMAPE cannot go below it,
 so the curves bunch at that floor: on the scenes the loop loses, its equal-time SMAPE ratio is
-0.99–1.04 and a speed-up read there says as much of the reference's noise as of the images. A
+1.00–1.04 and a speed-up read there says as much of the reference's noise as of the images. A
 whole-film reference with much less noise is hours a scene on this CPU; a grid of windows is not.
 For each scene of the suite's newest CPU reading this renders a 3×3 grid of windows at
 --window-spp samples (`independent`, cached in --cache), re-renders the images the report timed —
