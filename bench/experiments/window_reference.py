@@ -83,7 +83,8 @@ class PointScore:
     window_relmse: float  # the windows' reference's noise taken out (debiased_relmse)
 
 
-def window_images(scene, film: Film, networks, competitors: list[Curve], levels: list[int]) -> dict[tuple[str, int], np.ndarray]:
+def window_images(scene, film: Film, networks, competitors: list[Curve],
+                  levels: list[int]) -> dict[tuple[str, int], np.ndarray]:
     """(method, spp) → the whole-film image the report timed: the loop's at each iteration (its
     seed, error allocator), and each competitor film's `mi.render` + OIDN at each level."""
     images = {}
@@ -122,12 +123,12 @@ def scene_scores(reading: Reading, curves: list[Curve], window_spp: int, cache: 
 def window_curves(curves: list[Curve], scores: list[PointScore]) -> list[Curve]:
     """`curves` (the report's times) with each point's errors the windows'."""
     by_point = {(s.method, s.spp): s for s in scores}
-    out = []
-    for curve in curves:
-        points = [replace(p, smape=by_point[(curve.key, round(p.spp))].window_smape,
-                          relmse=by_point[(curve.key, round(p.spp))].window_relmse) for p in curve.points]
-        out.append(Curve(curve.key, curve.label, points))
-    return out
+
+    def rescored(key: str, point: CurvePoint) -> CurvePoint:
+        score = by_point[(key, round(point.spp))]
+        return replace(point, smape=score.window_smape, relmse=score.window_relmse)
+
+    return [Curve(c.key, c.label, [rescored(c.key, p) for p in c.points]) for c in curves]
 
 
 @dataclass(frozen=True)

@@ -195,7 +195,8 @@ def test_setting_sweep_images_follow_the_setting_and_restore_the_config():
     assert np.abs(plain - floored).max() > 1e-3
 
 
-KEPT_EXPERIMENTS = ("accumulation_rules", "competitor_calls", "competitor_features", "crop_reference", "energy_tolerance", "exposure_range", "freed_memory", "gate_offset", "mitsuba_exr_denoise",
+KEPT_EXPERIMENTS = ("accumulation_rules", "competitor_calls", "competitor_features", "crop_reference",
+                    "energy_tolerance", "exposure_range", "freed_memory", "gate_offset", "mitsuba_exr_denoise",
                     "network_passes_bound", "seed_spread", "setting_sweep", "static_flicker", "window_reference")
 
 
