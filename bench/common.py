@@ -59,6 +59,18 @@ def command_line() -> str:
     return "renderloop " + " ".join(sys.argv[1:])
 
 
+def experiment_command(module: str, argv: list[str] | None) -> str:
+    """How a `python -m` experiment was invoked: `module` with `argv` (None: the process's own)."""
+    return " ".join(["python -m", module, *(argv if argv is not None else sys.argv[1:])])
+
+
+def publish(text: str, out: Path | None) -> None:
+    """Print a report and write it to `out` too, if given."""
+    print(text)
+    if out is not None:
+        Path(out).write_text(text)
+
+
 def git_commit() -> str:
     """RENDERLOOP_COMMIT when set (a copied tree, e.g. on a device machine, whose .git may be
     missing or older than its files), else the checkout's commit, else 'unknown'."""

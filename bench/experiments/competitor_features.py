@@ -26,14 +26,13 @@ import argparse
 import math
 import re
 import statistics
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import oidn_denoiser, provenance
+from bench.common import experiment_command, oidn_denoiser, provenance, publish
 from bench.dev_references import DevScene
 from bench.versus_mitsuba import suite_scenes
 from bench.versus_mitsuba_report import LOOP_LABEL
@@ -117,6 +116,15 @@ def competitor_keys(reading: Reading, report: Path) -> tuple[Curve, list[Curve]]
     if LOOP_LABEL not in curves or not competitors:
         raise ValueError(f"{report.name}: no printed curves for {reading.scene}")
     return curves[LOOP_LABEL], competitors
+
+
+def suite_curves(reading: Reading, report: Path, costs: dict[str, dict[str, FeatureCost]]) -> tuple[Curve, list[Curve]]:
+    """The loop's printed curve and the competitors' as the suite re-read times them: a competitor that
+    wrapped its features re-timed by the scene's `costs` (costs_from_report)."""
+    loop, competitors = competitor_keys(reading, report)
+    if not reading.features_apart:
+        competitors = [retimed(c, costs[reading.scene][film_kind(c.key)]) for c in competitors]
+    return loop, competitors
 
 
 def measured_costs(reading: Reading, competitors: list[Curve], spp: int, repeats: int) -> dict[str, FeatureCost]:
@@ -274,12 +282,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: ratio {ratios}; SMAPE speed-up {speedup_text(*row.before)} -> {speedup_text(*row.after)}; "
               f"relMSE {speedup_text(*row.relmse_before)} -> {speedup_text(*row.relmse_after)}; at the competitor's "
               f"last point {row.end_before:.2f}x -> {row.end_after:.2f}x", flush=True)
-    command = "python -m bench.experiments.competitor_features " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = experiment_command("bench.experiments.competitor_features", argv)
     timings = source_timings(args.costs_from) if args.costs_from else measured_timings(args.spp, args.repeats)
-    text = report_text(rows, command.strip(), timings)
-    print(text)
-    if args.out is not None:
-        args.out.write_text(text)
+    text = report_text(rows, command, timings)
+    publish(text, args.out)
     return 0
 
 

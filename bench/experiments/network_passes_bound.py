@@ -18,13 +18,11 @@ meets them on this CPU: the loop's images at equal samples must get better.
 from __future__ import annotations
 
 import argparse
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.common import provenance
-from bench.experiments.competitor_features import (competitor_keys, costs_from_report, film_kind, readings_summary,
-                                                   retimed, speedup_text)
+from bench.common import experiment_command, provenance, publish
+from bench.experiments.competitor_features import costs_from_report, readings_summary, speedup_text, suite_curves
 from bench.versus_mitsuba_report import LOOP_STAGES
 from bench.versus_mitsuba_run import Curve, CurvePoint, better_of, least_at_competitor_ends
 from bench.versus_mitsuba_suite import Reading, cpu_standing, suite_names, table_rows
@@ -111,15 +109,11 @@ def main(argv: list[str] | None = None) -> int:
         if reading is None:
             continue
         report = args.reports / reading.report
-        loop, competitors = competitor_keys(reading, report)
-        if not reading.features_apart:
-            competitors = [retimed(c, costs[name][film_kind(c.key)]) for c in competitors]
+        loop, competitors = suite_curves(reading, report, costs)
         rows.append(bound_row(reading, loop, competitors, stage_seconds(report.read_text().splitlines(), name)))
-    command = "python -m bench.experiments.network_passes_bound " + " ".join(argv if argv is not None else sys.argv[1:])
-    text = report_text(rows, command.strip())
-    print(text)
-    if args.out is not None:
-        args.out.write_text(text)
+    command = experiment_command("bench.experiments.network_passes_bound", argv)
+    text = report_text(rows, command)
+    publish(text, args.out)
     return 0
 
 

@@ -26,16 +26,16 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from bench.common import Reference, load_bench_networks, oidn_denoiser, pinned_torch_threads, provenance
-from bench.experiments.competitor_features import (competitor_keys, costs_from_report, film_kind, readings_summary,
-                                                   retimed, speedup_text)
+from bench.common import (Reference, experiment_command, load_bench_networks, oidn_denoiser, pinned_torch_threads,
+                          provenance, publish)
+from bench.experiments.competitor_features import (costs_from_report, film_kind, readings_summary, speedup_text,
+                                                   suite_curves)
 from bench.experiments.crop_reference import MARGIN, scored
 from bench.loop_report import DEFAULT_CACHE_DIR
 from bench.versus_mitsuba import suite_scenes
@@ -223,9 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         kept = [s for s in earlier if s.scene == name and reading is not None and s.report == reading.report]
         if reading is None or not (kept or args.scenes is None or name in args.scenes):
             continue
-        loop, competitors = competitor_keys(reading, args.reports / reading.report)
-        if not reading.features_apart:
-            competitors = [retimed(c, costs[name][film_kind(c.key)]) for c in competitors]
+        loop, competitors = suite_curves(reading, args.reports / reading.report, costs)
         curves = [loop, *competitors]
         if not kept:
             if networks is None:
@@ -236,11 +234,9 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         print(f"{name}: SMAPE speed-up {speedup_text(*row.whole[0])} -> {speedup_text(*row.windows[0])} on windows; "
               f"relMSE {speedup_text(*row.whole[1])} -> {speedup_text(*row.windows[1])}", flush=True)
-    command = "python -m bench.experiments.window_reference " + " ".join(argv if argv is not None else sys.argv[1:])
-    text = report_text(rows, command.strip(), args.window_spp)
-    print(text)
-    if args.out is not None:
-        args.out.write_text(text)
+    command = experiment_command("bench.experiments.window_reference", argv)
+    text = report_text(rows, command, args.window_spp)
+    publish(text, args.out)
     return 0
 
 
