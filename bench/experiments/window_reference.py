@@ -177,7 +177,8 @@ def report_text(rows: list[SceneWindows], command: str, window_spp: int) -> str:
              f"references of {window_spp} spp. Speed-ups over the better competitor (`~`: read off its "
              "fitted power law); at the competitors' last points, the least favourable film. \"Whole film\": "
              "the suite page's reading against the 1024-spp reference. \"Reproduced\": the largest difference "
-             "between a re-rendered image's whole-film SMAPE and the report's (printed to 4 significant digits).",
+             "between a re-rendered image's whole-film SMAPE and the report's (printed to 4 significant digits); "
+             "\"unchecked\" where the scene's 1024-spp reference is not in the cache.",
              "", "| scene (film) | report | reproduced | SMAPE speed-up, whole film | windows | relMSE, whole film "
              "| windows | at the competitors' last points, whole film | windows |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
