@@ -29,6 +29,7 @@ import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -133,17 +134,29 @@ def measured_costs(reading: Reading, competitors: list[Curve], spp: int, repeats
     return {c.key: feature_cost(scene, Film(width, height), BOX_LABEL in c.key, spp, repeats) for c in competitors}
 
 
+class SuiteReadings(NamedTuple):
+    """One scene's loop curve against its competitors, read as the suite page reads them
+    (bench.versus_mitsuba_run.better_of, least_at_competitor_ends)."""
+    smape: tuple[float, str]    # equal-error speed-up in SMAPE over the better competitor, how read
+    relmse: tuple[float, str]   # the same in relMSE (the references' noise taken out)
+    end: float                  # SMAPE speed-up at the competitors' last points (least favourable)
+    end_measured: bool
+
+
+def suite_readings(loop: Curve, competitors: list[Curve]) -> SuiteReadings:
+    smape, relmse = better_of(loop, competitors, "smape"), better_of(loop, competitors, "relmse")
+    end = least_at_competitor_ends(loop, competitors)
+    return SuiteReadings((smape.speedup, smape.other_seconds.how), (relmse.speedup, relmse.other_seconds.how),
+                         end.speedup, end.measured)
+
+
 def reread(reading: Reading, loop: Curve, competitors: list[Curve], costs: dict[str, FeatureCost]) -> SceneReread:
     """One scene's printed curves read as printed and with the competitors re-timed; a reading whose
     competitor already rendered its features apart (no `costs`) reads the same both ways."""
     after = [retimed(c, costs[c.key]) for c in competitors] if costs else competitors
-    readings = {}
-    for metric in ("smape", "relmse"):
-        old, new = better_of(loop, competitors, metric), better_of(loop, after, metric)
-        readings[metric] = ((old.speedup, old.other_seconds.how), (new.speedup, new.other_seconds.how))
-    end_old, end_new = least_at_competitor_ends(loop, competitors), least_at_competitor_ends(loop, after)
-    return SceneReread(reading, costs, *readings["smape"], *readings["relmse"], end_old.speedup, end_new.speedup,
-                       end_new.measured)
+    old, new = suite_readings(loop, competitors), suite_readings(loop, after)
+    return SceneReread(reading, costs, old.smape, new.smape, old.relmse, new.relmse, old.end, new.end,
+                       new.end_measured)
 
 
 COSTS_HEADER = "| scene (film) | report | wrapped s |"

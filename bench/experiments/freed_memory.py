@@ -21,7 +21,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from bench.common import provenance
+from bench.common import provenance, publish
 from service.memory_reuse import KEEP_FREED_MEMORY_ENV
 
 STAGES = ("render", "denoise", "error", "allocate")
@@ -103,10 +103,7 @@ def main() -> None:
         for _ in range(args.repeats):   # alternating, so load drifts hit both alike
             for mode, keep in MODES.items():
                 results[scene][mode].append(run_once(scene, args.megapixels, args.iterations, keep))
-    text = report(results, args)
-    if args.output:
-        args.output.write_text(text)
-    print(text)
+    publish(report(results, args), args.output)
 
 
 if __name__ == "__main__":

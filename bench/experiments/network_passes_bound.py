@@ -22,9 +22,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.common import experiment_command, provenance, publish
-from bench.experiments.competitor_features import costs_from_report, readings_summary, speedup_text, suite_curves
+from bench.experiments.competitor_features import (costs_from_report, readings_summary, speedup_text, suite_curves,
+                                                   suite_readings)
 from bench.versus_mitsuba_report import LOOP_STAGES
-from bench.versus_mitsuba_run import Curve, CurvePoint, better_of, least_at_competitor_ends
+from bench.versus_mitsuba_run import Curve, CurvePoint
 from bench.versus_mitsuba_suite import Reading, cpu_standing, suite_names, table_rows
 
 STAGE_HEADER = "| scene | iteration | spp | " + " | ".join(LOOP_STAGES) + " | total s |"
@@ -62,13 +63,9 @@ class BoundRow:
 
 def bound_row(reading: Reading, loop: Curve, competitors: list[Curve], stages: list[dict[str, float]]) -> BoundRow:
     bound = one_pass_per_point(loop, stages)
-    readings = {}
-    for metric in ("smape", "relmse"):
-        measured, free = better_of(loop, competitors, metric), better_of(bound, competitors, metric)
-        readings[metric] = ((measured.speedup, measured.other_seconds.how), (free.speedup, free.other_seconds.how))
-    end = (least_at_competitor_ends(loop, competitors).speedup, least_at_competitor_ends(bound, competitors).speedup)
-    return BoundRow(reading, loop.points[-1].seconds, bound.points[-1].seconds, readings["smape"],
-                    readings["relmse"], end)
+    measured, free = suite_readings(loop, competitors), suite_readings(bound, competitors)
+    return BoundRow(reading, loop.points[-1].seconds, bound.points[-1].seconds, (measured.smape, free.smape),
+                    (measured.relmse, free.relmse), (measured.end, free.end))
 
 
 def report_text(rows: list[BoundRow], command: str) -> str:

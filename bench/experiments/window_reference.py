@@ -34,14 +34,13 @@ import torch
 
 from bench.common import (Reference, experiment_command, load_bench_networks, oidn_denoiser, pinned_torch_threads,
                           provenance, publish)
-from bench.experiments.competitor_features import (costs_from_report, film_kind, readings_summary, speedup_text,
-                                                   suite_curves)
+from bench.experiments.competitor_features import (SuiteReadings, costs_from_report, film_kind, readings_summary,
+                                                   speedup_text, suite_curves, suite_readings)
 from bench.experiments.crop_reference import MARGIN, scored
 from bench.loop_report import DEFAULT_CACHE_DIR
 from bench.versus_mitsuba import suite_scenes
 from bench.versus_mitsuba_report import LOOP_LABEL
-from bench.versus_mitsuba_run import (MITSUBA_SEED, Curve, CurvePoint, better_of, debiased_relmse, image_smape,
-                                      least_at_competitor_ends, make_loop)
+from bench.versus_mitsuba_run import MITSUBA_SEED, Curve, CurvePoint, debiased_relmse, image_smape, make_loop
 from bench.versus_mitsuba_scene import (Crop, Film, competitor_scene, reference, reference_path, render_with_aovs)
 from bench.versus_mitsuba_suite import Reading, cpu_standing, suite_names, table_rows
 
@@ -135,24 +134,17 @@ def window_curves(curves: list[Curve], scores: list[PointScore]) -> list[Curve]:
 class SceneWindows:
     reading: Reading
     scores: list[PointScore]
-    whole: tuple[tuple[float, str], tuple[float, str], float]    # SMAPE, relMSE speed-ups, at the last points
-    windows: tuple[tuple[float, str], tuple[float, str], float]
+    whole: SuiteReadings      # the report's curves
+    windows: SuiteReadings    # the same times, the windows' errors
     reproduced: float        # the largest |re-rendered ÷ printed − 1| of its whole-film SMAPEs (nan: unchecked)
-
-
-def readings(loop: Curve, competitors: list[Curve]) -> tuple[tuple[float, str], tuple[float, str], float]:
-    """(SMAPE speed-up, relMSE speed-up, each with how it was read; SMAPE speed-up at the
-    competitors' last points), as the suite page reads them."""
-    smape, relmse = better_of(loop, competitors, "smape"), better_of(loop, competitors, "relmse")
-    return ((smape.speedup, smape.other_seconds.how), (relmse.speedup, relmse.other_seconds.how),
-            least_at_competitor_ends(loop, competitors).speedup)
 
 
 def scene_windows(reading: Reading, curves: list[Curve], scores: list[PointScore]) -> SceneWindows:
     loop, competitors = curves[0], curves[1:]
     rewindowed = window_curves(curves, scores)
     checked = [abs(s.full_smape / s.printed_smape - 1) for s in scores if math.isfinite(s.full_smape)]
-    return SceneWindows(reading, scores, readings(loop, competitors), readings(rewindowed[0], rewindowed[1:]),
+    return SceneWindows(reading, scores, suite_readings(loop, competitors),
+                        suite_readings(rewindowed[0], rewindowed[1:]),
                         max(checked) if checked else math.nan)
 
 
@@ -185,13 +177,13 @@ def report_text(rows: list[SceneWindows], command: str, window_spp: int) -> str:
     for row in rows:
         reproduced = "unchecked" if math.isnan(row.reproduced) else f"{100 * row.reproduced:.2f} %"
         cells = [f"{row.reading.scene} ({row.reading.film})", row.reading.report, reproduced,
-                 speedup_text(*row.whole[0]), speedup_text(*row.windows[0]), speedup_text(*row.whole[1]),
-                 speedup_text(*row.windows[1]), f"{row.whole[2]:.2f}×", f"{row.windows[2]:.2f}×"]
+                 speedup_text(*row.whole.smape), speedup_text(*row.windows.smape), speedup_text(*row.whole.relmse),
+                 speedup_text(*row.windows.relmse), f"{row.whole.end:.2f}×", f"{row.windows.end:.2f}×"]
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", f"Over {len(rows)} scenes, " + readings_summary(
-        "whole film", "windows", ([r.whole[0][0] for r in rows], [r.windows[0][0] for r in rows]),
-        ([r.whole[1][0] for r in rows], [r.windows[1][0] for r in rows]),
-        ([r.whole[2] for r in rows], [r.windows[2] for r in rows])), "",
+        "whole film", "windows", ([r.whole.smape[0] for r in rows], [r.windows.smape[0] for r in rows]),
+        ([r.whole.relmse[0] for r in rows], [r.windows.relmse[0] for r in rows]),
+        ([r.whole.end for r in rows], [r.windows.end for r in rows])), "",
         "## Every image", "", SCORES_HEADER, "|---|---|---|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
         for s in row.scores:
@@ -233,8 +225,8 @@ def main(argv: list[str] | None = None) -> int:
                 kept = scene_scores(reading, curves, args.window_spp, args.cache, networks)
         row = scene_windows(reading, curves, kept)
         rows.append(row)
-        print(f"{name}: SMAPE speed-up {speedup_text(*row.whole[0])} -> {speedup_text(*row.windows[0])} on windows; "
-              f"relMSE {speedup_text(*row.whole[1])} -> {speedup_text(*row.windows[1])}", flush=True)
+        print(f"{name}: SMAPE speed-up {speedup_text(*row.whole.smape)} -> {speedup_text(*row.windows.smape)} on "
+              f"windows; relMSE {speedup_text(*row.whole.relmse)} -> {speedup_text(*row.windows.relmse)}", flush=True)
     command = experiment_command("bench.experiments.window_reference", argv)
     text = report_text(rows, command, args.window_spp)
     publish(text, args.out)

@@ -330,9 +330,9 @@ def test_windows_can_turn_a_reading_the_whole_films_noisy_reference_bunched_and_
     reading = Reading("s", "64×48, box", 0.0199, 0.8, False, "1.0×", 0.8, 0.02, 5000.0, "r.md", "abc1234",
                       "2026-11-30", "16–32 spp")
     row = window_reference.scene_windows(reading, [loop, competitor], scores)
-    assert row.whole[0][0] == pytest.approx(16.0 / 20.0)
-    assert row.windows[0][0] == pytest.approx(3.08, abs=0.01) and row.windows[0][1] == "extrapolated"
-    assert row.windows[2] == pytest.approx(16.0 / 10.0)   # the loop's first point already below 0.014
+    assert row.whole.smape[0] == pytest.approx(16.0 / 20.0)
+    assert row.windows.smape[0] == pytest.approx(3.08, abs=0.01) and row.windows.smape[1] == "extrapolated"
+    assert row.windows.end == pytest.approx(16.0 / 10.0)   # the loop's first point already below 0.014
     assert row.reproduced == 0.0
     rewindowed = window_reference.window_curves([loop, competitor], scores)
     assert [p.seconds for p in rewindowed[1].points] == [8.0, 16.0]
